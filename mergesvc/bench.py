@@ -1,0 +1,140 @@
+"""Benchmark harness: latency (median and spread over repeats) and accuracy of `verified`
+vs `paper` mode, measured side by side in the same run on seeded scenarios.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from mergesvc.config import MatchConfig, load_config
+from mergesvc.pipeline import MatchOutcome, match
+from mergesvc.scenario import Family, Scenario, make_scenario
+
+
+def score_outcome(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
+    """Node accuracy (paper: correct / submap objects that have a true match), precision of
+    the returned matches, outliers left unmatched, and whether the result was accepted."""
+    got = {m.submap_object: m.map_object for m in outcome.result.matches}
+    true_pairs = {s: m for s, m in sc.truth.items() if m is not None}
+    outliers = [s for s, m in sc.truth.items() if m is None]
+    correct = sum(got.get(s) == m for s, m in true_pairs.items())
+    wrong = sum(sc.truth.get(s) != m for s, m in got.items())
+    return {
+        "accuracy": correct / max(len(true_pairs), 1),
+        "correct": correct,
+        "wrong": wrong,
+        "returned": len(got),
+        "outliers": len(outliers),
+        "outliers_unmatched": sum(s not in got for s in outliers),
+        "accepted": float(outcome.result.accepted),
+    }
+
+
+def _spread(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values)
+    q1, med, q3 = np.percentile(a, [25, 50, 75])
+    return {"median": float(med), "iqr": float(q3 - q1), "min": float(a.min()),
+            "max": float(a.max())}
+
+
+def run_case(
+    sc: Scenario, config: MatchConfig, repeats: int
+) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
+    """Run one scenario `repeats` times; (scores of the first run, totals ms, stage ms)."""
+    totals, stages = [], {}
+    scores = None
+    for _ in range(repeats):
+        outcome = match(sc.map, sc.submap, config)
+        if scores is None:
+            scores = score_outcome(sc, outcome)
+        for k, v in outcome.result.timings_ms.items():
+            stages.setdefault(k, []).append(v)
+        totals.append(outcome.result.timings_ms["total"])
+    assert scores is not None
+    return scores, totals, stages
+
+
+def run_match_bench(
+    repeats: int = 5,
+    seeds: int = 5,
+    paper: bool = True,
+    echo: Callable[[str], Any] = print,
+    families: tuple[Family, ...] = (Family.KITTI, Family.UNDERWATER),
+) -> dict[str, Any]:
+    """Both modes on `seeds` scenarios per family. Paper mode runs once per scenario (it takes
+    seconds); verified mode `repeats` times. Returns a JSON-ready report and echoes a table."""
+    modes = [("verified", load_config(mode="verified"), repeats)]
+    if paper:
+        modes.append(("paper", load_config(mode="paper"), 1))
+    report: dict[str, Any] = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "machine": f"{platform.machine()} {platform.processor() or ''} "
+        f"{_cpu_count()} cores, python {platform.python_version()}",
+        "settings": {name: cfg.model_dump(mode="json") for name, cfg, _ in modes},
+        "results": {},
+    }
+    start = time.perf_counter()
+    for family in families:
+        for name, cfg, reps in modes:
+            rows, totals, stages = [], [], {}
+            for seed in range(seeds):
+                sc = make_scenario(family, seed)
+                if name == "paper":  # the paper's radius for this kind of world
+                    cfg = cfg.model_copy(deep=True)
+                    cfg.affinity.edge_radius_m = sc.paper_radius_m
+                scores, t, st = run_case(sc, cfg, reps)
+                rows.append(scores)
+                totals += t
+                for k, v in st.items():
+                    stages.setdefault(k, []).extend(v)
+                echo(
+                    f"[{time.perf_counter() - start:6.1f}s] {family.value:>10} {name:>8} "
+                    f"seed {seed}: {len(sc.submap.objects)} vs {len(sc.map.objects)} objects, "
+                    f"acc {scores['accuracy']:.2f}, wrong {scores['wrong']}, "
+                    f"{np.median(t):.1f} ms"
+                )
+            summary = {
+                "node_accuracy": float(np.mean([r["accuracy"] for r in rows])),
+                "wrong_matches": int(sum(r["wrong"] for r in rows)),
+                "returned_matches": int(sum(r["returned"] for r in rows)),
+                "wrong_in_accepted": int(sum(r["wrong"] for r in rows if r["accepted"])),
+                "accepted": int(sum(r["accepted"] for r in rows)),
+                "outliers_unmatched": f"{sum(r['outliers_unmatched'] for r in rows)}/"
+                f"{sum(r['outliers'] for r in rows)}",
+                "latency_ms": _spread(totals),
+                "stages_ms": {k: _spread(v)["median"] for k, v in stages.items()},
+                "runs": len(totals),
+            }
+            report["results"][f"{family.value}/{name}"] = summary
+    echo("")
+    echo(markdown_table(report))
+    return report
+
+
+def markdown_table(report: dict[str, Any]) -> str:
+    lines = [
+        "| scenario / mode | node accuracy | wrong matches (in accepted) | accepted | "
+        "outliers left unmatched | latency median ms (IQR) [min-max] | runs |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, r in report["results"].items():
+        lat = r["latency_ms"]
+        lines.append(
+            f"| {key} | {r['node_accuracy']:.3f} | {r['wrong_matches']} "
+            f"({r['wrong_in_accepted']}) | {r['accepted']} | {r['outliers_unmatched']} | "
+            f"{lat['median']:.1f} ({lat['iqr']:.1f}) [{lat['min']:.1f}-{lat['max']:.1f}] | "
+            f"{r['runs']} |"
+        )
+    return "\n".join(lines)
+
+
+def _cpu_count() -> int:
+    import os
+
+    return os.cpu_count() or 0

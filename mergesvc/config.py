@@ -1,0 +1,144 @@
+"""Settings: one pydantic model with a section per stage; defaults, a JSON file, MERGESVC_* env.
+
+Distances left as None are derived from the data (the median spacing of the objects), so one
+default works for a 10 m pool and a 2 km drive alike.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from mergesvc.affinity import NodeAffinity
+from mergesvc.errors import ConfigError
+
+
+class MatchMode(str, Enum):
+    PAPER = "paper"
+    VERIFIED = "verified"
+
+
+class SolverName(str, Enum):
+    RRWM = "rrwm"
+    SM = "sm"
+    IPFP = "ipfp"
+    EXACT = "exact"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class CandidatesConfig(_Section):
+    top_k: int = Field(12, ge=1, le=256, description="candidate map objects per submap object")
+    prefilter: int = Field(
+        256, ge=1, description="cosine shortlist per submap object before the chosen affinity"
+    )
+    sample: int = Field(512, ge=8, description="map objects sampled for the reference distance")
+    ceiling_quantile: float = Field(
+        0.5, ge=0, le=1, description="quantile of the best-candidate lifts that scores 1"
+    )
+
+
+class AffinityConfig(_Section):
+    kind: NodeAffinity = NodeAffinity.UCOS
+    normalize_embeddings: bool = Field(
+        True, description="Gaussian affinities on unit-norm embeddings (scale invariant)"
+    )
+    raw_distances: bool = Field(
+        False, description="paper mode: feed Gaussian distances in as affinities (authors' code)"
+    )
+    edge_radius_m: float | None = Field(
+        None, gt=0, description="paper-mode edge radius; None: 3 x the median object spacing"
+    )
+    edge_sigma_m: float | None = Field(
+        None, gt=0, description="edge length tolerance; None: spacing_sigma x median spacing"
+    )
+    spacing_sigma: float = Field(
+        0.25, gt=0, description="edge tolerance as a fraction of the median object spacing"
+    )
+    edge_rel_tol: float = Field(
+        0.05, ge=0, description="tolerance growing with edge length (drift, range noise)"
+    )
+    edge_weight: float = Field(0.5, gt=0, description="verified: weight of geometry vs nodes")
+    edge_threshold: float = Field(
+        0.3, ge=0, lt=1, description="verified: edge affinity below which a pair counts against"
+    )
+    node_threshold: float = Field(
+        0.6, ge=0, lt=1, description="verified: node score below which a match counts against"
+    )
+
+
+class SolverConfig(_Section):
+    name: SolverName = SolverName.RRWM
+    max_iter: int = Field(100, ge=1)
+    rrwm_alpha: float = Field(0.2, gt=0, lt=1)
+    rrwm_beta: float = Field(30.0, gt=0)
+
+
+class VerifyConfig(_Section):
+    exact: bool = Field(True, description="prove the optimum over the candidate set")
+    max_nodes: int = Field(200_000, ge=1, description="branch-and-bound node budget")
+    time_limit_s: float | None = Field(2.0, gt=0)
+    min_matches: int = Field(3, ge=3, description="matches needed for a 6-DoF transform")
+    inlier_sigmas: float = Field(3.0, gt=0, description="residual gate in edge tolerances")
+
+
+class MatchConfig(_Section):
+    mode: MatchMode = MatchMode.VERIFIED
+    seed: int = 0
+    candidates: CandidatesConfig = CandidatesConfig()
+    affinity: AffinityConfig = AffinityConfig()
+    solver: SolverConfig = SolverConfig()
+    verify: VerifyConfig = VerifyConfig()
+
+
+ENV_PREFIX = "MERGESVC_"
+
+
+def _env_overrides(environ: dict[str, str]) -> dict[str, Any]:
+    """MERGESVC_SOLVER__NAME=sm -> {"solver": {"name": "sm"}}."""
+    out: dict[str, Any] = {}
+    for key, value in environ.items():
+        if not key.startswith(ENV_PREFIX):
+            continue
+        path = key[len(ENV_PREFIX) :].lower().split("__")
+        node = out
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+        try:
+            node[path[-1]] = json.loads(value)
+        except json.JSONDecodeError:
+            node[path[-1]] = value
+    return out
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    for k, v in over.items():
+        base[k] = _merge(base.get(k, {}), v) if isinstance(v, dict) else v
+    return base
+
+
+def load_config(
+    path: Path | str | None = None, environ: dict[str, str] | None = None, **overrides: Any
+) -> MatchConfig:
+    """Defaults <- JSON file <- MERGESVC_* environment <- explicit overrides (nested dicts)."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from exc
+    _merge(data, _env_overrides(dict(os.environ if environ is None else environ)))
+    _merge(data, overrides)
+    try:
+        return MatchConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(f"invalid config: {loc}: {err['msg']}") from exc

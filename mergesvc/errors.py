@@ -1,0 +1,40 @@
+"""Exception tree of mergesvc: one root, one subclass per boundary.
+
+    MergeError
+     ├── InputError        bad user input (files, CLI arguments, models)
+     │    ├── DecodeError  bytes or text that cannot be parsed
+     │    └── SchemaError  parsed, but violates the schema (fields, sizes, NaN, version)
+     ├── SolverError       a solver failed or was asked something it cannot do
+     └── ConfigError       invalid configuration
+
+"No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
+"""
+
+from __future__ import annotations
+
+
+class MergeError(Exception):
+    """Root of every error mergesvc raises on purpose."""
+
+
+class InputError(MergeError):
+    """Input from outside (file, message, argument) is unusable."""
+
+
+class DecodeError(InputError):
+    """Bytes or text that cannot be decoded (malformed JSON, msgpack, truncated data)."""
+
+
+class SchemaError(InputError):
+    """Decoded data that violates the schema (missing field, bad value, wrong version)."""
+
+
+class SolverError(MergeError):
+    """A solver failed or received a problem it cannot solve."""
+
+
+class ConfigError(MergeError):
+    """Invalid configuration."""
+
+
+__all__ = ["ConfigError", "DecodeError", "InputError", "MergeError", "SchemaError", "SolverError"]

@@ -1,0 +1,320 @@
+"""Wire and file models (pydantic v2): object nodes, object maps, submaps, match results.
+
+Everything crossing a boundary is validated here: finite numbers, positive variances, one
+embedding dimension per map, unique ids, bounded sizes. The core works on `ObjectArrays`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from mergesvc.errors import DecodeError, SchemaError
+
+SCHEMA_VERSION = 1
+MAX_EMBEDDING_DIM = 4096
+MAX_OBJECTS = 200_000
+MAX_ID_LENGTH = 128
+MAX_FILE_BYTES = 2 * 1024**3
+
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+Identifier = Annotated[str, Field(min_length=1, max_length=MAX_ID_LENGTH)]
+
+
+def _check_version(v: Any) -> int:
+    if v != SCHEMA_VERSION:
+        raise ValueError(f"unsupported schema_version {v!r}: this build reads {SCHEMA_VERSION}")
+    return v
+
+
+class ObjectNode(BaseModel):
+    """One object of a map: position, embedding mean and its diagonal variance.
+
+    `variance` is either one number (isotropic: the same variance in every dimension) or one
+    positive number per embedding dimension. The scalar uncertainty s of the weighted cosine is
+    the mean of the per-dimension variances (for an isotropic variance, the number itself), so a
+    single observation with image uncertainty s and Sigma = s I has uncertainty s, and n fused
+    observations of it have s / n.
+    """
+
+    model_config = _STRICT
+
+    id: Identifier
+    position: tuple[float, float, float] = Field(description="object centre [x, y, z] in metres")
+    embedding: list[float] = Field(min_length=1, max_length=MAX_EMBEDDING_DIM)
+    variance: Annotated[float, Field(gt=0)] | list[Annotated[float, Field(gt=0)]] = Field(
+        description="per-dimension variance of the embedding, or one number if isotropic"
+    )
+    n_obs: int = Field(default=1, ge=1, description="observations fused into this object")
+    label: str | None = Field(default=None, max_length=128, description="optional class name")
+
+    @model_validator(mode="after")
+    def _variance_matches_embedding(self) -> ObjectNode:
+        if isinstance(self.variance, list) and len(self.variance) != len(self.embedding):
+            raise ValueError(
+                f"variance has {len(self.variance)} values but embedding has "
+                f"{len(self.embedding)} (give one per dimension, or a single number)"
+            )
+        return self
+
+
+class ObjectMap(BaseModel):
+    """A robot's object map (or the global map): the file `mergesvc match --map` reads."""
+
+    model_config = _STRICT
+
+    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    robot_id: Identifier
+    session_id: Identifier
+    objects: list[ObjectNode] = Field(min_length=1, max_length=MAX_OBJECTS)
+
+    @field_validator("schema_version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> int:
+        return _check_version(v)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ObjectMap:
+        d = len(self.objects[0].embedding)
+        seen: set[str] = set()
+        for k, obj in enumerate(self.objects):
+            if len(obj.embedding) != d:
+                raise ValueError(
+                    f"objects.{k} ({obj.id}): embedding has {len(obj.embedding)} values, "
+                    f"objects.0 has {d}"
+                )
+            if obj.id in seen:
+                raise ValueError(f"objects.{k}: duplicate id {obj.id!r}")
+            seen.add(obj.id)
+        return self
+
+    @property
+    def dim(self) -> int:
+        return len(self.objects[0].embedding)
+
+    def arrays(self) -> ObjectArrays:
+        return ObjectArrays.from_objects(self.objects)
+
+
+class Submap(ObjectMap):
+    """A window of a robot's recent objects, matched against a map."""
+
+    seq: int | None = Field(default=None, ge=0, description="submap sequence number")
+    stamp: float | None = Field(default=None, description="time of the submap cut, seconds")
+
+
+class Transform(BaseModel):
+    """Rigid transform T_map_submap: p_map = R p_submap + t."""
+
+    model_config = _STRICT
+
+    translation: tuple[float, float, float]
+    quaternion_wxyz: tuple[float, float, float, float]
+
+
+class RejectReason(str, Enum):
+    """Why a match was (not) accepted; `verified` means accepted."""
+
+    VERIFIED = "verified"
+    NOT_VERIFIED = "not_verified"  # paper mode: no verification is done
+    TOO_FEW_MATCHES = "too_few_matches"
+    DEGENERATE_GEOMETRY = "degenerate_geometry"
+    RESIDUAL_TOO_LARGE = "residual_too_large"
+    SEARCH_INCOMPLETE = "search_incomplete"
+    NO_CANDIDATES = "no_candidates"
+
+
+class Match(BaseModel):
+    model_config = _STRICT
+
+    submap_object: str
+    map_object: str
+    score: float
+
+
+class MatchResult(BaseModel):
+    """Result of matching a submap against a map; `mergesvc match --json` prints it."""
+
+    model_config = _STRICT
+
+    schema_version: int = SCHEMA_VERSION
+    accepted: bool
+    reason: RejectReason
+    matches: list[Match]
+    transform: Transform | None
+    covariance: list[list[float]] | None = Field(
+        description="6x6 covariance of the transform, GTSAM order (rotation, translation)"
+    )
+    timings_ms: dict[str, float]
+
+    @field_validator("schema_version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> int:
+        return _check_version(v)
+
+    @field_validator("covariance")
+    @classmethod
+    def _six_by_six(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None and (len(v) != 6 or any(len(r) != 6 for r in v)):
+            raise ValueError("covariance must be 6x6")
+        return v
+
+    def cli_dict(self) -> dict[str, Any]:
+        """The exact JSON object `mergesvc match --json` prints (no schema_version)."""
+        return self.model_dump(mode="json", exclude={"schema_version"})
+
+
+@dataclass(frozen=True)
+class ObjectArrays:
+    """Objects as arrays, the representation the core stages compute on.
+
+    ids: n object ids; position_xyz_m: (n, 3); embeddings_nd: (n, d);
+    variances_nd: (n, d) per-dimension variance; n_obs: (n,)
+    """
+
+    ids: list[str]
+    position_xyz_m: np.ndarray
+    embeddings_nd: np.ndarray
+    variances_nd: np.ndarray
+    n_obs: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.ids)
+        if self.position_xyz_m.shape != (n, 3):
+            raise SchemaError(f"position_xyz_m must be ({n}, 3), got {self.position_xyz_m.shape}")
+        if self.embeddings_nd.ndim != 2 or self.embeddings_nd.shape[0] != n:
+            raise SchemaError(f"embeddings_nd must be ({n}, d), got {self.embeddings_nd.shape}")
+        if self.variances_nd.shape != self.embeddings_nd.shape:
+            raise SchemaError("variances_nd must have the shape of embeddings_nd")
+        if n == 0:
+            raise SchemaError("no objects")
+        for name in ("position_xyz_m", "embeddings_nd", "variances_nd"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise SchemaError(f"{name} has NaN or inf")
+        if np.any(self.variances_nd <= 0):
+            raise SchemaError("variances_nd must be positive")
+
+    @property
+    def n(self) -> int:
+        return len(self.ids)
+
+    @property
+    def dim(self) -> int:
+        return self.embeddings_nd.shape[1]
+
+    @property
+    def uncertainty_s(self) -> np.ndarray:
+        """(n,) scalar uncertainty s: mean of the per-dimension variances (see ObjectNode)."""
+        return self.variances_nd.mean(axis=1)
+
+    @classmethod
+    def from_objects(cls, objects: list[ObjectNode]) -> ObjectArrays:
+        d = len(objects[0].embedding)
+        var = np.empty((len(objects), d))
+        for k, o in enumerate(objects):
+            var[k] = o.variance  # a scalar broadcasts: isotropic
+        return cls(
+            ids=[o.id for o in objects],
+            position_xyz_m=np.array([o.position for o in objects], dtype=np.float64),
+            embeddings_nd=np.array([o.embedding for o in objects], dtype=np.float64),
+            variances_nd=var,
+            n_obs=np.array([o.n_obs for o in objects], dtype=np.int64),
+        )
+
+    def subset(self, index: np.ndarray) -> ObjectArrays:
+        index = np.asarray(index, dtype=np.int64)
+        return ObjectArrays(
+            ids=[self.ids[k] for k in index],
+            position_xyz_m=self.position_xyz_m[index],
+            embeddings_nd=self.embeddings_nd[index],
+            variances_nd=self.variances_nd[index],
+            n_obs=self.n_obs[index],
+        )
+
+    def to_nodes(self, isotropic_tol: float = 0.0) -> list[ObjectNode]:
+        """Back to file objects; a variance row that is constant becomes one number."""
+        nodes = []
+        for k, oid in enumerate(self.ids):
+            v = self.variances_nd[k]
+            var: float | list[float] = (
+                float(v[0]) if np.ptp(v) <= isotropic_tol * v[0] else v.tolist()
+            )
+            nodes.append(
+                ObjectNode(
+                    id=oid,
+                    position=tuple(float(x) for x in self.position_xyz_m[k]),
+                    embedding=self.embeddings_nd[k].tolist(),
+                    variance=var,
+                    n_obs=int(self.n_obs[k]),
+                )
+            )
+        return nodes
+
+
+def _format_validation_error(exc: ValidationError, what: str) -> str:
+    """One line naming the first offending field, e.g. `objects.3.variance.7: ...`."""
+    errors = exc.errors()
+    first = errors[0]
+    loc = ".".join(str(x) for x in first["loc"])
+    msg = first["msg"].removeprefix("Value error, ")
+    more = f" (and {len(errors) - 1} more errors)" if len(errors) > 1 else ""
+    return f"invalid {what}: {loc + ': ' if loc else ''}{msg}{more}"
+
+
+def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -> ObjectMap:
+    """Validate JSON text into `model`; raise DecodeError / SchemaError with one clear line."""
+    try:
+        raw = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DecodeError(f"{what} is not valid JSON: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise SchemaError(f"invalid {what}: expected a JSON object, got {type(raw).__name__}")
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        raise SchemaError(_format_validation_error(exc, what)) from exc
+
+
+def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
+    """Read a map or submap JSON file."""
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SchemaError(f"{p}: {size} bytes is larger than the limit {MAX_FILE_BYTES}")
+        data = p.read_bytes()
+    except OSError as exc:
+        raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    return parse_model(model, data, what=str(p))
+
+
+def json_schemas() -> dict[str, dict[str, Any]]:
+    """JSON Schema of every file model, keyed by file name under schemas/."""
+    return {
+        "object_map.schema.json": ObjectMap.model_json_schema(),
+        "submap.schema.json": Submap.model_json_schema(),
+        "match_result.schema.json": MatchResult.model_json_schema(),
+    }
+
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "Match",
+    "MatchResult",
+    "ObjectArrays",
+    "ObjectMap",
+    "ObjectNode",
+    "RejectReason",
+    "Submap",
+    "Transform",
+    "json_schemas",
+    "load_model",
+    "parse_model",
+]

@@ -1,0 +1,347 @@
+"""The matching pipeline: the only place the stages are chained.
+
+verified: candidates -> affinity K over candidate pairs -> solver -> hard assignment with
+          no-match -> exact search on the candidate set -> rigid fit -> accept / reject
+paper:    node affinity (all pairs) -> dense K (pygmtools) -> solver -> Hungarian, every node
+          matched (Singh & Leonard's pipeline, the baseline)
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mergesvc.affinity import (
+    NodeAffinity,
+    distance_to_similarity,
+    edge_affinity,
+    median_spacing,
+    node_affinity,
+    node_distance,
+    pairwise_lengths,
+    radius_edges,
+)
+from mergesvc.candidates import Candidates, retrieve
+from mergesvc.config import MatchConfig, MatchMode, SolverName
+from mergesvc.errors import SchemaError
+from mergesvc.model import (
+    Match,
+    MatchResult,
+    ObjectArrays,
+    ObjectMap,
+    RejectReason,
+    Transform,
+)
+from mergesvc.solvers import dense, heuristic
+from mergesvc.solvers.exact import ExactResult, solve_exact
+from mergesvc.solvers.hungarian import harden, harden_dense, prune_negative
+from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.verify import RigidFit, fit_rigid
+
+log = logging.getLogger(__name__)
+
+
+class StageTimer:
+    """Wall time per stage in milliseconds, in the order the stages ran."""
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+        self._clock = clock
+        self._start = clock()
+        self._last = self._start
+        self.ms: dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = self._clock()
+        self.ms[stage] = self.ms.get(stage, 0.0) + (now - self._last) * 1e3
+        self._last = now
+
+    def total(self) -> dict[str, float]:
+        return {**self.ms, "total": (self._clock() - self._start) * 1e3}
+
+
+@dataclass
+class MatchOutcome:
+    """MatchResult plus what the benchmark and the service need to look inside.
+
+    assignment: (n1,) map index per submap node, UNMATCHED (-1) where left unmatched; after
+    verification only the inliers remain. proposed: the assignment before the rigid fit.
+    """
+
+    result: MatchResult
+    assignment: np.ndarray
+    proposed: np.ndarray
+    exact: ExactResult | None = None
+    fit: RigidFit | None = None
+    n_candidates: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def _as_arrays(objs: ObjectMap | ObjectArrays) -> ObjectArrays:
+    return objs if isinstance(objs, ObjectArrays) else objs.arrays()
+
+
+def edge_scales(map_: ObjectArrays, config: MatchConfig) -> tuple[float, float]:
+    """(edge length tolerance sigma_m, paper-mode edge radius_m), derived from data if unset."""
+    need = config.affinity.edge_sigma_m is None or config.affinity.edge_radius_m is None
+    spacing = median_spacing(map_.position_xyz_m) if need else 1.0
+    sigma = config.affinity.edge_sigma_m or config.affinity.spacing_sigma * spacing
+    radius = config.affinity.edge_radius_m or 3.0 * spacing
+    return sigma, radius
+
+
+def match(
+    map_: ObjectMap | ObjectArrays,
+    submap: ObjectMap | ObjectArrays,
+    config: MatchConfig | None = None,
+    clock: Callable[[], float] = time.perf_counter,
+) -> MatchOutcome:
+    """Match a submap against a map. See the module docstring for the two modes."""
+    config = config or MatchConfig()
+    timer = StageTimer(clock)
+    m_arr, s_arr = _as_arrays(map_), _as_arrays(submap)
+    if m_arr.dim != s_arr.dim:
+        raise SchemaError(
+            f"embedding dimensions differ: map has {m_arr.dim}, submap has {s_arr.dim}"
+        )
+    timer.lap("prepare")
+    if config.mode is MatchMode.PAPER:
+        return _match_paper(m_arr, s_arr, config, timer)
+    return _match_verified(m_arr, s_arr, config, timer)
+
+
+# ------------------------------------------------------------------ verified mode
+
+
+def edge_pair_weight(n1: int, config: MatchConfig) -> float:
+    """Weight of one K entry of a submap edge: w_e / (n1 - 1), half on (p, q), half on (q, p)."""
+    return config.affinity.edge_weight / max(n1 - 1, 1) / 2.0
+
+
+def candidate_problem(
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    cands: Candidates,
+    config: MatchConfig,
+    sigma_m: float,
+) -> tuple[AssignmentProblem, AssignmentProblem, np.ndarray]:
+    """K over candidate pairs: (signed problem, non-negative problem, local->map index).
+
+    Signed objective: sum of calibrated node scores + for every pair of matched submap nodes
+    w_e / (n1 - 1) * (a_e - threshold), a_e = exp(-(e_ij - e_ab)^2 / (2 tol_ij^2)),
+    tol_ij^2 = sigma^2 + (rel * e_ij)^2. A pair inconsistent with the others costs, so a false
+    detection is better left unmatched. The non-negative one (threshold 0) feeds RRWM / SM.
+    """
+    local, cols = np.unique(cands.map_nodes, return_inverse=True)
+    R = cands.rows
+    e_sub = pairwise_lengths(sub.position_xyz_m)
+    e_map = pairwise_lengths(map_.position_xyz_m[local])
+    E1 = e_sub[np.ix_(R, R)]
+    E2 = e_map[np.ix_(cols, cols)]
+    aff = config.affinity
+    tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
+    A_e = edge_affinity(E1, E2, 2.0 * tol2)
+    valid = (R[:, None] != R[None, :]) & (cols[:, None] != cols[None, :])
+    w = edge_pair_weight(sub.n, config)
+    K_pos = np.where(valid, w * A_e, 0.0)
+    K_signed = np.where(valid, w * (A_e - aff.edge_threshold), 0.0)
+    np.fill_diagonal(K_pos, cands.score)
+    np.fill_diagonal(K_signed, cands.score - aff.node_threshold)
+    n2 = len(local)
+    return (
+        AssignmentProblem(sub.n, n2, R, cols, K_signed),
+        AssignmentProblem(sub.n, n2, R, cols, K_pos),
+        local,
+    )
+
+
+def _solve_candidates(
+    signed: AssignmentProblem, positive: AssignmentProblem, config: MatchConfig
+) -> np.ndarray:
+    """Heuristic solve + no-match hardening + pruning. Returns (n1,) local col or UNMATCHED."""
+    name, scfg = config.solver.name, config.solver
+    if name is SolverName.RRWM:
+        soft = heuristic.rrwm(positive, scfg.max_iter, scfg.rrwm_alpha, scfg.rrwm_beta)
+    elif name is SolverName.SM:
+        soft = heuristic.spectral(positive, scfg.max_iter)
+    elif name is SolverName.IPFP:
+        soft = heuristic.ipfp(signed, heuristic.spectral(positive, scfg.max_iter), scfg.max_iter)
+    else:  # exact: start from the node scores alone
+        soft = np.diag(signed.K).copy()
+    assignment = harden(signed, soft, unmatched_value=0.0)
+    return prune_negative(signed, assignment)
+
+
+def _match_scores(
+    positive: AssignmentProblem, assignment: np.ndarray, edge_w: float
+) -> dict[int, float]:
+    """Per matched row, in [0, 1]: mean of its node score and of its edge agreement a_e with
+    the other matched rows (node score alone when it is the only match)."""
+    rows = np.flatnonzero(assignment != UNMATCHED)
+    if len(rows) == 0:
+        return {}
+    idx = positive.assignment_to_indices(assignment)
+    block = positive.K[np.ix_(idx, idx)]
+    node = np.clip(np.diag(block), 0.0, 1.0)
+    if len(rows) == 1:
+        return {int(rows[0]): float(node[0])}
+    agree = (block.sum(axis=1) - np.diag(block)) / (edge_w * (len(rows) - 1))
+    return {int(i): float(0.5 * node[k] + 0.5 * agree[k]) for k, i in enumerate(rows)}
+
+
+def _match_verified(
+    map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
+) -> MatchOutcome:
+    rng = np.random.default_rng(config.seed)
+    n1 = sub.n
+    unmatched = np.full(n1, UNMATCHED, dtype=np.int64)
+    cands = retrieve(sub, map_, config.candidates, config.affinity, rng)
+    timer.lap("candidates")
+    if cands.m == 0:
+        return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
+    sigma_m, _ = edge_scales(map_, config)
+    signed, positive, local = candidate_problem(sub, map_, cands, config, sigma_m)
+    timer.lap("affinity")
+    proposed_local = _solve_candidates(signed, positive, config)
+    timer.lap("solve")
+    exact = None
+    if config.verify.exact or config.solver.name is SolverName.EXACT:
+        exact = solve_exact(
+            signed,
+            allow_unmatched=True,
+            incumbent=proposed_local,
+            max_nodes=config.verify.max_nodes,
+            time_limit_s=config.verify.time_limit_s,
+        )
+        if exact.score >= signed.score(proposed_local) - 1e-9:
+            proposed_local = exact.assignment
+        timer.lap("exact")
+    scores = _match_scores(positive, proposed_local, edge_pair_weight(sub.n, config))
+    proposed = np.where(proposed_local == UNMATCHED, UNMATCHED, local[proposed_local])
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    xyz = sub.position_xyz_m[rows]
+    lever_m = np.linalg.norm(xyz - xyz.mean(axis=0), axis=1) if len(rows) else np.zeros(0)
+    tol = config.verify.inlier_sigmas * np.hypot(sigma_m, config.affinity.edge_rel_tol * lever_m)
+    fit = fit_rigid(
+        sub.position_xyz_m[rows],
+        map_.position_xyz_m[proposed[rows]],
+        tol,
+        min_matches=config.verify.min_matches,
+        sigma_floor_m=0.1 * sigma_m,
+    )
+    reason = fit.reason
+    final = proposed.copy()
+    if fit.accepted:
+        final[rows[~fit.inliers]] = UNMATCHED
+    if exact is not None and not exact.optimal and reason is RejectReason.VERIFIED:
+        reason = RejectReason.SEARCH_INCOMPLETE
+    timer.lap("verify")
+    outcome = _finish(reason, sub, map_, final, proposed, scores, timer, fit)
+    outcome.exact = exact
+    outcome.n_candidates = cands.m
+    return outcome
+
+
+# ------------------------------------------------------------------ paper mode
+
+
+def _match_paper(
+    map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
+) -> MatchOutcome:
+    kind = NodeAffinity(config.affinity.kind)
+    n1, n2 = sub.n, map_.n
+    if kind is not NodeAffinity.UCOS and config.affinity.raw_distances:
+        # the authors' code: the distance itself used as the affinity
+        A = node_distance(kind, sub, map_, None, config.affinity.normalize_embeddings)
+    elif kind is NodeAffinity.UCOS:
+        A = node_affinity(kind, sub, map_)
+    else:
+        D = node_distance(kind, sub, map_, None, config.affinity.normalize_embeddings)
+        A = distance_to_similarity(D, float(np.median(D)))
+    timer.lap("node_affinity")
+    sigma_m, radius_m = edge_scales(map_, config)
+    e1, _ = radius_edges(sub.position_xyz_m, radius_m)
+    e2, _ = radius_edges(map_.position_xyz_m, radius_m)
+    len1 = np.linalg.norm(sub.position_xyz_m[e1[:, 0]] - sub.position_xyz_m[e1[:, 1]], axis=1)
+    len2 = np.linalg.norm(map_.position_xyz_m[e2[:, 0]] - map_.position_xyz_m[e2[:, 1]], axis=1)
+    K = dense.build_dense_K(A, e1, len1, e2, len2, sigma=2.0 * sigma_m**2)
+    timer.lap("affinity")
+    exact = None
+    if config.solver.name is SolverName.EXACT:
+        problem = AssignmentProblem.dense(dense.column_major_to_row_major(K, n1, n2), n1, n2)
+        del K
+        exact = solve_exact(
+            problem,
+            allow_unmatched=False,
+            max_nodes=config.verify.max_nodes,
+            time_limit_s=config.verify.time_limit_s,
+        )
+        assignment = exact.assignment
+        soft = A
+    else:
+        soft = dense.solve_dense(config.solver.name.value, K, n1, n2, config.solver.max_iter)
+        del K
+        assignment = harden_dense(soft)
+    timer.lap("solve")
+    rows = np.flatnonzero(assignment != UNMATCHED)
+    scores = {int(i): float(soft[i, assignment[i]]) for i in rows}
+    sigma_fit = np.full(len(rows), np.inf)  # paper mode verifies nothing: no residual gate
+    fit = fit_rigid(
+        sub.position_xyz_m[rows],
+        map_.position_xyz_m[assignment[rows]],
+        sigma_fit,
+        min_matches=3,
+        sigma_floor_m=0.1 * sigma_m,
+    )
+    timer.lap("transform")
+    outcome = _finish(
+        RejectReason.NOT_VERIFIED, sub, map_, assignment, assignment, scores, timer, fit
+    )
+    outcome.exact = exact
+    outcome.n_candidates = n1 * n2
+    return outcome
+
+
+# ------------------------------------------------------------------ result
+
+
+def _finish(
+    reason: RejectReason,
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    assignment: np.ndarray,
+    proposed: np.ndarray,
+    scores: dict[int, float],
+    timer: StageTimer,
+    fit: RigidFit | None = None,
+) -> MatchOutcome:
+    matches = [
+        Match(
+            submap_object=sub.ids[i],
+            map_object=map_.ids[int(assignment[i])],
+            score=round(scores.get(int(i), 0.0), 6),
+        )
+        for i in np.flatnonzero(assignment != UNMATCHED)
+    ]
+    transform = covariance = None
+    if fit is not None and fit.T_map_submap is not None and fit.covariance_66 is not None:
+        T = fit.T_map_submap
+        q = T.rotation().toQuaternion()
+        transform = Transform(
+            translation=tuple(float(x) for x in T.translation()),
+            quaternion_wxyz=(q.w(), q.x(), q.y(), q.z()),
+        )
+        covariance = fit.covariance_66.tolist()
+    accepted = reason in (RejectReason.VERIFIED, RejectReason.NOT_VERIFIED)
+    result = MatchResult(
+        accepted=accepted and (reason is RejectReason.VERIFIED or bool(matches)),
+        reason=reason,
+        matches=matches,
+        transform=transform,
+        covariance=covariance,
+        timings_ms={k: round(v, 3) for k, v in timer.total().items()},
+    )
+    return MatchOutcome(result=result, assignment=assignment, proposed=proposed, fit=fit)

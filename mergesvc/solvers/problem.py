@@ -1,0 +1,95 @@
+"""The assignment problem every solver works on: a Lawler QAP restricted to candidate pairs.
+
+maximise  score(S) = sum_{p in S} sum_{q in S} K[p, q]
+over sets S of candidate assignments p = (rows[p], cols[p]) that use each submap node (row) at
+most once (exactly once when unmatched rows are not allowed) and each map node (col) at most once.
+Diagonal of K: node affinity of the pair; off-diagonal: edge affinity of the two pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mergesvc.errors import SolverError
+
+UNMATCHED = -1
+
+
+@dataclass(frozen=True)
+class AssignmentProblem:
+    """Candidate-restricted Lawler QAP.
+
+    rows: (m,) int, submap node index of each candidate assignment, in [0, n1)
+    cols: (m,) int, map node index of each candidate assignment, in [0, n2)
+    K: (m, m) float64, symmetric affinity between candidate assignments
+    """
+
+    n1: int
+    n2: int
+    rows: np.ndarray
+    cols: np.ndarray
+    K: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = len(self.rows)
+        if self.rows.shape != (m,) or self.cols.shape != (m,):
+            raise SolverError("rows and cols must be 1-d arrays of equal length")
+        if self.K.shape != (m, m):
+            raise SolverError(f"K must be ({m}, {m}), got {self.K.shape}")
+        if m and (self.rows.min() < 0 or self.rows.max() >= self.n1):
+            raise SolverError("rows out of range [0, n1)")
+        if m and (self.cols.min() < 0 or self.cols.max() >= self.n2):
+            raise SolverError("cols out of range [0, n2)")
+        if not np.all(np.isfinite(self.K)):
+            raise SolverError("K has non-finite entries")
+        pairs = self.rows.astype(np.int64) * max(self.n2, 1) + self.cols
+        if len(np.unique(pairs)) != m:
+            raise SolverError("duplicate candidate assignments")
+
+    @property
+    def m(self) -> int:
+        return len(self.rows)
+
+    @classmethod
+    def dense(cls, K: np.ndarray, n1: int, n2: int) -> AssignmentProblem:
+        """All n1*n2 pairs; K indexed row-major, p = i * n2 + a."""
+        rows, cols = np.divmod(np.arange(n1 * n2), n2)
+        return cls(n1, n2, rows, cols, np.asarray(K, dtype=np.float64))
+
+    def assignment_to_indices(self, assignment: np.ndarray) -> np.ndarray:
+        """(n1,) map node per row (UNMATCHED = -1) -> indices of the chosen candidates.
+
+        Raises SolverError when a chosen pair is not a candidate.
+        """
+        lookup = {(int(r), int(c)): p for p, (r, c) in enumerate(zip(self.rows, self.cols))}
+        out = []
+        for i, a in enumerate(np.asarray(assignment)):
+            if a == UNMATCHED:
+                continue
+            p = lookup.get((i, int(a)))
+            if p is None:
+                raise SolverError(f"pair ({i}, {int(a)}) is not a candidate")
+            out.append(p)
+        return np.asarray(out, dtype=np.int64)
+
+    def score(self, assignment: np.ndarray) -> float:
+        """Objective of a hard assignment given as (n1,) map node per row or UNMATCHED."""
+        idx = self.assignment_to_indices(assignment)
+        return float(self.K[np.ix_(idx, idx)].sum())
+
+    def is_feasible(self, assignment: np.ndarray, allow_unmatched: bool = True) -> bool:
+        a = np.asarray(assignment)
+        if a.shape != (self.n1,):
+            return False
+        used = a[a != UNMATCHED]
+        if len(np.unique(used)) != len(used):
+            return False
+        if not allow_unmatched and len(used) != self.n1:
+            return False
+        try:
+            self.assignment_to_indices(a)
+        except SolverError:
+            return False
+        return True

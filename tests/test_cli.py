@@ -1,0 +1,122 @@
+"""The `mergesvc` command as a user runs it: real files, real subprocesses."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mergesvc.scenario import Family, make_scenario
+
+CLI = [sys.executable, "-m", "mergesvc.cli"]
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ex")
+    r = run("example", str(out), "--family", "underwater", "--seed", "4")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_match_json_output_is_exactly_the_documented_object(files: Path) -> None:
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
+            "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)  # exactly one JSON object on stdout
+    assert set(out) == {"accepted", "reason", "matches", "transform", "covariance", "timings_ms"}
+    truth = json.loads((files / "truth.json").read_text())["matches"]
+    for m in out["matches"]:
+        assert set(m) == {"submap_object", "map_object", "score"}
+        assert truth[m["submap_object"]] == m["map_object"]
+    assert out["accepted"] is True and out["reason"] == "verified"
+    assert set(out["transform"]) == {"translation", "quaternion_wxyz"}
+    assert len(out["covariance"]) == 6 and all(len(row) == 6 for row in out["covariance"])
+    assert "total" in out["timings_ms"]
+
+
+@pytest.mark.parametrize("mode", ["paper", "verified"])
+@pytest.mark.parametrize("solver", ["rrwm", "sm", "ipfp", "exact"])
+def test_match_all_modes_and_solvers(files: Path, mode: str, solver: str) -> None:
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
+            "--mode", mode, "--solver", solver, "--affinity", "mahalanobis", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    if mode == "paper":
+        assert len(out["matches"]) == 6  # every submap object matched, outlier included
+
+
+def test_human_output(files: Path) -> None:
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"))
+    assert r.returncode == 0 and "accepted" in r.stdout and "T_map_submap" in r.stdout
+
+
+def test_file_format_from_the_issue(tmp_path: Path) -> None:
+    """Hand-written files in the documented shape, scalar and per-dimension variances."""
+    sc = make_scenario(Family.KITTI, seed=3, n_map=40, n_sub=8, n_outliers=0)
+    doc = json.loads(sc.map.model_dump_json())
+    for k, o in enumerate(doc["objects"]):
+        o.pop("label", None)
+        if k % 2:
+            o["variance"] = 0.2
+    (tmp_path / "m.json").write_text(json.dumps(doc))
+    sub = json.loads(sc.submap.model_dump_json())
+    for o in sub["objects"]:
+        o.pop("label", None)
+    sub.pop("seq")
+    (tmp_path / "s.json").write_text(json.dumps(sub))
+    r = run("match", "--map", str(tmp_path / "m.json"), "--submap", str(tmp_path / "s.json"),
+            "--json")
+    assert r.returncode == 0, r.stderr
+    got = {m["submap_object"]: m["map_object"] for m in json.loads(r.stdout)["matches"]}
+    assert sum(got.get(s) == m for s, m in sc.truth.items()) >= 7
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        "{not json",
+        '{"schema_version": 2, "robot_id": "a", "session_id": "s", "objects": []}',
+        '{"schema_version": 1, "robot_id": "a", "session_id": "s", "objects": [{"id": "x", '
+        '"position": [0, 0, NaN], "embedding": [1, 2], "variance": 1}]}',
+        "[]",
+    ],
+)
+def test_bad_input_is_one_line_exit_2(files: Path, tmp_path: Path, content: str) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text(content)
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(bad), "--json")
+    assert r.returncode == 2
+    assert r.stdout == ""
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
+def test_missing_file_and_dimension_mismatch(files: Path, tmp_path: Path) -> None:
+    r = run("match", "--map", str(tmp_path / "nope.json"), "--submap", str(files / "map.json"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    doc = json.loads((files / "submap.json").read_text())
+    for o in doc["objects"]:
+        o["embedding"] = o["embedding"][:10]
+        o["variance"] = 0.1
+    (tmp_path / "short.json").write_text(json.dumps(doc))
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(tmp_path / "short.json"))
+    assert r.returncode == 2 and "dimensions differ" in r.stderr
+
+
+def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
+    repo = Path(__file__).resolve().parents[1]
+    assert run("schemas", str(repo / "schemas"), "--check").returncode == 0
+    assert run("schemas", str(tmp_path / "empty"), "--check").returncode == 1
+    out = tmp_path / "bench.json"
+    r = run("bench", "match", "--repeats", "2", "--seeds", "1", "--no-paper", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    report = json.loads(out.read_text())
+    assert set(report["results"]) == {"kitti/verified", "underwater/verified"}
+    assert report["results"]["kitti/verified"]["runs"] == 2
