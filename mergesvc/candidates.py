@@ -39,21 +39,47 @@ def _sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray | None:
     return None if n <= size else np.sort(rng.choice(n, size=size, replace=False))
 
 
+@dataclass(frozen=True)
+class Calibration:
+    """How raw node affinities of one submap become scores: 0 at a typical unrelated map object
+    (`floor_n`, per submap object), 1 at a typical submap object's best map object (`ceil`)."""
+
+    kind: NodeAffinity
+    normalize: bool
+    D_ref: float | None
+    floor_n: np.ndarray
+    ceil: float
+
+
+def pair_scores(
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    rows: np.ndarray,
+    map_nodes: np.ndarray,
+    calib: Calibration,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Raw affinity and calibrated score (<= 1) of given pairs. (m,), (m,) -> (m,), (m,)."""
+    union, inverse = np.unique(map_nodes, return_inverse=True)
+    A = node_affinity(calib.kind, sub, map_, union, calib.normalize, calib.D_ref)
+    aff = A[rows, inverse]
+    return aff, np.minimum((aff - calib.floor_n[rows]) / calib.ceil, 1.0)
+
+
 def retrieve(
     sub: ObjectArrays,
     map_: ObjectArrays,
     cand_cfg: CandidatesConfig,
     aff_cfg: AffinityConfig,
     rng: np.random.Generator,
-) -> Candidates:
-    """Top-k candidates per submap node with calibrated scores."""
+) -> tuple[Candidates, Calibration]:
+    """Top-k candidates per submap node with calibrated scores, and the calibration."""
     kind = NodeAffinity(aff_cfg.kind)
     n1, n2 = sub.n, map_.n
     # shortlist: every map node for small maps, else the best `prefilter` by plain cosine
     if n2 <= cand_cfg.prefilter:
         shortlist = np.broadcast_to(np.arange(n2), (n1, n2))
     else:
-        cos = unit_rows(sub.embeddings_nd)[0] @ unit_rows(map_.embeddings_nd)[0].T
+        cos = unit_rows(sub.embeddings_nd)[0] @ map_.unit_embeddings_nd.T
         shortlist = np.argpartition(-cos, cand_cfg.prefilter - 1, axis=1)[:, : cand_cfg.prefilter]
     union, inverse = np.unique(shortlist, return_inverse=True)
     inverse = inverse.reshape(shortlist.shape)
@@ -80,14 +106,52 @@ def retrieve(
     # is unusually weak (a false detection, a never-seen object) scores below 1 throughout
     lift = A_top.max(axis=1) - floor
     ceil = max(float(np.quantile(lift, cand_cfg.ceiling_quantile)), 1e-12)
+    calib = Calibration(kind, aff_cfg.normalize_embeddings, D_ref, floor, ceil)
     score = (A_top - floor[:, None]) / ceil
     keep = score > 0
     rows = np.broadcast_to(np.arange(n1)[:, None], top.shape)[keep]
     map_nodes = np.take_along_axis(shortlist, top, axis=1)[keep]
-    order = np.lexsort((-A_top[keep], rows))
+    return _sorted(rows, map_nodes, A_top[keep], np.minimum(score[keep], 1.0)), calib
+
+
+def _sorted(rows, map_nodes, affinity, score) -> Candidates:
+    order = np.lexsort((-affinity, rows))
     return Candidates(
-        rows=rows[order].astype(np.int64),
-        map_nodes=map_nodes[order].astype(np.int64),
-        affinity=A_top[keep][order],
-        score=np.minimum(score[keep][order], 1.0),
+        rows=np.asarray(rows)[order].astype(np.int64),
+        map_nodes=np.asarray(map_nodes)[order].astype(np.int64),
+        affinity=np.asarray(affinity)[order],
+        score=np.asarray(score)[order],
+    )
+
+
+def expand_near(
+    cands: Candidates,
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    predicted_xyz_m: np.ndarray,
+    radius_m: np.ndarray,
+    calib: Calibration,
+    min_score: float = 0.0,
+) -> Candidates:
+    """Add map objects near each submap object's predicted map position as candidates.
+
+    predicted_xyz_m: (n1, 3) submap centres mapped into the map frame; radius_m: (n1,) gate.
+    Guided matching: once a transform is known, an object whose true match ranked below the
+    top-k by appearance alone (look-alike instances of a class) is found by where it is.
+    New pairs keep their calibrated appearance score, floored at `min_score`.
+    """
+    near = map_.kdtree.query_ball_point(predicted_xyz_m, radius_m)
+    rows = np.repeat(np.arange(sub.n), [len(v) for v in near])
+    nodes = np.fromiter((b for v in near for b in v), dtype=np.int64, count=len(rows))
+    have = set(zip(cands.rows.tolist(), cands.map_nodes.tolist()))
+    new = np.array([(r, b) not in have for r, b in zip(rows.tolist(), nodes.tolist())], bool)
+    if not new.any():
+        return cands
+    rows, nodes = rows[new], nodes[new]
+    aff, score = pair_scores(sub, map_, rows, nodes, calib)
+    return _sorted(
+        np.concatenate([cands.rows, rows]),
+        np.concatenate([cands.map_nodes, nodes]),
+        np.concatenate([cands.affinity, aff]),
+        np.concatenate([cands.score, np.maximum(score, min_score)]),
     )

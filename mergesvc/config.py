@@ -40,6 +40,10 @@ class CandidatesConfig(_Section):
         256, ge=1, description="cosine shortlist per submap object before the chosen affinity"
     )
     sample: int = Field(512, ge=8, description="map objects sampled for the reference distance")
+    guided: bool = Field(
+        True, description="after a verified match, add map objects where the transform puts "
+        "each submap object and solve again"
+    )
     ceiling_quantile: float = Field(
         0.5, ge=0, le=1, description="quantile of the best-candidate lifts that scores 1"
     )
@@ -86,6 +90,13 @@ class VerifyConfig(_Section):
     max_nodes: int = Field(200_000, ge=1, description="branch-and-bound node budget")
     time_limit_s: float | None = Field(2.0, gt=0)
     min_matches: int = Field(3, ge=3, description="matches needed for a 6-DoF transform")
+    margin: float = Field(
+        0.1, ge=0, description="objective margin a match needs over its best alternative"
+    )
+    margin_max_matches: int = Field(
+        6, ge=0, description="margin test only for solutions with at most this many matches: "
+        "more matched objects pin the geometry down by themselves"
+    )
     inlier_sigmas: float = Field(3.0, gt=0, description="residual gate in edge tolerances")
 
 

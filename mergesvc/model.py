@@ -6,6 +6,7 @@ embedding dimension per map, unique ids, bounded sizes. The core works on `Objec
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from enum import Enum
@@ -13,7 +14,16 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from scipy.spatial import cKDTree
 
 from mergesvc.errors import DecodeError, SchemaError
 
@@ -74,6 +84,7 @@ class ObjectMap(BaseModel):
     robot_id: Identifier
     session_id: Identifier
     objects: list[ObjectNode] = Field(min_length=1, max_length=MAX_OBJECTS)
+    _arrays: ObjectArrays | None = PrivateAttr(default=None)
 
     @field_validator("schema_version", mode="before")
     @classmethod
@@ -100,7 +111,10 @@ class ObjectMap(BaseModel):
         return len(self.objects[0].embedding)
 
     def arrays(self) -> ObjectArrays:
-        return ObjectArrays.from_objects(self.objects)
+        """The objects as arrays; computed once (the model is frozen), then shared."""
+        if self._arrays is None:
+            self._arrays = ObjectArrays.from_objects(self.objects)
+        return self._arrays
 
 
 class Submap(ObjectMap):
@@ -125,6 +139,7 @@ class RejectReason(str, Enum):
     VERIFIED = "verified"
     NOT_VERIFIED = "not_verified"  # paper mode: no verification is done
     TOO_FEW_MATCHES = "too_few_matches"
+    AMBIGUOUS = "ambiguous"  # another configuration explains the submap almost as well
     DEGENERATE_GEOMETRY = "degenerate_geometry"
     RESIDUAL_TOO_LARGE = "residual_too_large"
     SEARCH_INCOMPLETE = "search_incomplete"
@@ -204,6 +219,17 @@ class ObjectArrays:
     @property
     def n(self) -> int:
         return len(self.ids)
+
+    @functools.cached_property
+    def unit_embeddings_nd(self) -> np.ndarray:
+        """(n, d) embeddings scaled to unit norm; computed once per map."""
+        norms = np.linalg.norm(self.embeddings_nd, axis=1, keepdims=True)
+        return self.embeddings_nd / np.where(norms > 0, norms, 1.0)
+
+    @functools.cached_property
+    def kdtree(self) -> cKDTree:
+        """KD-tree over the object centres; built once per map."""
+        return cKDTree(self.position_xyz_m)
 
     @property
     def dim(self) -> int:

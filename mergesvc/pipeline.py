@@ -25,7 +25,7 @@ from mergesvc.affinity import (
     pairwise_lengths,
     radius_edges,
 )
-from mergesvc.candidates import Candidates, retrieve
+from mergesvc.candidates import Candidates, expand_near, retrieve
 from mergesvc.config import MatchConfig, MatchMode, SolverName
 from mergesvc.errors import SchemaError
 from mergesvc.model import (
@@ -39,8 +39,9 @@ from mergesvc.model import (
 from mergesvc.solvers import dense, heuristic
 from mergesvc.solvers.exact import ExactResult, solve_exact
 from mergesvc.solvers.hungarian import harden, harden_dense, prune_negative
+from mergesvc.solvers.margin import row_margins
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
-from mergesvc.verify import RigidFit, fit_rigid
+from mergesvc.verify import RigidFit, fit_rigid, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -192,20 +193,47 @@ def _match_scores(
     return {int(i): float(0.5 * node[k] + 0.5 * agree[k]) for k, i in enumerate(rows)}
 
 
-def _match_verified(
-    map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
-) -> MatchOutcome:
-    rng = np.random.default_rng(config.seed)
-    n1 = sub.n
-    unmatched = np.full(n1, UNMATCHED, dtype=np.int64)
-    cands = retrieve(sub, map_, config.candidates, config.affinity, rng)
-    timer.lap("candidates")
-    if cands.m == 0:
-        return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
-    sigma_m, _ = edge_scales(map_, config)
+@dataclass
+class _Pass:
+    """One solve-and-verify pass over a candidate set (map indices, not local ones)."""
+
+    cands: Candidates
+    proposed: np.ndarray  # (n1,) after the margin test, before the rigid fit
+    final: np.ndarray  # (n1,) inliers of the rigid fit
+    objective: float
+    reason: RejectReason
+    fit: RigidFit
+    exact: ExactResult | None
+    scores: dict[int, float]
+
+
+def _inlier_gate(sub_xyz: np.ndarray, sigma_m: float, config: MatchConfig) -> np.ndarray:
+    """(k,) residual gate: inlier_sigmas x (sigma (+) rel_tol x lever arm from the centroid)."""
+    if len(sub_xyz) == 0:
+        return np.zeros(0)
+    lever_m = np.linalg.norm(sub_xyz - sub_xyz.mean(axis=0), axis=1)
+    return config.verify.inlier_sigmas * np.hypot(sigma_m, config.affinity.edge_rel_tol * lever_m)
+
+
+def _solve_pass(
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    cands: Candidates,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+    start: np.ndarray | None = None,
+) -> _Pass:
+    """Affinity K -> solver -> exact -> margin test -> rigid fit. `start`: (n1,) map indices."""
     signed, positive, local = candidate_problem(sub, map_, cands, config, sigma_m)
     timer.lap("affinity")
     proposed_local = _solve_candidates(signed, positive, config)
+    if start is not None:  # a previous pass's answer, if it is better here
+        pos = {int(b): k for k, b in enumerate(local)}
+        seed = np.array([pos.get(int(b), UNMATCHED) if b != UNMATCHED else UNMATCHED
+                         for b in start])
+        if signed.is_feasible(seed) and signed.score(seed) > signed.score(proposed_local):
+            proposed_local = seed
     timer.lap("solve")
     exact = None
     if config.verify.exact or config.solver.name is SolverName.EXACT:
@@ -219,29 +247,63 @@ def _match_verified(
         if exact.score >= signed.score(proposed_local) - 1e-9:
             proposed_local = exact.assignment
         timer.lap("exact")
+    objective = signed.score(proposed_local)
     scores = _match_scores(positive, proposed_local, edge_pair_weight(sub.n, config))
     proposed = np.where(proposed_local == UNMATCHED, UNMATCHED, local[proposed_local])
+    n_proposed = int(np.sum(proposed != UNMATCHED))
+    if 0 < n_proposed <= config.verify.margin_max_matches and config.verify.margin > 0:
+        margins = row_margins(signed, proposed_local, config.verify.margin)
+        ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
+        proposed = np.where(ambiguous, UNMATCHED, proposed)
+        timer.lap("margin")
     rows = np.flatnonzero(proposed != UNMATCHED)
-    xyz = sub.position_xyz_m[rows]
-    lever_m = np.linalg.norm(xyz - xyz.mean(axis=0), axis=1) if len(rows) else np.zeros(0)
-    tol = config.verify.inlier_sigmas * np.hypot(sigma_m, config.affinity.edge_rel_tol * lever_m)
     fit = fit_rigid(
         sub.position_xyz_m[rows],
         map_.position_xyz_m[proposed[rows]],
-        tol,
+        _inlier_gate(sub.position_xyz_m[rows], sigma_m, config),
         min_matches=config.verify.min_matches,
         sigma_floor_m=0.1 * sigma_m,
     )
     reason = fit.reason
+    if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= config.verify.min_matches:
+        reason = RejectReason.AMBIGUOUS
     final = proposed.copy()
     if fit.accepted:
         final[rows[~fit.inliers]] = UNMATCHED
     if exact is not None and not exact.optimal and reason is RejectReason.VERIFIED:
         reason = RejectReason.SEARCH_INCOMPLETE
     timer.lap("verify")
-    outcome = _finish(reason, sub, map_, final, proposed, scores, timer, fit)
-    outcome.exact = exact
-    outcome.n_candidates = cands.m
+    return _Pass(cands, proposed, final, objective, reason, fit, exact, scores)
+
+
+def _match_verified(
+    map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
+) -> MatchOutcome:
+    rng = np.random.default_rng(config.seed)
+    unmatched = np.full(sub.n, UNMATCHED, dtype=np.int64)
+    cands, calib = retrieve(sub, map_, config.candidates, config.affinity, rng)
+    timer.lap("candidates")
+    if cands.m == 0:
+        return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
+    sigma_m, _ = edge_scales(map_, config)
+    result = _solve_pass(sub, map_, cands, config, sigma_m, timer)
+    if result.fit.accepted and config.candidates.guided:
+        # guided pass: add the map objects found where the transform puts each submap object
+        predicted = transform_points(result.fit.T_map_submap, sub.position_xyz_m)
+        gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)
+        more = expand_near(cands, sub, map_, predicted, gate, calib)
+        timer.lap("candidates")
+        if more.m > cands.m:
+            second = _solve_pass(sub, map_, more, config, sigma_m, timer, start=result.final)
+            if second.fit.accepted and np.sum(second.final != UNMATCHED) >= np.sum(
+                result.final != UNMATCHED
+            ):
+                result = second
+    outcome = _finish(
+        result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
+    )
+    outcome.exact = result.exact
+    outcome.n_candidates = result.cands.m
     return outcome
 
 

