@@ -13,6 +13,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from mergesvc.model import ObjectArrays
 
@@ -162,8 +163,7 @@ def reference_distance(
 
 def pairwise_lengths(position_xyz_m: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, n) Euclidean distances between object centres."""
-    diff = position_xyz_m[:, None, :] - position_xyz_m[None, :, :]
-    return np.sqrt((diff**2).sum(axis=2))
+    return cdist(position_xyz_m, position_xyz_m)
 
 
 def median_spacing(position_xyz_m: np.ndarray) -> float:

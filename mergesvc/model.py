@@ -231,6 +231,15 @@ class ObjectArrays:
         """KD-tree over the object centres; built once per map."""
         return cKDTree(self.position_xyz_m)
 
+    @functools.cached_property
+    def median_spacing_m(self) -> float:
+        """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
+        if self.n < 2:
+            return 1.0
+        dist, _ = self.kdtree.query(self.position_xyz_m, k=2)
+        spacing = float(np.median(dist[:, 1]))
+        return spacing if spacing > 0 else 1.0
+
     @property
     def dim(self) -> int:
         return self.embeddings_nd.shape[1]

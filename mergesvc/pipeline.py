@@ -19,7 +19,6 @@ from mergesvc.affinity import (
     NodeAffinity,
     distance_to_similarity,
     edge_affinity,
-    median_spacing,
     node_affinity,
     node_distance,
     pairwise_lengths,
@@ -88,7 +87,7 @@ def _as_arrays(objs: ObjectMap | ObjectArrays) -> ObjectArrays:
 def edge_scales(map_: ObjectArrays, config: MatchConfig) -> tuple[float, float]:
     """(edge length tolerance sigma_m, paper-mode edge radius_m), derived from data if unset."""
     need = config.affinity.edge_sigma_m is None or config.affinity.edge_radius_m is None
-    spacing = median_spacing(map_.position_xyz_m) if need else 1.0
+    spacing = map_.median_spacing_m if need else 1.0
     sigma = config.affinity.edge_sigma_m or config.affinity.spacing_sigma * spacing
     radius = config.affinity.edge_radius_m or 3.0 * spacing
     return sigma, radius
@@ -144,11 +143,13 @@ def candidate_problem(
     E2 = e_map[np.ix_(cols, cols)]
     aff = config.affinity
     tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
-    A_e = edge_affinity(E1, E2, 2.0 * tol2)
-    valid = (R[:, None] != R[None, :]) & (cols[:, None] != cols[None, :])
     w = edge_pair_weight(sub.n, config)
-    K_pos = np.where(valid, w * A_e, 0.0)
-    K_signed = np.where(valid, w * (A_e - aff.edge_threshold), 0.0)
+    K_pos = edge_affinity(E1, E2, 2.0 * tol2)
+    K_pos *= w
+    invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
+    K_pos[invalid] = 0.0
+    K_signed = K_pos - w * aff.edge_threshold
+    K_signed[invalid] = 0.0
     np.fill_diagonal(K_pos, cands.score)
     np.fill_diagonal(K_signed, cands.score - aff.node_threshold)
     n2 = len(local)
@@ -194,13 +195,26 @@ def _match_scores(
 
 
 @dataclass
+class _Proposal:
+    """K over one candidate set and the solver's hard answer on it (local col indices)."""
+
+    cands: Candidates
+    signed: AssignmentProblem
+    positive: AssignmentProblem
+    local: np.ndarray  # (n2_local,) local col -> map index
+    assignment: np.ndarray  # (n1,) local col or UNMATCHED
+
+    def to_map(self, assignment: np.ndarray) -> np.ndarray:
+        return np.where(assignment == UNMATCHED, UNMATCHED, self.local[assignment])
+
+
+@dataclass
 class _Pass:
-    """One solve-and-verify pass over a candidate set (map indices, not local ones)."""
+    """The verified answer over one candidate set (map indices, not local ones)."""
 
     cands: Candidates
     proposed: np.ndarray  # (n1,) after the margin test, before the rigid fit
     final: np.ndarray  # (n1,) inliers of the rigid fit
-    objective: float
     reason: RejectReason
     fit: RigidFit
     exact: ExactResult | None
@@ -215,7 +229,7 @@ def _inlier_gate(sub_xyz: np.ndarray, sigma_m: float, config: MatchConfig) -> np
     return config.verify.inlier_sigmas * np.hypot(sigma_m, config.affinity.edge_rel_tol * lever_m)
 
 
-def _solve_pass(
+def _propose(
     sub: ObjectArrays,
     map_: ObjectArrays,
     cands: Candidates,
@@ -223,57 +237,80 @@ def _solve_pass(
     sigma_m: float,
     timer: StageTimer,
     start: np.ndarray | None = None,
-) -> _Pass:
-    """Affinity K -> solver -> exact -> margin test -> rigid fit. `start`: (n1,) map indices."""
+) -> _Proposal:
+    """Affinity K over the candidates -> solver -> hard assignment with no-match.
+
+    start: (n1,) map indices of an earlier answer, kept when it scores better here."""
     signed, positive, local = candidate_problem(sub, map_, cands, config, sigma_m)
     timer.lap("affinity")
-    proposed_local = _solve_candidates(signed, positive, config)
-    if start is not None:  # a previous pass's answer, if it is better here
+    assignment = _solve_candidates(signed, positive, config)
+    if start is not None:
         pos = {int(b): k for k, b in enumerate(local)}
         seed = np.array([pos.get(int(b), UNMATCHED) if b != UNMATCHED else UNMATCHED
                          for b in start])
-        if signed.is_feasible(seed) and signed.score(seed) > signed.score(proposed_local):
-            proposed_local = seed
+        if signed.is_feasible(seed) and signed.score(seed) > signed.score(assignment):
+            assignment = seed
     timer.lap("solve")
-    exact = None
-    if config.verify.exact or config.solver.name is SolverName.EXACT:
-        exact = solve_exact(
-            signed,
-            allow_unmatched=True,
-            incumbent=proposed_local,
-            max_nodes=config.verify.max_nodes,
-            time_limit_s=config.verify.time_limit_s,
-        )
-        if exact.score >= signed.score(proposed_local) - 1e-9:
-            proposed_local = exact.assignment
-        timer.lap("exact")
-    objective = signed.score(proposed_local)
-    scores = _match_scores(positive, proposed_local, edge_pair_weight(sub.n, config))
-    proposed = np.where(proposed_local == UNMATCHED, UNMATCHED, local[proposed_local])
-    n_proposed = int(np.sum(proposed != UNMATCHED))
-    if 0 < n_proposed <= config.verify.margin_max_matches and config.verify.margin > 0:
-        margins = row_margins(signed, proposed_local, config.verify.margin)
-        ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
-        proposed = np.where(ambiguous, UNMATCHED, proposed)
-        timer.lap("margin")
+    return _Proposal(cands, signed, positive, local, assignment)
+
+
+def _fit(
+    sub: ObjectArrays, map_: ObjectArrays, proposed: np.ndarray, sigma_m: float,
+    config: MatchConfig,
+) -> RigidFit:
     rows = np.flatnonzero(proposed != UNMATCHED)
-    fit = fit_rigid(
+    return fit_rigid(
         sub.position_xyz_m[rows],
         map_.position_xyz_m[proposed[rows]],
         _inlier_gate(sub.position_xyz_m[rows], sigma_m, config),
         min_matches=config.verify.min_matches,
         sigma_floor_m=0.1 * sigma_m,
     )
+
+
+def _verify(
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    prop: _Proposal,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+) -> _Pass:
+    """Exact search over the candidates -> margin test -> rigid fit -> accept or reject."""
+    assignment = prop.assignment
+    exact = None
+    if config.verify.exact or config.solver.name is SolverName.EXACT:
+        exact = solve_exact(
+            prop.signed,
+            allow_unmatched=True,
+            incumbent=assignment,
+            max_nodes=config.verify.max_nodes,
+            time_limit_s=config.verify.time_limit_s,
+        )
+        if exact.score >= prop.signed.score(assignment) - 1e-9:
+            assignment = exact.assignment
+        timer.lap("exact")
+    scores = _match_scores(prop.positive, assignment, edge_pair_weight(sub.n, config))
+    proposed = prop.to_map(assignment)
+    n_proposed = int(np.sum(proposed != UNMATCHED))
+    if 0 < n_proposed <= config.verify.margin_max_matches and config.verify.margin > 0:
+        # Few matches: each must beat its best alternative clearly (look-alikes in a pool).
+        margins = row_margins(prop.signed, assignment, config.verify.margin)
+        ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
+        proposed = np.where(ambiguous, UNMATCHED, proposed)
+        timer.lap("margin")
+    fit = _fit(sub, map_, proposed, sigma_m, config)
     reason = fit.reason
     if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= config.verify.min_matches:
         reason = RejectReason.AMBIGUOUS
     final = proposed.copy()
     if fit.accepted:
+        rows = np.flatnonzero(proposed != UNMATCHED)
         final[rows[~fit.inliers]] = UNMATCHED
     if exact is not None and not exact.optimal and reason is RejectReason.VERIFIED:
         reason = RejectReason.SEARCH_INCOMPLETE
     timer.lap("verify")
-    return _Pass(cands, proposed, final, objective, reason, fit, exact, scores)
+    return _Pass(prop.cands, proposed, final, reason, fit, exact, scores)
 
 
 def _match_verified(
@@ -286,19 +323,25 @@ def _match_verified(
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
     sigma_m, _ = edge_scales(map_, config)
-    result = _solve_pass(sub, map_, cands, config, sigma_m, timer)
-    if result.fit.accepted and config.candidates.guided:
-        # guided pass: add the map objects found where the transform puts each submap object
-        predicted = transform_points(result.fit.T_map_submap, sub.position_xyz_m)
-        gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)
-        more = expand_near(cands, sub, map_, predicted, gate, calib)
-        timer.lap("candidates")
-        if more.m > cands.m:
-            second = _solve_pass(sub, map_, more, config, sigma_m, timer, start=result.final)
-            if second.fit.accepted and np.sum(second.final != UNMATCHED) >= np.sum(
-                result.final != UNMATCHED
-            ):
-                result = second
+    prop = _propose(sub, map_, cands, config, sigma_m, timer)
+    if config.candidates.guided:
+        # Guided matching: when the solver's answer fits a rigid transform, add the map objects
+        # lying where it puts each submap object (look-alike instances whose true match ranked
+        # below the top-k by appearance alone) and solve again from that answer; the exact
+        # search then verifies once, over the enlarged candidate set.
+        probe = _fit(sub, map_, prop.to_map(prop.assignment), sigma_m, config)
+        timer.lap("verify")
+        if probe.accepted:
+            predicted = transform_points(probe.T_map_submap, sub.position_xyz_m)
+            gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)
+            more = expand_near(cands, sub, map_, predicted, gate, calib)
+            timer.lap("candidates")
+            if more.m > cands.m:
+                start = prop.to_map(prop.assignment)
+                rows = np.flatnonzero(start != UNMATCHED)
+                start[rows[~probe.inliers]] = UNMATCHED
+                prop = _propose(sub, map_, more, config, sigma_m, timer, start=start)
+    result = _verify(sub, map_, prop, config, sigma_m, timer)
     outcome = _finish(
         result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
     )

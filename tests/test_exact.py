@@ -12,7 +12,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mergesvc.errors import SolverError
-from mergesvc.solvers.exact import ExactResult, astar_crosscheck, brute_force, solve_exact
+from mergesvc.solvers.exact import (
+    ExactResult,
+    astar_crosscheck,
+    brute_force,
+    dominated,
+    solve_exact,
+)
+from mergesvc.solvers.margin import row_margins
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 QAPLIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "qaplib"
@@ -461,3 +468,92 @@ def test_astar_crosscheck_agrees() -> None:  # pragma: no cover - needs torch
         problem = AssignmentProblem.dense((A + A.T) / 2, 3, 4)
         astar = astar_crosscheck(problem)
         assert problem.score(astar) == pytest.approx(solve_exact(problem).score, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# dominance presolve, cut-off searches, margins: each against brute force
+
+
+def test_dominated_candidates_are_never_needed() -> None:
+    """Brute force over what the presolve keeps reaches the optimum of the whole problem."""
+    rng = np.random.default_rng(77)
+    removed = 0
+    for _ in range(300):
+        problem = random_problem(rng)
+        gone = dominated(problem)
+        removed += int(gone.sum())
+        full = brute_force(problem, allow_unmatched=True)[1]
+        kept = brute_force(problem.subset(~gone), allow_unmatched=True)[1]
+        assert kept == pytest.approx(full, abs=1e-9)
+    assert removed > 50  # mixed-sign K: the presolve has work to do
+
+
+def test_dominated_on_a_hand_made_problem() -> None:
+    """Row 0: a (good alone), b (bad alone, but a partner of row 1's c makes it worth it);
+    row 1: c (bad alone), d (bad, no partner). Only d can never help."""
+    rows, cols = np.array([0, 0, 1, 1]), np.array([0, 1, 2, 3])
+    K = np.diag([1.0, -0.5, -0.2, -0.3])
+    K[1, 2] = K[2, 1] = 0.4  # b-c pair worth 0.8 in all
+    gone = dominated(AssignmentProblem(2, 4, rows, cols, K))
+    assert gone.tolist() == [False, False, False, True]
+
+
+def test_cutoff_finds_the_optimum_above_it_and_bounds_it_below() -> None:
+    rng = np.random.default_rng(78)
+    above = below = 0
+    for _ in range(200):
+        problem = random_problem(rng)
+        opt = brute_force(problem, allow_unmatched=True)[1]
+        cutoff = opt + float(rng.normal(0.0, 1.0))
+        res = solve_exact(problem, cutoff=cutoff)
+        assert res.optimal
+        assert problem.is_feasible(res.assignment)
+        assert res.upper_bound >= opt - 1e-9
+        if opt > cutoff + 1e-9:
+            above += 1
+            assert res.score == pytest.approx(opt, abs=1e-9)
+        else:
+            below += 1
+            assert res.upper_bound <= max(res.score, cutoff) + 1e-9
+    assert above > 20 and below > 20
+    with pytest.raises(SolverError, match="cutoff"):
+        solve_exact(random_problem(rng), allow_unmatched=False, cutoff=0.0)
+
+
+def _brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> float:
+    """Objective of the solution minus the best assignment giving row i another candidate."""
+    best = problem.score(assignment)
+    alt = -np.inf
+    n1 = problem.n1
+    options = [
+        [UNMATCHED, *problem.cols[problem.rows == r].tolist()] for r in range(n1)
+    ]
+    for combo in itertools.product(*options):
+        a = np.array(combo)
+        if a[i] in (UNMATCHED, assignment[i]) or not problem.is_feasible(a):
+            continue
+        alt = max(alt, problem.score(a))
+    return best - alt
+
+
+def test_row_margins_against_brute_force() -> None:
+    rng = np.random.default_rng(79)
+    needed, checked, settled = 0.5, 0, 0
+    for _ in range(120):
+        problem = random_problem(rng, n1_max=5, n2_max=5)
+        assignment = brute_force(problem, allow_unmatched=True)[0]
+        margins = row_margins(problem, assignment, needed)
+        for i in range(problem.n1):
+            if assignment[i] == UNMATCHED:
+                assert np.isnan(margins[i])
+                continue
+            true = _brute_margin(problem, assignment, i)
+            checked += 1
+            if not np.isfinite(true):
+                assert margins[i] == np.inf
+            elif true < needed - 1e-9:
+                assert margins[i] == pytest.approx(true, abs=1e-6)  # exact below the need
+            else:
+                settled += 1
+                assert needed - 1e-9 <= margins[i] <= true + 1e-6  # a proven lower bound
+    assert checked > 100 and settled > 10

@@ -43,6 +43,9 @@ _MAX_BLOCK_ENTRIES = 4_000_000
 
 BRUTE_FORCE_LIMIT = 2_000_000
 
+# The dominance presolve forms an (m, m) matrix; above this many candidates it is skipped.
+_PRESOLVE_MAX_CANDIDATES = 4000
+
 
 @dataclass(frozen=True)
 class ExactResult:
@@ -333,42 +336,58 @@ def _strong_partner(
     its best b independently. It costs u*kmax small LAPs, so it runs only when the cheap bound
     fails to prune.
     """
-    u, kmax = feas.shape
+    u, _ = feas.shape
     out = np.where(need, -np.inf, np.inf)
     if u == 1:
         out[need & feas] = 0.0
+        return out
+    # Fast path: where the other rows' independent best partners (the cheap term) sit on
+    # distinct cols, that choice is injective, so the inner LAP equals the cheap term and adds
+    # nothing: leave +inf there. Only entries with a col collision need a LAP. On sparse
+    # candidate sets (a 20-object submap against a large map) that is most of them.
+    Ug = U[:, None]
+    best = node.best[Ug, U[None, :]]  # (u, u, kmax): [r, s, a]
+    bcol = node.best_col[Ug, U[None, :]]
+    idx = np.arange(u)
+    live = np.isfinite(best)
+    if allow_unmatched:
+        live &= best > 0.0  # a partner worth <= 0 stays unmatched: it takes no col
+    live[idx, idx] = False
+    # rows without a live partner get a distinct negative code, so they never collide (an
+    # infeasible partner makes the cheap term -inf already, which the LAP cannot lower)
+    bcol = np.where(live, bcol, -1 - idx[None, :, None])
+    collide = (np.diff(np.sort(bcol, axis=1), axis=1) == 0).any(axis=1)  # (u, kmax): [r, a]
+    need = need & feas
+    out[need & ~collide] = np.inf
+    need &= collide
+    if not need.any():
         return out
     free = np.nonzero(~node.used)[0]
     nf = len(free)
     pos = np.full(t.nc, -1, dtype=np.int64)
     pos[free] = np.arange(nf)
-    # G[r, a, s, f]: P between open rows r, s for slot a of r and the slot of s on free col f.
     PU = t.pair_ex[np.ix_(U, U)]  # (u, u, kmax, kmax), -inf on r == s and same col
-    G = np.full((u, kmax, u, nf), -np.inf)
     s_idx, b_idx = np.nonzero(feas)
     f_idx = pos[t.ccol[U[s_idx], b_idx]]
-    G[:, :, s_idx, f_idx] = PU[:, s_idx, :, b_idx].transpose(1, 2, 0)
-    if allow_unmatched:
-        G = np.concatenate([G, np.zeros((u, kmax, u, u - 1))], axis=3)
-    others = ~np.eye(u, dtype=bool)
+    n_extra = u - 1 if allow_unmatched else 0
     rows = np.arange(u - 1)
     for r in range(u):
-        slots = np.nonzero(need[r] & feas[r])[0]
+        slots = np.nonzero(need[r])[0]
         if len(slots) == 0:
             continue
-        # Negated once here (minimising -G), not per call; this loop is the solver's hot spot.
-        neg = -G[r, slots][:, others[r]]  # (len(slots), u-1, ncols)
-        sols = []
-        for cost in neg:
+        # cost[n, s, f] = -P_rs(a_n, b) for the slot b of row s on free col f (rows s != r).
+        keep = s_idx != r
+        s_loc = s_idx[keep] - (s_idx[keep] > r)
+        neg = np.full((len(slots), u - 1, nf + n_extra), np.inf)
+        neg[:, s_loc, f_idx[keep]] = -PU[r][s_idx[keep], :, b_idx[keep]][:, slots].T
+        if n_extra:
+            neg[:, :, nf:] = 0.0
+        for n, cost in enumerate(neg):
             try:
-                sols.append(linear_sum_assignment(cost)[1])
+                cols = linear_sum_assignment(cost)[1]
             except ValueError:  # some other row cannot coexist with (r, a)
-                sols.append(None)
-        ok = np.array([c is not None for c in sols], dtype=bool)
-        if ok.any():
-            # Rows come back as arange(u-1) (u-1 <= ncols): sum the LAP values in one gather.
-            cols = np.array([c for c in sols if c is not None])
-            out[r, slots[ok]] = -neg[np.nonzero(ok)[0][:, None], rows[None, :], cols].sum(axis=1)
+                continue
+            out[r, slots[n]] = -cost[rows, cols].sum()
     return out
 
 
@@ -588,6 +607,41 @@ def _choose_branch(
     return rows[order], slots[order], bounds[order]
 
 
+def dominated(problem: AssignmentProblem, max_rounds: int = 20) -> np.ndarray:
+    """(m,) bool: candidates that no optimum needs when rows may stay unmatched.
+
+    In any assignment S holding p = (i, a), p contributes K[p, p] + sum_{q in S, q != p}
+    (K[p, q] + K[q, p]). Each other row j holds at most one q, with a col other than a, or none:
+    so the contribution is at most UB(p) = K[p, p] + sum_{j != i} max(0, max_q P[p, q]).
+    When UB(p) <= 0, unmatching row i never lowers the score: p can go. UB only shrinks as
+    candidates go, so several can go at once, and the test is repeated on what is left.
+    Sound for any sign of K; on verified-mode problems it removes look-alikes that no
+    geometry supports (measured: 60 -> 19-37 candidates underwater, 276 -> 227-268 on KITTI).
+    """
+    m = problem.m
+    gone = np.zeros(m, dtype=bool)
+    if m == 0:
+        return gone
+    order = np.argsort(problem.rows, kind="stable")
+    rows, cols = problem.rows[order], problem.cols[order]
+    P = problem.K[np.ix_(order, order)]
+    P = P + P.T
+    P[rows[:, None] == rows[None, :]] = 0.0  # same row (and the diagonal)
+    P[cols[:, None] == cols[None, :]] = 0.0  # same col: cannot coexist
+    np.maximum(P, 0.0, out=P)
+    unary = np.diag(problem.K)[order]
+    alive = np.ones(m, dtype=bool)
+    for _ in range(max_rounds):
+        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        ub = unary + np.maximum.reduceat(np.where(alive[None, :], P, 0.0), starts, axis=1).sum(1)
+        drop = alive & (ub <= 0.0)
+        if not drop.any():
+            break
+        alive &= ~drop
+    gone[order] = ~alive
+    return gone
+
+
 def solve_exact(
     problem: AssignmentProblem,
     *,
@@ -596,6 +650,7 @@ def solve_exact(
     max_nodes: int = 2_000_000,
     time_limit_s: float | None = None,
     clock: Callable[[], float] = time.monotonic,
+    cutoff: float | None = None,
 ) -> ExactResult:
     """Maximise problem.score over feasible assignments by depth-first branch and bound.
 
@@ -603,8 +658,40 @@ def solve_exact(
         initial lower bound; ignored when infeasible for `allow_unmatched`.
     max_nodes / time_limit_s: search budget; the root is always evaluated. When exhausted the
         best assignment found is returned with optimal=False and a valid upper_bound.
+    cutoff: only solutions scoring above it matter; subtrees that cannot beat it are pruned.
+        The answer is the optimum when its score exceeds cutoff; otherwise the search proved
+        that nothing beats cutoff (upper_bound <= max(score, cutoff) stays valid either way).
     Raises SolverError when allow_unmatched=False and no full assignment exists.
+    With unmatched rows allowed, dominated candidates (`dominated`) are removed first: the
+    optimum over what is left is the optimum over the whole candidate set.
     """
+    if cutoff is not None and not allow_unmatched:
+        raise SolverError("a cutoff needs allow_unmatched (the empty assignment is the fallback)")
+    if allow_unmatched and 0 < problem.m <= _PRESOLVE_MAX_CANDIDATES:
+        gone = dominated(problem)
+        if gone.any():
+            if incumbent is not None and problem.is_feasible(np.asarray(incumbent)):
+                # unmatching a dominated candidate never lowers the incumbent's score
+                incumbent = np.asarray(incumbent).copy()
+                lookup = set(zip(problem.rows[gone].tolist(), problem.cols[gone].tolist()))
+                for i, a in enumerate(incumbent.tolist()):
+                    if (i, a) in lookup:
+                        incumbent[i] = UNMATCHED
+            problem = problem.subset(~gone)
+    return _solve_exact(
+        problem, allow_unmatched, incumbent, max_nodes, time_limit_s, clock, cutoff
+    )
+
+
+def _solve_exact(
+    problem: AssignmentProblem,
+    allow_unmatched: bool,
+    incumbent: np.ndarray | None,
+    max_nodes: int,
+    time_limit_s: float | None,
+    clock: Callable[[], float],
+    cutoff: float | None = None,
+) -> ExactResult:
     start = clock()
     n1 = problem.n1
     if not allow_unmatched:
@@ -635,6 +722,8 @@ def solve_exact(
                 best_slots, best = slots, s
         else:
             logger.debug("ignoring infeasible incumbent")
+    floor = -math.inf if cutoff is None else float(cutoff)
+    best = max(best, floor)  # prune against the cutoff; best_slots keeps the real solution
 
     nodes = 0
     # DFS stack: (node, child rows, child slots, child bounds), children sorted ascending.
@@ -680,10 +769,10 @@ def solve_exact(
     score = problem.score(assignment)
     if stopped:
         open_max = max((float(e[-1]) for *_, e in stack if len(e)), default=-math.inf)
-        upper = max(score, min(open_max, root_bound))
+        upper = max(score, floor, min(open_max, root_bound))
         logger.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
     else:
-        upper = score
+        upper = max(score, min(floor, root_bound))
     return ExactResult(assignment, score, not stopped, nodes, float(upper))
 
 

@@ -26,8 +26,9 @@ def row_margins(
     For row i matched to a_i: best objective over assignments with row i matched to another
     candidate, found exactly by removing (i, a_i) and adding a bonus B to row i's remaining
     candidates (B exceeds any possible objective change, so the optimum matches row i).
-    A root bound below `best - margin_needed` settles a row without search (margin reported
-    as that lower bound on the true margin).
+    The search prunes everything that cannot come within `margin_needed` of the solution: a
+    row whose alternatives all stay below that is settled, its margin reported as the proven
+    lower bound (>= margin_needed), not the exact value.
     """
     best = problem.score(assignment)
     out = np.full(problem.n1, np.nan)
@@ -42,12 +43,12 @@ def row_margins(
         on_row = problem.rows[idx] == i
         K[on_row, on_row] += bonus
         alt = AssignmentProblem(problem.n1, problem.n2, problem.rows[idx], problem.cols[idx], K)
-        root = solve_exact(alt, max_nodes=1)
-        if root.upper_bound - bonus <= best - margin_needed:
-            out[i] = best - (root.upper_bound - bonus)
-            continue
-        res = solve_exact(alt, max_nodes=max_nodes, time_limit_s=time_limit_s)
-        # an unfinished search: the bound is what is proven
-        alt_score = (res.score if res.optimal else res.upper_bound) - bonus
-        out[i] = best - alt_score
+        cutoff = best - margin_needed + bonus
+        res = solve_exact(alt, max_nodes=max_nodes, time_limit_s=time_limit_s, cutoff=cutoff)
+        # the proven upper bound on the alternatives (their best score when it beat the cutoff)
+        out[i] = (best + bonus) - res.upper_bound
+        if res.optimal and res.score <= cutoff:
+            # nothing came within the margin (exact in the search; the bonus arithmetic may
+            # round the reported bound a hair below it)
+            out[i] = max(out[i], margin_needed)
     return out

@@ -8,6 +8,7 @@ Diagonal of K: node affinity of the pair; off-diagonal: edge affinity of the two
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,21 +59,37 @@ class AssignmentProblem:
         rows, cols = np.divmod(np.arange(n1 * n2), n2)
         return cls(n1, n2, rows, cols, np.asarray(K, dtype=np.float64))
 
+    def subset(self, keep: np.ndarray) -> AssignmentProblem:
+        """The problem over the candidates where `keep` (m,) bool is true; same rows and cols."""
+        idx = np.flatnonzero(keep)
+        return AssignmentProblem(
+            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)]
+        )
+
     def assignment_to_indices(self, assignment: np.ndarray) -> np.ndarray:
         """(n1,) map node per row (UNMATCHED = -1) -> indices of the chosen candidates.
 
         Raises SolverError when a chosen pair is not a candidate.
         """
-        lookup = {(int(r), int(c)): p for p, (r, c) in enumerate(zip(self.rows, self.cols))}
-        out = []
-        for i, a in enumerate(np.asarray(assignment)):
-            if a == UNMATCHED:
-                continue
-            p = lookup.get((i, int(a)))
-            if p is None:
-                raise SolverError(f"pair ({i}, {int(a)}) is not a candidate")
-            out.append(p)
-        return np.asarray(out, dtype=np.int64)
+        a = np.asarray(assignment)
+        rows = np.flatnonzero(a != UNMATCHED)
+        if len(rows) == 0:
+            return np.zeros(0, dtype=np.int64)
+        keys = rows * max(self.n2, 1) + a[rows].astype(np.int64)
+        sorted_keys, order = self._key_index
+        at = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
+        hit = (sorted_keys[at] == keys) if len(sorted_keys) else np.zeros(len(keys), bool)
+        if not hit.all():
+            k = int(np.flatnonzero(~hit)[0])
+            raise SolverError(f"pair ({int(rows[k])}, {int(a[rows[k]])}) is not a candidate")
+        return order[at].astype(np.int64)
+
+    @functools.cached_property
+    def _key_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted keys row * n2 + col of the candidates, and the candidate index of each."""
+        keys = self.rows.astype(np.int64) * max(self.n2, 1) + self.cols
+        order = np.argsort(keys, kind="stable")
+        return keys[order], order
 
     def score(self, assignment: np.ndarray) -> float:
         """Objective of a hard assignment given as (n1,) map node per row or UNMATCHED."""
