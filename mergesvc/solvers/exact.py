@@ -12,6 +12,7 @@ Also a brute-force reference (tiny problems only) and an optional pygmtools A* c
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -607,7 +608,9 @@ def _choose_branch(
     return rows[order], slots[order], bounds[order]
 
 
-def dominated(problem: AssignmentProblem, max_rounds: int = 20) -> np.ndarray:
+def dominated(
+    problem: AssignmentProblem, slack: np.ndarray | None = None, max_rounds: int = 20
+) -> np.ndarray:
     """(m,) bool: candidates that no optimum needs when rows may stay unmatched.
 
     In any assignment S holding p = (i, a), p contributes K[p, p] + sum_{q in S, q != p}
@@ -617,6 +620,9 @@ def dominated(problem: AssignmentProblem, max_rounds: int = 20) -> np.ndarray:
     candidates go, so several can go at once, and the test is repeated on what is left.
     Sound for any sign of K; on verified-mode problems it removes look-alikes that no
     geometry supports (measured: 60 -> 19-37 candidates underwater, 276 -> 227-268 on KITTI).
+    slack: optional (m,) >= 0; p goes only when UB(p) <= -slack[p]. Any solution holding p
+    then scores at most (the solution without p) - slack[p] <= optimum - slack[p]: the margin
+    test uses this to drop alternatives that cannot come within its margin.
     """
     m = problem.m
     gone = np.zeros(m, dtype=bool)
@@ -630,11 +636,12 @@ def dominated(problem: AssignmentProblem, max_rounds: int = 20) -> np.ndarray:
     P[cols[:, None] == cols[None, :]] = 0.0  # same col: cannot coexist
     np.maximum(P, 0.0, out=P)
     unary = np.diag(problem.K)[order]
+    need = np.zeros(m) if slack is None else -np.asarray(slack, dtype=np.float64)[order]
     alive = np.ones(m, dtype=bool)
     for _ in range(max_rounds):
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         ub = unary + np.maximum.reduceat(np.where(alive[None, :], P, 0.0), starts, axis=1).sum(1)
-        drop = alive & (ub <= 0.0)
+        drop = alive & (ub <= need)
         if not drop.any():
             break
         alive &= ~drop
@@ -678,9 +685,7 @@ def solve_exact(
                     if (i, a) in lookup:
                         incumbent[i] = UNMATCHED
             problem = problem.subset(~gone)
-    return _solve_exact(
-        problem, allow_unmatched, incumbent, max_nodes, time_limit_s, clock, cutoff
-    )
+    return _solve_exact(problem, allow_unmatched, incumbent, max_nodes, time_limit_s, clock, cutoff)
 
 
 def _solve_exact(
@@ -693,87 +698,136 @@ def _solve_exact(
     cutoff: float | None = None,
 ) -> ExactResult:
     start = clock()
-    n1 = problem.n1
     if not allow_unmatched:
         _check_full_feasible(problem)
-    t = _Tables(problem)
+    search = ExactSearch(problem)
+    res = search.run(
+        allow_unmatched=allow_unmatched,
+        incumbent=incumbent,
+        max_nodes=max_nodes,
+        time_limit_s=time_limit_s,
+        clock=clock,
+        cutoff=cutoff,
+        start=start,
+    )
+    # the objective as the problem defines it (the tables hold the same numbers, summed in
+    # another order): the bound keeps its gap over the score
+    score = problem.score(res.assignment)
+    upper = score + max(res.upper_bound - res.score, 0.0)
+    return ExactResult(res.assignment, score, res.optimal, res.nodes_expanded, upper)
 
-    best_slots: np.ndarray | None = None
-    best = -math.inf
-    if allow_unmatched:
-        # Leaving every row unmatched is always feasible and scores 0.
-        best_slots, best = np.full(n1, _NO_MATCH, dtype=np.int64), 0.0
-    if incumbent is not None:
-        inc = np.asarray(incumbent)
-        if (
-            inc.shape == (n1,)
-            and (np.issubdtype(inc.dtype, np.integer) or np.issubdtype(inc.dtype, np.floating))
-            and np.all(np.isfinite(inc))
-            and np.all(inc == np.round(inc))
-            and problem.is_feasible(inc.astype(np.int64), allow_unmatched=allow_unmatched)
-        ):
-            inc = inc.astype(np.int64)
-            slots = np.full(n1, _NO_MATCH, dtype=np.int64)
-            m = inc != UNMATCHED
-            slots[m] = t.slot_of[np.nonzero(m)[0], np.searchsorted(t.col_of, inc[m])]
-            slots = _local_search(t, slots, allow_unmatched)
-            s = _slots_score(t, slots)
-            if s > best:
-                best_slots, best = slots, s
-        else:
-            logger.debug("ignoring infeasible incumbent")
-    floor = -math.inf if cutoff is None else float(cutoff)
-    best = max(best, floor)  # prune against the cutoff; best_slots keeps the real solution
 
-    nodes = 0
-    # DFS stack: (node, child rows, child slots, child bounds), children sorted ascending.
-    stack: list[tuple[_Node, np.ndarray, np.ndarray, np.ndarray]] = []
-    stopped = False
+class ExactSearch:
+    """The branch and bound over one problem's tables, reusable with changed node scores.
 
-    def expand(node: _Node) -> float:
-        """Evaluate a node, update the incumbent, push it when it must be branched on."""
-        nonlocal best, best_slots, nodes
-        nodes += 1
-        b = _bound(t, node, allow_unmatched, best)
-        if b is None:
-            return -math.inf
-        if b.primal_score > best:
-            improved = _local_search(t, b.primal, allow_unmatched)
-            best, best_slots = _slots_score(t, improved), improved
-        if b.est is None or _prunes(b.value, best):
-            # No child bounds: the node was pruned, is a leaf, or has one open row (the LAP is
-            # exact then, so its completion is the subtree optimum).
+    `run(unary_add=...)` adds (m,) to the diagonal of K (the node scores) for that search only:
+    problems that differ from this one only there (the margin test forces or forbids single
+    candidates that way) share the tables instead of rebuilding them.
+    """
+
+    def __init__(self, problem: AssignmentProblem) -> None:
+        self.problem = problem
+        self.tables = _Tables(problem)
+
+    def run(
+        self,
+        *,
+        allow_unmatched: bool = True,
+        incumbent: np.ndarray | None = None,
+        max_nodes: int = 2_000_000,
+        time_limit_s: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        cutoff: float | None = None,
+        unary_add: np.ndarray | None = None,
+        start: float | None = None,
+    ) -> ExactResult:
+        """Depth-first branch and bound; see `solve_exact` for the arguments. Scores in the
+        result include `unary_add`. No presolve here."""
+        start = clock() if start is None else start
+        t = self.tables
+        if unary_add is not None:
+            t = copy.copy(t)
+            t.unary = self.tables.unary.copy()
+            rows = self.problem.rows
+            t.unary[
+                rows, self.tables.slot_of[rows, np.searchsorted(t.col_of, self.problem.cols)]
+            ] += np.asarray(unary_add, dtype=np.float64)
+        n1 = t.n1
+        best_slots: np.ndarray | None = None
+        best = -math.inf
+        if allow_unmatched:
+            # Leaving every row unmatched is always feasible and scores 0.
+            best_slots, best = np.full(n1, _NO_MATCH, dtype=np.int64), 0.0
+        if incumbent is not None:
+            inc = np.asarray(incumbent)
+            if (
+                inc.shape == (n1,)
+                and (np.issubdtype(inc.dtype, np.integer) or np.issubdtype(inc.dtype, np.floating))
+                and np.all(np.isfinite(inc))
+                and np.all(inc == np.round(inc))
+                and self.problem.is_feasible(inc.astype(np.int64), allow_unmatched=allow_unmatched)
+            ):
+                inc = inc.astype(np.int64)
+                slots = np.full(n1, _NO_MATCH, dtype=np.int64)
+                m = inc != UNMATCHED
+                slots[m] = t.slot_of[np.nonzero(m)[0], np.searchsorted(t.col_of, inc[m])]
+                slots = _local_search(t, slots, allow_unmatched)
+                s = _slots_score(t, slots)
+                if s > best:
+                    best_slots, best = slots, s
+            else:
+                logger.debug("ignoring infeasible incumbent")
+        floor = -math.inf if cutoff is None else float(cutoff)
+        best = max(best, floor)  # prune against the cutoff; best_slots keeps the real solution
+
+        nodes = 0
+        # DFS stack: (node, child rows, child slots, child bounds), children sorted ascending.
+        stack: list[tuple[_Node, np.ndarray, np.ndarray, np.ndarray]] = []
+        stopped = False
+
+        def expand(node: _Node) -> float:
+            """Evaluate a node, update the incumbent, push it when it must be branched on."""
+            nonlocal best, best_slots, nodes
+            nodes += 1
+            b = _bound(t, node, allow_unmatched, best)
+            if b is None:
+                return -math.inf
+            if b.primal_score > best:
+                improved = _local_search(t, b.primal, allow_unmatched)
+                best, best_slots = _slots_score(t, improved), improved
+            if b.est is None or _prunes(b.value, best):
+                # No child bounds: the node was pruned, is a leaf, or has one open row (the LAP
+                # is exact then, so its completion is the subtree optimum).
+                return b.value
+            choice = _choose_branch(t, b, best, allow_unmatched)
+            if choice is not None:
+                stack.append((node, *choice))
             return b.value
-        choice = _choose_branch(t, b, best, allow_unmatched)
-        if choice is not None:
-            stack.append((node, *choice))
-        return b.value
 
-    root_bound = expand(_root(t, allow_unmatched))
-    while stack:
-        node, rows, slots, ests = stack[-1]
-        if len(slots) == 0 or _prunes(float(ests[-1]), best):
-            # Children are sorted ascending by bound: if the best one is pruned, all are.
-            stack.pop()
-            continue
-        if nodes >= max_nodes or (time_limit_s is not None and clock() - start >= time_limit_s):
-            stopped = True
-            break
-        stack[-1] = (node, rows[:-1], slots[:-1], ests[:-1])
-        expand(_child(t, node, int(rows[-1]), int(slots[-1])))
+        root_bound = expand(_root(t, allow_unmatched))
+        while stack:
+            node, rows_, slots_, ests = stack[-1]
+            if len(slots_) == 0 or _prunes(float(ests[-1]), best):
+                # Children are sorted ascending by bound: if the best one is pruned, all are.
+                stack.pop()
+                continue
+            if nodes >= max_nodes or (time_limit_s is not None and clock() - start >= time_limit_s):
+                stopped = True
+                break
+            stack[-1] = (node, rows_[:-1], slots_[:-1], ests[:-1])
+            expand(_child(t, node, int(rows_[-1]), int(slots_[-1])))
 
-    if best_slots is None:
-        # Only reachable when the root LAP itself failed although a full matching exists.
-        raise SolverError("exact solver found no feasible assignment")
-    assignment = _to_cols(t, best_slots)
-    score = problem.score(assignment)
-    if stopped:
-        open_max = max((float(e[-1]) for *_, e in stack if len(e)), default=-math.inf)
-        upper = max(score, floor, min(open_max, root_bound))
-        logger.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
-    else:
-        upper = max(score, min(floor, root_bound))
-    return ExactResult(assignment, score, not stopped, nodes, float(upper))
+        if best_slots is None:
+            # Only reachable when the root LAP itself failed although a full matching exists.
+            raise SolverError("exact solver found no feasible assignment")
+        score = _slots_score(t, best_slots)
+        if stopped:
+            open_max = max((float(e[-1]) for *_, e in stack if len(e)), default=-math.inf)
+            upper = max(score, floor, min(open_max, root_bound))
+            logger.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
+        else:
+            upper = max(score, min(floor, root_bound))
+        return ExactResult(_to_cols(t, best_slots), score, not stopped, nodes, float(upper))
 
 
 def brute_force(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.solvers.exact import solve_exact
+from mergesvc.solvers.exact import ExactSearch, dominated
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 
@@ -24,27 +24,39 @@ def row_margins(
     """(n1,) margin of each matched row (inf when it has no alternative; nan if unmatched).
 
     For row i matched to a_i: best objective over assignments with row i matched to another
-    candidate, found exactly by removing (i, a_i) and adding a bonus B to row i's remaining
-    candidates (B exceeds any possible objective change, so the optimum matches row i).
-    The search prunes everything that cannot come within `margin_needed` of the solution: a
-    row whose alternatives all stay below that is settled, its margin reported as the proven
-    lower bound (>= margin_needed), not the exact value.
+    candidate, found exactly by forbidding (i, a_i) (node score -B) and adding a bonus B to row
+    i's other candidates (B exceeds any possible objective change, so the optimum matches row
+    i). Only node scores change, so one set of search tables serves every row. The search
+    prunes everything that cannot come within `margin_needed` of the solution: a row whose
+    alternatives all stay below that is settled, its margin reported as the proven lower bound
+    (>= margin_needed), not the exact value.
     """
     best = problem.score(assignment)
     out = np.full(problem.n1, np.nan)
+    matched = np.flatnonzero(assignment != UNMATCHED)
+    if len(matched) == 0:
+        return out
     bonus = 2.0 * np.abs(problem.K).sum() + 1.0
-    for i in np.flatnonzero(assignment != UNMATCHED):
-        keep = ~((problem.rows == i) & (problem.cols == assignment[i]))
-        if not np.any(keep & (problem.rows == i)):
-            out[i] = np.inf
+    # Dominated candidates stay dominated in every variant, except on the row that gets the
+    # bonus, where a candidate can go only if every alternative through it falls short of the
+    # solution by the margin anyway: one reduced problem serves every row.
+    slack = np.where(np.isin(problem.rows, matched), margin_needed, 0.0)
+    keep = ~dominated(problem, slack)
+    base = problem.subset(keep)
+    search = ExactSearch(base)
+    for i in matched:
+        on_row = base.rows == i
+        chosen = on_row & (base.cols == assignment[i])
+        if not np.any(on_row & ~chosen):
+            # no alternative at all, or only ones the reduction showed to fall short
+            has_any = np.any((problem.rows == i) & (problem.cols != assignment[i]))
+            out[i] = margin_needed if has_any else np.inf
             continue
-        idx = np.flatnonzero(keep)
-        K = problem.K[np.ix_(idx, idx)].copy()
-        on_row = problem.rows[idx] == i
-        K[on_row, on_row] += bonus
-        alt = AssignmentProblem(problem.n1, problem.n2, problem.rows[idx], problem.cols[idx], K)
+        unary_add = np.where(chosen, -bonus, np.where(on_row, bonus, 0.0))
         cutoff = best - margin_needed + bonus
-        res = solve_exact(alt, max_nodes=max_nodes, time_limit_s=time_limit_s, cutoff=cutoff)
+        res = search.run(
+            max_nodes=max_nodes, time_limit_s=time_limit_s, cutoff=cutoff, unary_add=unary_add
+        )
         # the proven upper bound on the alternatives (their best score when it beat the cutoff)
         out[i] = (best + bonus) - res.upper_bound
         if res.optimal and res.score <= cutoff:
