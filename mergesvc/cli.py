@@ -144,13 +144,20 @@ def bench_match(
     repeats: Annotated[int, typer.Option(help="runs per scenario")] = 5,
     seeds: Annotated[int, typer.Option(help="scenarios per family")] = 5,
     paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
+    affinity: Annotated[
+        list[NodeAffinity] | None,
+        typer.Option(help="node affinities to measure (repeat the option); default: all"),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
 ) -> None:
     """Latency and accuracy of verified vs paper mode on seeded scenarios."""
     from mergesvc.bench import run_match_bench
 
+    kinds = tuple(a.value for a in (affinity or list(NodeAffinity)))
     try:
-        report = run_match_bench(repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo)
+        report = run_match_bench(
+            repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds
+        )
     except MergeError as exc:
         _fail(exc)
         return

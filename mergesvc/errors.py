@@ -5,7 +5,10 @@
      │    ├── DecodeError  bytes or text that cannot be parsed
      │    └── SchemaError  parsed, but violates the schema (fields, sizes, NaN, version)
      ├── SolverError       a solver failed or was asked something it cannot do
-     └── ConfigError       invalid configuration
+     ├── ConfigError       invalid configuration
+     ├── CodecError        a model cannot be encoded (value outside what a profile can carry)
+     ├── LinkError         the (simulated) link failed: a message was lost after all retries
+     └── StoreError        persistence failed (database unreadable, disk full)
 
 "No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
 """
@@ -37,4 +40,26 @@ class ConfigError(MergeError):
     """Invalid configuration."""
 
 
-__all__ = ["ConfigError", "DecodeError", "InputError", "MergeError", "SchemaError", "SolverError"]
+class CodecError(MergeError):
+    """A model cannot be encoded with the chosen profile (decoding errors are DecodeError)."""
+
+
+class LinkError(MergeError):
+    """The link could not deliver a message (lost after every retry, or closed)."""
+
+
+class StoreError(MergeError):
+    """Persistence failed."""
+
+
+__all__ = [
+    "CodecError",
+    "ConfigError",
+    "DecodeError",
+    "InputError",
+    "LinkError",
+    "MergeError",
+    "SchemaError",
+    "SolverError",
+    "StoreError",
+]

@@ -115,8 +115,14 @@ def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     assert run("schemas", str(repo / "schemas"), "--check").returncode == 0
     assert run("schemas", str(tmp_path / "empty"), "--check").returncode == 1
     out = tmp_path / "bench.json"
-    r = run("bench", "match", "--repeats", "2", "--seeds", "1", "--no-paper", "--out", str(out))
+    r = run(
+        "bench", "match", "--repeats", "2", "--seeds", "1", "--no-paper", "--affinity", "ucos",
+        "--out", str(out),
+    )
     assert r.returncode == 0, r.stderr
     report = json.loads(out.read_text())
-    assert set(report["results"]) == {"kitti/verified", "underwater/verified"}
-    assert report["results"]["kitti/verified"]["runs"] == 2
+    assert set(report["results"]) == {"kitti/verified/ucos", "underwater/verified/ucos"}
+    kitti = report["results"]["kitti/verified/ucos"]
+    assert kitti["runs"] == 2 and kitti["scenarios"] == 1
+    assert kitti["node_accuracy"] >= 0.9  # seed 0 is an easy, fully recoverable scenario
+    assert "| kitti/verified/ucos |" in r.stdout
