@@ -295,7 +295,15 @@ def _verify(
     n_proposed = int(np.sum(proposed != UNMATCHED))
     if 0 < n_proposed <= config.verify.margin_max_matches and config.verify.margin > 0:
         # Few matches: each must beat its best alternative clearly (look-alikes in a pool).
-        margins = row_margins(prop.signed, assignment, config.verify.margin)
+        # a candidate at the place of the chosen map object is the same object seen twice
+        # (a duplicate in the map), not an alternative configuration
+        chosen_xyz = np.full((sub.n, 3), np.inf)
+        m_rows = np.flatnonzero(proposed != UNMATCHED)
+        chosen_xyz[m_rows] = map_.position_xyz_m[proposed[m_rows]]
+        cand_xyz = map_.position_xyz_m[prop.local[prop.signed.cols]]
+        dist = np.linalg.norm(cand_xyz - chosen_xyz[prop.signed.rows], axis=1)
+        same = dist <= config.verify.inlier_sigmas * sigma_m
+        margins = row_margins(prop.signed, assignment, config.verify.margin, same=same)
         ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
         proposed = np.where(ambiguous, UNMATCHED, proposed)
         timer.lap("margin")

@@ -20,6 +20,7 @@ def row_margins(
     margin_needed: float,
     max_nodes: int = 20_000,
     time_limit_s: float | None = 0.5,
+    same: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n1,) margin of each matched row (inf when it has no alternative; nan if unmatched).
 
@@ -30,6 +31,8 @@ def row_margins(
     prunes everything that cannot come within `margin_needed` of the solution: a row whose
     alternatives all stay below that is settled, its margin reported as the proven lower bound
     (>= margin_needed), not the exact value.
+    same: optional (m,) bool, candidates that count as the chosen one (a map holding the same
+    object twice, a metre apart, offers no real alternative); they are forbidden too.
     """
     best = problem.score(assignment)
     out = np.full(problem.n1, np.nan)
@@ -47,9 +50,14 @@ def row_margins(
     for i in matched:
         on_row = base.rows == i
         chosen = on_row & (base.cols == assignment[i])
+        if same is not None:
+            chosen |= on_row & same[keep]
         if not np.any(on_row & ~chosen):
             # no alternative at all, or only ones the reduction showed to fall short
-            has_any = np.any((problem.rows == i) & (problem.cols != assignment[i]))
+            other = (problem.rows == i) & (problem.cols != assignment[i])
+            if same is not None:
+                other &= ~same
+            has_any = np.any(other)
             out[i] = margin_needed if has_any else np.inf
             continue
         unary_add = np.where(chosen, -bonus, np.where(on_row, bonus, 0.0))
