@@ -1,7 +1,9 @@
-"""Command line: `mergesvc match`, `example`, `schemas`, `bench`. Only this module exits."""
+"""Command line: `mergesvc match`, `example`, `scenario`, `schemas`, `bench`, `uncertainty`,
+`link`, `codec`. Only this module exits."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -165,6 +167,304 @@ def bench_match(
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(report, indent=1))
         typer.echo(f"wrote {out}")
+
+
+@bench_app.command("paper")
+def bench_paper(
+    out: Annotated[Path, typer.Option(help="folder for JSON, markdown and figures")] = Path(
+        "results/paper"
+    ),
+    quick: Annotated[bool, typer.Option(help="a small slice (under a minute)")] = False,
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    repeats: Annotated[int | None, typer.Option(help="verified-mode timing repeats")] = None,
+    kitti_paper: Annotated[
+        bool, typer.Option(help="paper mode on the KITTI-like map too (dense K: minutes)")
+    ] = True,
+    trajectory: Annotated[
+        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
+    ] = None,
+) -> None:
+    """The paper's Table I and II for its pipeline and ours, side by side, plus precision,
+    recall, transform errors, stage timings and a scale sweep; figures under --out."""
+    from rich.progress import Progress
+
+    from mergesvc.bench import PaperBenchPlan, run_paper_bench
+
+    plan = PaperBenchPlan.quick() if quick else PaperBenchPlan()
+    changes: dict[str, object] = {"seed": seed, "kitti_paper": kitti_paper and plan.kitti_paper}
+    if repeats is not None:
+        changes["repeats"] = repeats
+    if trajectory is not None:
+        if not trajectory.is_file():
+            typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
+            raise typer.Exit(2)
+        changes["trajectory"] = str(trajectory)
+    plan = dataclasses.replace(plan, **changes)
+    with Progress(transient=True) as bar:
+
+        def factory(total: int):
+            task = bar.add_task("matching", total=total)
+            return lambda msg: bar.update(task, advance=1, description=msg[:60])
+
+        try:
+            run_paper_bench(plan, out, echo=typer.echo, progress_factory=factory)
+        except MergeError as exc:
+            _fail(exc)
+    typer.echo(f"wrote {out}/paper_bench.json, paper_bench.md and figures")
+
+
+@bench_app.command("uncertainty")
+def bench_uncertainty(
+    out: Annotated[Path, typer.Option(help="folder for the report")] = Path("results"),
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
+) -> None:
+    """What the learned uncertainty head changes: Table I accuracy with the simulator's true
+    image uncertainty, the head's prediction, and a constant (uncertainty-unaware)."""
+    from mergesvc.bench import run_uncertainty_bench
+
+    try:
+        run_uncertainty_bench(out, seed=seed, samples=samples, echo=typer.echo)
+    except MergeError as exc:
+        _fail(exc)
+
+
+@bench_app.command("link")
+def bench_link(
+    out: Annotated[Path | None, typer.Option(help="write the rows as JSON here")] = None,
+    seed: Annotated[int, typer.Option(help="channel seed")] = 0,
+    bytes_per_submap: Annotated[int, typer.Option(help="uplink message size")] = 1024,
+    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
+    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
+) -> None:
+    """Acoustic link sweep (modem rate x SNR): delivery ratio, latency, goodput."""
+    from mergesvc.link import Workload, format_sweep_table, sweep_link
+
+    wl = Workload(uplink_bytes=bytes_per_submap, period_s=period_s, duration_s=duration_s)
+    try:
+        rows = sweep_link(workload=wl, seed=seed)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    typer.echo(format_sweep_table(rows))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+        typer.echo(f"wrote {out}")
+
+
+scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")
+app.add_typer(scenario_app, name="scenario")
+
+
+def _write_scenarios(out_dir: Path, run, cases) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "map.json").write_text(run.map.model_dump_json())
+    for name, sc in cases:
+        (out_dir / f"{name}.json").write_text(sc.submap.model_dump_json())
+        (out_dir / f"{name}.truth.json").write_text(json.dumps(sc.truth_dict(), indent=1))
+    typer.echo(
+        f"wrote {out_dir}/map.json ({len(run.map.objects)} objects) and {len(cases)} submaps "
+        f"with a .truth.json beside each; try: mergesvc match --map {out_dir}/map.json "
+        f"--submap {out_dir}/{cases[0][0]}.json" if cases else f"wrote {out_dir}/map.json"
+    )
+
+
+@scenario_app.command("underwater")
+def scenario_underwater(
+    out_dir: Annotated[Path, typer.Argument(help="folder for map.json and the submaps")],
+    run: Annotated[int, typer.Option(help="pool run 1, 2 or 3 (the paper's runs)")] = 1,
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    size: Annotated[list[int] | None, typer.Option(help="submap sizes (repeat)")] = None,
+    per_size: Annotated[int, typer.Option(help="submaps per size")] = 5,
+) -> None:
+    """A pool run through the tracker: the first half's map, submaps from the second half."""
+    from mergesvc.scenario import underwater_run
+
+    if run not in (1, 2, 3) or per_size < 1 or any(k < 1 for k in size or []):
+        typer.echo("error: --run must be 1, 2 or 3; sizes and --per-size >= 1", err=True)
+        raise typer.Exit(2)
+    r = underwater_run(run, seed)
+    cases = [(f"submap_n{k}_{j}", sc) for k in (size or [2, 3, 4, 5])
+             for j, sc in enumerate(r.windows(k, per_size))]
+    _write_scenarios(out_dir, r, cases)
+
+
+@scenario_app.command("drive")
+def scenario_drive(
+    out_dir: Annotated[Path, typer.Argument(help="folder for map.json and the submaps")],
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    places: Annotated[int, typer.Option(help="loop-closure places")] = 4,
+    size: Annotated[int, typer.Option(help="objects per submap")] = 20,
+    trajectory: Annotated[
+        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
+    ] = None,
+) -> None:
+    """A KITTI-like drive through the tracker: the map, submaps at loop-closure places."""
+    from mergesvc.scenario import drive_run
+
+    if trajectory is not None and not trajectory.is_file():
+        typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
+        raise typer.Exit(2)
+    try:
+        r = drive_run(seed, trajectory)
+    except ValueError as exc:
+        typer.echo(f"error: cannot read trajectory {trajectory}: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    cases = [(f"place{j + 1}", sc) for j, sc in enumerate(r.places(places, size))]
+    _write_scenarios(out_dir, r, cases)
+
+
+unc_app = typer.Typer(no_args_is_help=True, help="the learned image-uncertainty head")
+app.add_typer(unc_app, name="uncertainty")
+
+
+@unc_app.command("train")
+def uncertainty_train(
+    out: Annotated[Path, typer.Argument(help="weights file to write (.npz)")],
+    samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
+    seed: Annotated[int, typer.Option(help="world and optimiser seed")] = 0,
+    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+    config: Annotated[Path | None, typer.Option(help="UncertaintyConfig as JSON")] = None,
+) -> None:
+    """Train the head with the ranking loss on generated observations; report held-out
+    Spearman correlation of predicted and true error."""
+    import numpy as np
+
+    from mergesvc.scenario import Family, image_s_dataset
+    from mergesvc.uncertainty import UncertaintyConfig, evaluate, fit
+
+    try:
+        cfg = UncertaintyConfig.model_validate_json(config.read_text()) if config else None
+        fam = Family(family)
+    except (OSError, ValueError) as exc:
+        typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
+        raise typer.Exit(2) from exc
+    n_test = max(samples // 5, 100)
+    y, loss, _ = image_s_dataset(samples + n_test, seed, fam)
+    try:
+        head, _ = fit(
+            y[:samples], loss[:samples], cfg, np.random.default_rng(seed),
+            on_epoch=lambda e, m: typer.echo(
+                f"epoch {e}: " + ", ".join(f"{k} {v:.4f}" for k, v in m.items()), err=True),
+        )
+        head.save(out)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    res = evaluate(head, y[samples:], loss[samples:])
+    typer.echo(f"wrote {out}; held-out ({n_test}): Spearman {res['spearman']:.3f}, "
+               f"Kendall {res['kendall']:.3f}, pairwise accuracy {res['accuracy']:.3f}")
+
+
+@unc_app.command("eval")
+def uncertainty_eval(
+    weights: Annotated[Path, typer.Argument(help="weights file (.npz)")],
+    samples: Annotated[int, typer.Option(help="test observations")] = 5000,
+    seed: Annotated[int, typer.Option(help="world seed the head was trained for")] = 0,
+    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+) -> None:
+    """Spearman / Kendall / pairwise accuracy of a trained head on fresh observations."""
+    from mergesvc.scenario import Family, image_s_dataset
+    from mergesvc.uncertainty import UncertaintyHead, evaluate
+
+    try:
+        head = UncertaintyHead.load(weights)
+        # fresh objects of the same world: a new draw, not the training one
+        y, loss, _ = image_s_dataset(samples, seed, Family(family))
+        res = evaluate(head, y, loss)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(json.dumps(res))
+
+
+link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
+app.add_typer(link_app, name="link")
+
+
+@link_app.command("sim")
+def link_sim(
+    rate: Annotated[list[int] | None, typer.Option(help="modem rate 1, 3 or 5 (repeat)")] = None,
+    snr_db: Annotated[list[float] | None, typer.Option(help="SNR in dB (repeat)")] = None,
+    bytes_per_submap: Annotated[int, typer.Option(help="uplink message size")] = 1024,
+    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
+    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
+    seed: Annotated[int, typer.Option(help="channel seed")] = 0,
+) -> None:
+    """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting)."""
+    from mergesvc.link import ModemRate, Workload, format_sweep_table, sweep_link
+
+    try:
+        rates = tuple(ModemRate(r) for r in (rate or [1, 3, 5]))
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    wl = Workload(uplink_bytes=bytes_per_submap, period_s=period_s, duration_s=duration_s)
+    try:
+        rows = sweep_link(rates, snr_db or None, workload=wl, seed=seed)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    typer.echo(format_sweep_table(rows))
+
+
+@link_app.command("bridge")
+def link_bridge(
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    rate: Annotated[int, typer.Option(help="modem rate 1, 3 or 5")] = 5,
+    snr_db: Annotated[float, typer.Option(help="mean SNR in dB")] = 6.0,
+    time_scale: Annotated[float, typer.Option(help="simulated s per wall s, inverted")] = 1.0,
+    vehicles: Annotated[list[str] | None, typer.Option(help="vehicle names (repeat)")] = None,
+    mode: Annotated[str | None, typer.Option(help="zenoh mode: peer or client")] = "client",
+    connect: Annotated[list[str] | None, typer.Option(help="zenoh endpoint(s)")] = None,
+    listen: Annotated[list[str] | None, typer.Option(help="zenoh listen endpoint(s)")] = None,
+    config: Annotated[Path | None, typer.Option(help="zenoh JSON5 config file")] = None,
+    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+) -> None:
+    """Bridge the vehicle side of the key space to the topside through the simulated modem."""
+    import time
+
+    from mergesvc.keys import fleet_root, uw_root
+    from mergesvc.link import (
+        AcousticBridge,
+        ChannelConfig,
+        LinkConfig,
+        ModemRate,
+        SnrModel,
+        TdmaConfig,
+        make_zenoh_config,
+    )
+
+    names = vehicles or ["auv1", "auv2", "auv3"]
+    try:
+        cfg = LinkConfig(
+            channel=ChannelConfig(rate=ModemRate(rate), snr=SnrModel(mean_db=snr_db)),
+            tdma=TdmaConfig(slot_order=["topside", *names]),
+        )
+        zconf = make_zenoh_config(
+            config_file=str(config) if config else None, mode=mode,
+            connect=tuple(connect or ("tcp/127.0.0.1:7447",)), listen=tuple(listen or ()),
+        )
+        with AcousticBridge(cfg, uw_prefix=uw_root(fleet), top_prefix=fleet_root(fleet),
+                            zenoh_config=zconf, time_scale=time_scale) as bridge:
+            typer.echo(f"bridging {uw_root(fleet)}/** <-> {fleet_root(fleet)}/** "
+                       f"(rate {rate}, {snr_db} dB, time scale {time_scale})")
+            start = time.monotonic()
+            try:
+                while seconds is None or time.monotonic() - start < seconds:
+                    time.sleep(0.2)
+            except KeyboardInterrupt:
+                pass
+            typer.echo(json.dumps(dataclasses.asdict(bridge.stats()), default=str))
+    except MergeError as exc:
+        _fail(exc)
+    except ValueError as exc:
+        typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
+        raise typer.Exit(2) from exc
 
 
 def main() -> None:

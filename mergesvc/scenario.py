@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -264,6 +265,42 @@ def make_scenario(
 # map, submaps are cut from the revisit, and ground truth follows every detection through.
 
 
+# What a vehicle reports as each image's uncertainty s, from the observed embeddings (n, d) -> (n,):
+# by default the simulator's true s; a learned head (uncertainty.py) or a constant instead.
+ImageUncertainty = Callable[[np.ndarray], np.ndarray]
+
+
+def world_embedding_model(family: Family, seed: int) -> EmbeddingModel:
+    """The appearance model of one world (a pool, a city, seen through one backbone): shared by
+    every run of that seed, so what is learned on one run's data holds for the others."""
+    names = UNDERWATER_CLASSES if family is Family.UNDERWATER else KITTI_CLASSES
+    code = 0 if family is Family.UNDERWATER else 1
+    return EmbeddingModel.create(len(names), np.random.default_rng([seed, 99, code]))
+
+
+def image_s_dataset(
+    n: int, seed: int = 0, family: Family | str = Family.UNDERWATER
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Single observations as the runs make them, for training an uncertainty head.
+
+    Returns embeddings (n, d), task loss (n,) = |y - x| / |x| (how far the view is from the
+    object's true appearance), and the true image uncertainty s (n,). Draws s like the runs do
+    (range, light); the objects are new instances of the world's classes (same appearance
+    model as the runs of that seed: `world_embedding_model`).
+    """
+    family = Family(family)
+    rng = np.random.default_rng([seed, 11])
+    names = UNDERWATER_CLASSES if family is Family.UNDERWATER else KITTI_CLASSES
+    model = world_embedding_model(family, seed)
+    truth = model.instances(rng.integers(len(names), size=n), rng)
+    frac = rng.uniform(0.0, 1.0, n)
+    light = rng.uniform(0.0, 1.0, n) ** 3
+    s = np.clip(0.05 + 0.25 * frac**2 + 0.25 * light + rng.normal(0, 0.02, n), 0.05, 0.5)
+    y = model.observe(truth, s, rng)
+    loss = np.linalg.norm(y - truth, axis=1) / np.linalg.norm(truth, axis=1)
+    return y, loss, s
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """How one run is simulated; `underwater_run` / `drive_run` fill in per-family defaults."""
@@ -456,6 +493,7 @@ def _simulate(
     model: EmbeddingModel,
     robot_id: str,
     paper_radius_m: float,
+    image_s: ImageUncertainty | None = None,
 ) -> Run:
     n = len(xy)
     stamps = np.arange(n) * cfg.frame_dt_s
@@ -502,6 +540,9 @@ def _simulate(
             s_img = np.concatenate([s_img, s_fake])
             sigma = np.concatenate([sigma, np.full(n_false, cfg.pos_sigma_m[1])])
             truths += [None] * n_false
+        if image_s is not None and len(emb):
+            # the vehicle does not know the true s: it reports what its estimator says
+            s_img = np.asarray(image_s(emb), dtype=np.float64)
         dets = []
         for j in range(len(meas)):
             p_est = Te[:3, :3] @ meas[j] + Te[:3, 3]
@@ -516,7 +557,7 @@ def _simulate(
     )
 
 
-def underwater_run(run: int = 1, seed: int = 0) -> Run:
+def underwater_run(run: int = 1, seed: int = 0, image_s: ImageUncertainty | None = None) -> Run:
     """The paper's pool runs 1-3: 2 or 4 laps of a lawnmower or loop pattern over 8-30 objects.
 
     Run 1: 4 laps of a loop over ~12 objects; run 2: 2 laps of a lawnmower over ~20 objects;
@@ -555,11 +596,11 @@ def underwater_run(run: int = 1, seed: int = 0) -> Run:
     )
     path_xy, yaw = _sample_path(way, cfg.speed_mps * cfg.frame_dt_s)
     z_path = np.full(len(path_xy), -2.0)
-    model = EmbeddingModel.create(len(UNDERWATER_CLASSES), rng)
+    model = world_embedding_model(Family.UNDERWATER, seed)
     return _simulate(
         Family.UNDERWATER, f"underwater run {run}", seed, path_xy, yaw, z_path,
         len(path_xy) // 2, objects, classes, UNDERWATER_CLASSES, cfg, rng, model,
-        "auv1", 2.0,
+        "auv1", 2.0, image_s,
     )
 
 
@@ -572,7 +613,9 @@ def load_kitti_poses(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     return xy, np.arctan2(-fwd[:, 0], fwd[:, 2])
 
 
-def drive_run(seed: int = 0, trajectory: Path | str | None = None) -> Run:
+def drive_run(
+    seed: int = 0, trajectory: Path | str | None = None, image_s: ImageUncertainty | None = None
+) -> Run:
     """A KITTI-like drive: ~2.2 km with a loop and a revisit, ~600 objects of 14 classes along
     the streets, stereo depth noise growing with range, visual-odometry drift.
 
@@ -610,11 +653,11 @@ def drive_run(seed: int = 0, trajectory: Path | str | None = None) -> Run:
     weights = rng.dirichlet(np.ones(len(KITTI_CLASSES)) * 2.0)
     classes = rng.choice(len(KITTI_CLASSES), size=n_obj, p=weights)
     objects = np.column_stack([obj_xy, rng.uniform(0.0, 3.0, n_obj)])
-    model = EmbeddingModel.create(len(KITTI_CLASSES), rng)
+    model = world_embedding_model(Family.KITTI, seed)
     log.debug("drive of %.0f m, %d objects, revisit from frame %d", length, n_obj, split)
     return _simulate(
         Family.KITTI, "kitti-like drive", seed, path_xy, yaw, np.full(len(path_xy), 1.7),
-        split, objects, classes, KITTI_CLASSES, cfg, rng, model, "car1", 100.0,
+        split, objects, classes, KITTI_CLASSES, cfg, rng, model, "car1", 100.0, image_s,
     )
 
 
@@ -636,6 +679,7 @@ __all__ = [
     "RunConfig",
     "Scenario",
     "drive_run",
+    "image_s_dataset",
     "load_kitti_poses",
     "make_scenario",
     "underwater_run",

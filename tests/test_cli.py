@@ -126,3 +126,70 @@ def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     assert kitti["runs"] == 2 and kitti["scenarios"] == 1
     assert kitti["node_accuracy"] >= 0.9  # seed 0 is an easy, fully recoverable scenario
     assert "| kitti/verified/ucos |" in r.stdout
+
+
+def test_bench_paper_quick_end_to_end(tmp_path: Path) -> None:
+    """The paper-table harness: both table layouts, both modes, figures, a scale sweep."""
+    out = tmp_path / "paper"
+    r = run("bench", "paper", "--quick", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    report = json.loads((out / "paper_bench.json").read_text())
+    assert set(report["table1"]) == {"paper/rrwm/ucos", "verified/rrwm/ucos"}
+    assert set(report["table1"]["paper/rrwm/ucos"]) == {"run1/n3", "run1/n5", "average"}
+    assert "verified/rrwm/ucos" in report["table2"]
+    for table in (report["table1"], report["table2"]):
+        for row in table.values():
+            assert all(0.0 <= v <= 1.0 for v in row.values())
+    verified = report["summary"]["underwater"]["verified/rrwm/ucos"]
+    assert verified["cases"] == 4 and 0.0 <= verified["precision"] <= 1.0
+    assert [s["map_objects"] for s in report["scale"]] == [600, 2000]
+    for name in report["figures"].values():
+        png = (out / name).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    md = (out / "paper_bench.md").read_text()
+    assert "### Table I" in md and "### Table II" in md and "| verified | rrwm | ucos |" in md
+
+
+def test_scenario_files_feed_match(tmp_path: Path) -> None:
+    r = run("scenario", "underwater", str(tmp_path), "--run", "2", "--size", "4",
+            "--per-size", "2")
+    assert r.returncode == 0, r.stderr
+    subs = sorted(tmp_path.glob("submap_n4_*.json"))
+    subs = [p for p in subs if not p.name.endswith(".truth.json")]
+    assert len(subs) == 2
+    m = run("match", "--map", str(tmp_path / "map.json"), "--submap", str(subs[0]), "--json")
+    assert m.returncode == 0, m.stderr
+    truth = json.loads(subs[0].with_suffix(".truth.json").read_text())
+    assert set(truth) >= {"matches", "transform"}
+    out = json.loads(m.stdout)
+    for x in out["matches"]:  # whatever is returned for an accepted submap is right
+        if out["accepted"]:
+            assert truth["matches"][x["submap_object"]] == x["map_object"] or x[
+                "map_object"] in truth.get("equivalent", {}).get(x["submap_object"], [])
+    bad = run("scenario", "underwater", str(tmp_path), "--run", "7")
+    assert bad.returncode == 2 and "run" in bad.stderr
+
+
+def test_uncertainty_train_and_eval(tmp_path: Path) -> None:
+    weights = tmp_path / "head.npz"
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"hidden_sizes": [32], "epochs": 8}))
+    r = run("uncertainty", "train", str(weights), "--samples", "3000", "--config", str(cfg))
+    assert r.returncode == 0, r.stderr
+    spearman = float(r.stdout.split("Spearman ")[1].split(",")[0])
+    assert spearman > 0.6  # measured ~0.9: the head sees the degradation in the embedding
+    e = run("uncertainty", "eval", str(weights), "--samples", "1000", "--seed", "0")
+    assert e.returncode == 0, e.stderr
+    assert json.loads(e.stdout)["spearman"] > 0.6
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    bad = run("uncertainty", "eval", str(tmp_path / "junk.npz"))
+    assert bad.returncode == 2 and bad.stderr.startswith("error:")
+    assert "Traceback" not in bad.stderr
+
+
+def test_link_sim_table() -> None:
+    r = run("link", "sim", "--rate", "5", "--snr-db", "6.0", "--duration-s", "600")
+    assert r.returncode == 0, r.stderr
+    assert "rate" in r.stdout and "6.00" in r.stdout
+    bad = run("link", "sim", "--rate", "2")
+    assert bad.returncode == 2
