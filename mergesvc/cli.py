@@ -7,11 +7,13 @@ import dataclasses
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from mergesvc import keys
 from mergesvc.affinity import NodeAffinity
 from mergesvc.config import MatchMode, SolverName, load_config
 from mergesvc.errors import InputError, MergeError
@@ -426,7 +428,6 @@ def link_bridge(
     seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
 ) -> None:
     """Bridge the vehicle side of the key space to the topside through the simulated modem."""
-    import time
 
     from mergesvc.keys import fleet_root, uw_root
     from mergesvc.link import (
@@ -465,6 +466,182 @@ def link_bridge(
     except ValueError as exc:
         typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
         raise typer.Exit(2) from exc
+
+
+def _zenoh_conf(mode: str | None, connect: list[str] | None, listen: list[str] | None,
+                config: Path | None):
+    from mergesvc.link import make_zenoh_config
+
+    return make_zenoh_config(
+        config_file=str(config) if config else None, mode=mode, connect=tuple(connect or ()),
+        listen=tuple(listen or ()), scouting=config is None,
+    )
+
+
+def _projections(paths: list[Path] | None):
+    from mergesvc.codec import Projection
+
+    return [Projection.load(p) for p in paths or []]
+
+
+@app.command()
+def serve(
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    store: Annotated[Path, typer.Option(help="SQLite file (WAL mode)")] = Path("mergesvc.db"),
+    mode: Annotated[str, typer.Option(help="zenoh mode: router, peer or client")] = "router",
+    listen: Annotated[list[str] | None, typer.Option(help="zenoh listen endpoint(s)")] = None,
+    connect: Annotated[list[str] | None, typer.Option(help="zenoh endpoint(s) to connect")] = None,
+    config: Annotated[Path | None, typer.Option(help="zenoh JSON5 config file")] = None,
+    projection: Annotated[
+        list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
+    ] = None,
+    settings: Annotated[Path | None, typer.Option(help="matching settings JSON")] = None,
+    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+) -> None:
+    """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default."""
+    import signal
+    import threading
+
+    import zenoh
+
+    from mergesvc.service import MergeService, ServiceConfig
+
+    if mode == "router" and not listen and not config:
+        listen = ["tcp/127.0.0.1:7447"]
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        cfg = ServiceConfig(fleet=fleet, store=str(store))
+        if settings is not None:
+            cfg = cfg.model_copy(update={"match": load_config(settings)})
+        zconf = _zenoh_conf(mode, connect, listen, config)
+        projections = _projections(projection)
+        with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc:
+            typer.echo(f"merge service for fleet {fleet} on {listen or connect}, store {store}")
+            start = time.monotonic()
+            while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
+                stop.wait(0.2)
+            typer.echo(json.dumps(svc.status()["submaps"]))
+    except MergeError as exc:
+        _fail(exc)
+    except (ValueError, OSError) as exc:
+        typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
+        raise typer.Exit(2) from exc
+
+
+@app.command()
+def agent(
+    robot: Annotated[str, typer.Option(help="this vehicle's name")],
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    session_id: Annotated[str, typer.Option("--session", help="this session's name")] = "s0",
+    seed: Annotated[int, typer.Option(help="fleet world seed (scenario input)")] = 0,
+    laps: Annotated[int, typer.Option(help="laps of the robot's pattern")] = 2,
+    objects: Annotated[int, typer.Option(help="objects in the pool")] = 24,
+    log_file: Annotated[
+        Path | None, typer.Option("--log", help="replay a recorded observation log instead")
+    ] = None,
+    profile: Annotated[str, typer.Option(help="codec: full, f16, int8 or compact")] = "int8",
+    projection: Annotated[Path | None, typer.Option(help="fleet projection (compact)")] = None,
+    time_scale: Annotated[float, typer.Option(help="wall s per simulated s; 0: no pacing")] = 0.0,
+    acoustic: Annotated[bool, typer.Option(help="publish on the acoustic vehicle side")] = False,
+    mode: Annotated[str, typer.Option(help="zenoh mode")] = "client",
+    connect: Annotated[list[str] | None, typer.Option(help="zenoh endpoint(s)")] = None,
+    config: Annotated[Path | None, typer.Option(help="zenoh JSON5 config file")] = None,
+    linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
+) -> None:
+    """A vehicle: local map (tracker + ISAM2), submaps out, factors in."""
+    import zenoh
+
+    from mergesvc.agent import Agent, AgentConfig
+    from mergesvc.codec import Profile, decode_message, encode_message
+    from mergesvc.model import Factor
+    from mergesvc.scenario import fleet_world, read_observation_log
+
+    try:
+        prof = Profile(profile)
+        proj = _projections([projection] if projection else None)
+        if prof is Profile.COMPACT and not proj:
+            raise typer.BadParameter("--profile compact needs --projection")
+        if log_file is not None:
+            frames = read_observation_log(log_file)
+        else:
+            frames = fleet_world(seed, laps=laps, n_objects=objects).frames(
+                robot, int(session_id.lstrip("s") or 0) if session_id[1:].isdigit() else 0)
+        acfg = AgentConfig(robot=robot, session=session_id, fleet=fleet)
+        root = keys.uw_root(fleet) if acoustic else keys.fleet_root(fleet)
+        zconf = _zenoh_conf(mode, connect or ["tcp/127.0.0.1:7447"], None, config)
+
+        def encode(sub, seq):
+            return encode_message(sub, prof, robot, seq, projection=proj[0] if proj else None)
+
+        def decode_factor(data: bytes) -> Factor:
+            _, f = decode_message(data)
+            if not isinstance(f, Factor):
+                raise MergeError("not a factor")
+            return f
+
+        with zenoh.open(zconf) as session, Agent(
+            acfg, session, encode, decode_factor,
+            submap_key=f"{root}/submap/{robot}/{session_id}",
+            factor_key=f"{root}/factor/{robot}/**", alive_key=f"{root}/alive/{robot}",
+        ) as ag:
+            stats = ag.run(frames, time_scale=time_scale)
+            time.sleep(linger)
+            typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
+                                   "submaps_sent": stats.submaps_sent,
+                                   "bytes_sent": stats.bytes_sent,
+                                   "factors_received": stats.factors_received}))
+    except MergeError as exc:
+        _fail(exc)
+    except (ValueError, OSError) as exc:
+        typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
+        raise typer.Exit(2) from exc
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="folder for logs, summary and the figure")] = Path(
+        "results/demo"
+    ),
+    quick: Annotated[bool, typer.Option(help="a smaller mission (under 30 s)")] = False,
+    link: Annotated[str, typer.Option(help="zenoh, or acoustic (simulated modem)")] = "zenoh",
+    seed: Annotated[int, typer.Option(help="mission seed")] = 0,
+    profile: Annotated[str, typer.Option(help="codec profile of the submaps")] = "compact",
+) -> None:
+    """Service + 3 vehicles as processes on loopback; summary against the ground truth."""
+    from mergesvc.codec import Profile
+    from mergesvc.demo import DemoPlan, run_demo
+
+    if link not in ("zenoh", "acoustic"):
+        typer.echo("error: --link must be zenoh or acoustic", err=True)
+        raise typer.Exit(2)
+    try:
+        prof = Profile(profile)
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link, profile=prof)
+    res = run_demo(plan, out, echo=typer.echo)
+    s = res.summary
+    if s:
+        typer.echo(f"submaps sent {s['submaps_sent']} ({s['bytes_on_wire']} bytes, "
+                   f"{s['bytes_per_submap']:.0f} per submap); processed {s['submaps_processed']}")
+        typer.echo(f"factors accepted {s['factors_accepted']}, retracted "
+                   f"{s['factors_retracted']}; correspondences right {s['correspondences_right']},"
+                   f" wrong {s['correspondences_wrong']} (precision "
+                   f"{s['precision'] if s['precision'] is None else round(s['precision'], 3)})")
+        for r, a in s["alignment"].items():
+            after = ("not aligned" if a["after_m"] is None else
+                     f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
+            typer.echo(f"  {r} frame in {s['anchor']}: before {a['before_m']:.2f} m / "
+                       f"{a['before_deg']:.1f} deg, after {after}")
+        typer.echo(f"service latency per submap ms: {s['latency_ms']}; figure {s['figure']}; "
+                   f"{s['elapsed_s']} s")
+    for f in res.failures:
+        typer.echo(f"FAILED: {f}", err=True)
+    if not res.ok:
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -98,6 +98,11 @@ class VerifyConfig(_Section):
         "more matched objects pin the geometry down by themselves"
     )
     inlier_sigmas: float = Field(3.0, gt=0, description="residual gate in edge tolerances")
+    max_tilt_deg: float | None = Field(
+        30.0, gt=0, le=180, description="largest angle the transform may turn the vertical by; "
+        "vehicles know 'up' (IMU, depth), and distances alone cannot tell a flat set of objects "
+        "from its mirror image (a 180 deg flip). None: no gravity reference"
+    )
 
 
 class MatchConfig(_Section):

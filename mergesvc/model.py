@@ -140,6 +140,7 @@ class RejectReason(str, Enum):
     NOT_VERIFIED = "not_verified"  # paper mode: no verification is done
     TOO_FEW_MATCHES = "too_few_matches"
     AMBIGUOUS = "ambiguous"  # another configuration explains the submap almost as well
+    TILTED = "tilted"  # the transform turns "up" over: a mirror image of the true match
     DEGENERATE_GEOMETRY = "degenerate_geometry"
     RESIDUAL_TOO_LARGE = "residual_too_large"
     SEARCH_INCOMPLETE = "search_incomplete"
@@ -336,11 +337,17 @@ def json_schemas() -> dict[str, dict[str, Any]]:
         "object_map.schema.json": ObjectMap.model_json_schema(),
         "submap.schema.json": Submap.model_json_schema(),
         "match_result.schema.json": MatchResult.model_json_schema(),
+        "factor.schema.json": Factor.model_json_schema(),
+        "error_message.schema.json": ErrorMessage.model_json_schema(),
     }
 
 
 __all__ = [
     "SCHEMA_VERSION",
+    "Correspondence",
+    "ErrorMessage",
+    "Factor",
+    "FactorStatus",
     "Match",
     "MatchResult",
     "ObjectArrays",
@@ -353,3 +360,97 @@ __all__ = [
     "load_model",
     "parse_model",
 ]
+
+
+# ------------------------------------------------------------------ inter-robot messages
+
+MAX_CORRESPONDENCES = 10_000
+
+
+class FactorStatus(str, Enum):
+    """Lifecycle of an inter-robot factor: add it, or take back one sent earlier."""
+
+    ACCEPTED = "accepted"
+    RETRACTED = "retracted"
+
+
+class Correspondence(BaseModel):
+    """One object pair behind a factor: object `object_a` of robot a is `object_b` of robot b."""
+
+    model_config = _STRICT
+
+    object_a: Identifier
+    object_b: Identifier
+    score: float
+
+
+class Factor(BaseModel):
+    """Inter-robot factor: relative pose T_a_b between the frames of (robot_a, session_a) and
+    (robot_b, session_b), p_a = R p_b + t, as a GTSAM BetweenFactorPose3 would hold it.
+
+    `covariance` is 6x6, symmetric positive definite, in the Pose3 tangent space of T_a_b,
+    GTSAM order: rotation (rad) then translation (m).
+    """
+
+    model_config = _STRICT
+
+    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    factor_id: Identifier
+    robot_a: Identifier
+    session_a: Identifier
+    robot_b: Identifier
+    session_b: Identifier
+    T_a_b: Transform = Field(description="pose of frame b in frame a: p_a = R p_b + t")
+    covariance: list[list[float]] = Field(
+        description="6x6 SPD covariance of T_a_b, GTSAM Pose3 order (rotation, translation)"
+    )
+    correspondences: list[Correspondence] = Field(
+        default_factory=list, max_length=MAX_CORRESPONDENCES
+    )
+    status: FactorStatus | None = Field(default=None, description="accepted or retracted")
+
+    @field_validator("schema_version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> int:
+        return _check_version(v)
+
+    @field_validator("T_a_b")
+    @classmethod
+    def _unit_quaternion(cls, v: Transform) -> Transform:
+        norm = sum(x * x for x in v.quaternion_wxyz) ** 0.5  # no overflow warning: inf
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"quaternion_wxyz must have unit norm, got {norm:.6g}")
+        return v
+
+    @field_validator("covariance")
+    @classmethod
+    def _spd(cls, v: list[list[float]]) -> list[list[float]]:
+        if len(v) != 6 or any(len(r) != 6 for r in v):
+            raise ValueError("covariance must be 6x6")
+        C = np.array(v, dtype=np.float64)
+        with np.errstate(all="ignore"):  # huge entries: judged by the result, not warnings
+            if not np.abs(C - C.T).max() <= 1e-9 * np.abs(C).max():
+                raise ValueError("covariance must be symmetric")
+            try:
+                L = np.linalg.cholesky(C)
+            except np.linalg.LinAlgError:
+                L = None
+        if L is None or not np.all(np.isfinite(L)):
+            raise ValueError("covariance must be positive definite")
+        return v
+
+
+class ErrorMessage(BaseModel):
+    """An error reply on the wire, e.g. the service could not decode submap `about_seq`."""
+
+    model_config = _STRICT
+
+    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    code: str = Field(min_length=1, max_length=64, description="short machine-readable code")
+    detail: str = Field(default="", max_length=1024, description="one line for people")
+    about_seq: int | None = Field(default=None, ge=0, description="seq of the message at fault")
+
+    @field_validator("schema_version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> int:
+        return _check_version(v)

@@ -268,6 +268,14 @@ def _fit(
     )
 
 
+def _upright(fit: RigidFit, config: MatchConfig) -> bool:
+    """Whether the transform keeps the vertical within max_tilt_deg (always, if unset)."""
+    if config.verify.max_tilt_deg is None or fit.T_map_submap is None:
+        return True
+    R = fit.T_map_submap.rotation().matrix()
+    return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0)))) <= config.verify.max_tilt_deg
+
+
 def _verify(
     sub: ObjectArrays,
     map_: ObjectArrays,
@@ -311,6 +319,8 @@ def _verify(
     reason = fit.reason
     if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= config.verify.min_matches:
         reason = RejectReason.AMBIGUOUS
+    if fit.accepted and not _upright(fit, config):
+        reason = RejectReason.TILTED
     final = proposed.copy()
     if fit.accepted:
         rows = np.flatnonzero(proposed != UNMATCHED)
@@ -339,7 +349,7 @@ def _match_verified(
         # search then verifies once, over the enlarged candidate set.
         probe = _fit(sub, map_, prop.to_map(prop.assignment), sigma_m, config)
         timer.lap("verify")
-        if probe.accepted:
+        if probe.accepted and _upright(probe, config):
             predicted = transform_points(probe.T_map_submap, sub.position_xyz_m)
             gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)
             more = expand_near(cands, sub, map_, predicted, gate, calib)

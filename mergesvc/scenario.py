@@ -10,8 +10,9 @@ filter of tracking.py, so variances and n_obs are what a vehicle would send.
 from __future__ import annotations
 
 import functools
+import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -477,6 +478,88 @@ def _odometry(
     return est_xy, est_yaw
 
 
+@dataclass(frozen=True)
+class Frame:
+    """One frame of a vehicle: its pose estimate and the detections, in the frame the detections
+    were placed (the run's estimated world frame, or the vehicle's own odometry frame).
+
+    T_est / T_true: (4, 4) body poses; body_T_detections: the detections' raw body-frame
+    positions are not kept, a vehicle only has them through T_est."""
+
+    k: int
+    stamp_s: float
+    T_est: np.ndarray
+    T_true: np.ndarray
+    detections: list[Detection]
+
+
+def _frames(
+    family: Family,
+    poses_true: np.ndarray,
+    poses_est: np.ndarray,
+    stamps: np.ndarray,
+    objects_xyz: np.ndarray,
+    truth_emb: np.ndarray,
+    ids: list[str],
+    n_classes: int,
+    cfg: RunConfig,
+    rng: np.random.Generator,
+    model: EmbeddingModel,
+    image_s: ImageUncertainty | None = None,
+) -> Iterator[Frame]:
+    """Per frame: which objects the sensor sees, their measured positions (noise growing with
+    range, multipath outliers), each image's uncertainty s and embedding, false detections;
+    placed with the estimated pose poses_est[k] (the vehicle's only knowledge of where it is)."""
+    half_fov = np.radians(cfg.fov_deg) / 2.0
+    r_lo, r_hi = cfg.range_m
+    for k in range(len(stamps)):
+        Tt, Te = poses_true[k], poses_est[k]
+        rel = (objects_xyz - Tt[:3, 3]) @ Tt[:3, :3]  # body-frame positions, (n_obj, 3)
+        rng_m = np.linalg.norm(rel, axis=1)
+        bearing = np.arctan2(rel[:, 1], rel[:, 0])
+        seen = (rng_m >= r_lo) & (rng_m <= r_hi) & (np.abs(bearing) <= half_fov)
+        seen &= rng.random(len(rel)) < cfg.p_detect
+        idx = np.flatnonzero(seen)
+        frac = (rng_m[idx] - r_lo) / max(r_hi - r_lo, 1e-9)
+        # image uncertainty: far, oblique and badly lit views are worse
+        light = rng.uniform(0.0, 1.0, size=len(idx)) ** 3
+        s_img = np.clip(0.05 + 0.25 * frac**2 + 0.25 * light + rng.normal(0, 0.02, len(idx)),
+                        0.05, 0.5)
+        sigma = cfg.pos_sigma_m[0] + (cfg.pos_sigma_m[1] - cfg.pos_sigma_m[0]) * frac
+        meas = rel[idx] + rng.normal(size=(len(idx), 3)) * sigma[:, None]
+        out = rng.random(len(idx)) < cfg.outlier_rate
+        meas[out] *= rng.uniform(0.6, 1.4, size=(int(out.sum()), 1))
+        d = truth_emb.shape[1]
+        emb = model.observe(truth_emb[idx], s_img, rng) if len(idx) else np.zeros((0, d))
+        truths: list[str | None] = [ids[i] for i in idx]
+        n_false = rng.poisson(cfg.false_per_frame)
+        if n_false:
+            # a flash, a reflection: somewhere in view, looking like a washed-out random class
+            r = rng.uniform(r_lo, r_hi, n_false)
+            b = rng.uniform(-half_fov, half_fov, n_false)
+            fz = rng.uniform(-1.0, 1.0, n_false) if family is Family.UNDERWATER else rng.uniform(
+                0.0, 2.0, n_false) - Tt[2, 3]
+            fake = np.column_stack([r * np.cos(b), r * np.sin(b), fz])
+            s_fake = rng.uniform(0.3, 0.5, n_false)
+            fake_emb = model.observe(
+                model.instances(rng.integers(n_classes, size=n_false), rng), s_fake, rng)
+            meas = np.vstack([meas, fake])
+            emb = np.vstack([emb, fake_emb])
+            s_img = np.concatenate([s_img, s_fake])
+            sigma = np.concatenate([sigma, np.full(n_false, cfg.pos_sigma_m[1])])
+            truths += [None] * n_false
+        if image_s is not None and len(emb):
+            # the vehicle does not know the true s: it reports what its estimator says
+            s_img = np.asarray(image_s(emb), dtype=np.float64)
+        dets = []
+        for j in range(len(meas)):
+            p_est = Te[:3, :3] @ meas[j] + Te[:3, 3]
+            cov = Te[:3, :3] @ np.diag(np.full(3, sigma[j] ** 2)) @ Te[:3, :3].T
+            dets.append(Detection(emb[j], float(s_img[j]), p_est, cov, float(stamps[k]),
+                                  truths[j]))
+        yield Frame(k, float(stamps[k]), Te, Tt, dets)
+
+
 def _simulate(
     family: Family,
     name: str,
@@ -503,58 +586,198 @@ def _simulate(
     truth_emb = model.instances(classes, rng)
     ids = [f"{class_names[c]}_{k}" for k, c in enumerate(classes)]
     trackers = (ObjectTracker(cfg.tracking), ObjectTracker(cfg.tracking))
-    half_fov = np.radians(cfg.fov_deg) / 2.0
-    r_lo, r_hi = cfg.range_m
-    for k in range(n):
-        Tt, Te = poses_true[k], poses_est[k]
-        rel = (objects_xyz - Tt[:3, 3]) @ Tt[:3, :3]  # body-frame positions, (n_obj, 3)
-        rng_m = np.linalg.norm(rel, axis=1)
-        bearing = np.arctan2(rel[:, 1], rel[:, 0])
-        seen = (rng_m >= r_lo) & (rng_m <= r_hi) & (np.abs(bearing) <= half_fov)
-        seen &= rng.random(len(rel)) < cfg.p_detect
-        idx = np.flatnonzero(seen)
-        frac = (rng_m[idx] - r_lo) / max(r_hi - r_lo, 1e-9)
-        # image uncertainty: far, oblique and badly lit views are worse
-        light = rng.uniform(0.0, 1.0, size=len(idx)) ** 3
-        s_img = np.clip(0.05 + 0.25 * frac**2 + 0.25 * light + rng.normal(0, 0.02, len(idx)),
-                        0.05, 0.5)
-        sigma = cfg.pos_sigma_m[0] + (cfg.pos_sigma_m[1] - cfg.pos_sigma_m[0]) * frac
-        meas = rel[idx] + rng.normal(size=(len(idx), 3)) * sigma[:, None]
-        out = rng.random(len(idx)) < cfg.outlier_rate
-        meas[out] *= rng.uniform(0.6, 1.4, size=(int(out.sum()), 1))
-        emb = model.observe(truth_emb[idx], s_img, rng) if len(idx) else np.zeros((0, 1))
-        truths: list[str | None] = [ids[i] for i in idx]
-        n_false = rng.poisson(cfg.false_per_frame)
-        if n_false:
-            # a flash, a reflection: somewhere in view, looking like a washed-out random class
-            r = rng.uniform(r_lo, r_hi, n_false)
-            b = rng.uniform(-half_fov, half_fov, n_false)
-            fz = rng.uniform(-1.0, 1.0, n_false) if family is Family.UNDERWATER else rng.uniform(
-                0.0, 2.0, n_false) - z_m[k]
-            fake = np.column_stack([r * np.cos(b), r * np.sin(b), fz])
-            s_fake = rng.uniform(0.3, 0.5, n_false)
-            fake_emb = model.observe(
-                model.instances(rng.integers(len(class_names), size=n_false), rng), s_fake, rng)
-            meas = np.vstack([meas, fake])
-            emb = np.vstack([emb, fake_emb]) if len(idx) else fake_emb
-            s_img = np.concatenate([s_img, s_fake])
-            sigma = np.concatenate([sigma, np.full(n_false, cfg.pos_sigma_m[1])])
-            truths += [None] * n_false
-        if image_s is not None and len(emb):
-            # the vehicle does not know the true s: it reports what its estimator says
-            s_img = np.asarray(image_s(emb), dtype=np.float64)
-        dets = []
-        for j in range(len(meas)):
-            p_est = Te[:3, :3] @ meas[j] + Te[:3, 3]
-            cov = Te[:3, :3] @ np.diag(np.full(3, sigma[j] ** 2)) @ Te[:3, :3].T
-            dets.append(Detection(emb[j], float(s_img[j]), p_est, cov, float(stamps[k]),
-                                  truths[j]))
-        trackers[0 if k < split else 1].observe_frame(dets)
+    for fr in _frames(family, poses_true, poses_est, stamps, objects_xyz, truth_emb, ids,
+                      len(class_names), cfg, rng, model, image_s):
+        trackers[0 if fr.k < split else 1].observe_frame(fr.detections)
     keep = [tuple(t for t in tr.tracks if t.n_obs >= cfg.min_obs) for tr in trackers]
     return Run(
         family, name, seed, stamps, poses_true, poses_est, split, objects_xyz, ids,
         [class_names[c] for c in classes], keep[0], keep[1], paper_radius_m, robot_id,
     )
+
+
+# ------------------------------------------------------------------- recorded observation logs
+#
+# A real vehicle's perception output, replayed by `mergesvc agent --log FILE`. JSON Lines, one
+# frame per line:
+#   {"stamp_s": 12.0,
+#    "pose": {"translation": [x, y, z], "quaternion_wxyz": [w, x, y, z]},   odometry estimate
+#    "detections": [{"embedding": [d floats], "uncertainty": s,             image uncertainty
+#                    "position_body_m": [x, y, z], "position_sigma_m": 0.3}, ...]}
+# The pose is the vehicle's own estimate in its odometry frame; detection positions are relative
+# to the vehicle (body frame) with an isotropic standard deviation.
+
+
+def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path | str) -> int:
+    """Write frames as an observation log (the format above); returns the frame count."""
+    n = 0
+    with open(path, "w") as fh:
+        for fr in frames:
+            T = fr.T_est
+            q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
+            T_inv = np.linalg.inv(T)
+            dets = []
+            for d in fr.detections:
+                body = T_inv[:3, :3] @ d.position_xyz_m + T_inv[:3, 3]
+                dets.append({
+                    "embedding": d.embedding_d.tolist(),
+                    "uncertainty": float(np.mean(d.uncertainty_s)),
+                    "position_body_m": body.tolist(),
+                    "position_sigma_m": float(np.sqrt(np.trace(d.position_cov_33) / 3.0)),
+                })
+            fh.write(json.dumps({
+                "stamp_s": fr.stamp_s,
+                "pose": {"translation": T[:3, 3].tolist(),
+                         "quaternion_wxyz": [q[3], q[0], q[1], q[2]]},
+                "detections": dets,
+            }) + "\n")
+            n += 1
+    return n
+
+
+def read_observation_log(path: Path | str) -> Iterator[Frame]:
+    """Frames of an observation log, validated line by line (InputError names the line)."""
+    from mergesvc.errors import DecodeError, SchemaError
+
+    with open(path) as fh:
+        for k, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+                t = np.asarray(rec["pose"]["translation"], dtype=np.float64)
+                w, x, y, z = rec["pose"]["quaternion_wxyz"]
+                if t.shape != (3,) or not np.all(np.isfinite(t)):
+                    raise ValueError("pose.translation must be 3 finite numbers")
+                T = np.eye(4)
+                T[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
+                T[:3, 3] = t
+                stamp = float(rec["stamp_s"])
+                dets = []
+                for d in rec.get("detections", []):
+                    body = np.asarray(d["position_body_m"], dtype=np.float64)
+                    if body.shape != (3,):
+                        raise ValueError("position_body_m must be 3 numbers")
+                    sigma = float(d["position_sigma_m"])
+                    if not sigma > 0:
+                        raise ValueError("position_sigma_m must be > 0")
+                    p = T[:3, :3] @ body + T[:3, 3]
+                    cov = T[:3, :3] @ np.eye(3) * sigma**2 @ T[:3, :3].T
+                    dets.append(Detection(np.asarray(d["embedding"], dtype=np.float64),
+                                          float(d["uncertainty"]), p, cov, stamp))
+            except json.JSONDecodeError as exc:
+                raise DecodeError(f"{path}:{k}: not JSON: {exc.msg}") from exc
+            except (KeyError, TypeError, ValueError) as exc:
+                raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
+            except Exception as exc:  # tracking.py's InputError for bad values
+                raise SchemaError(f"{path}:{k}: {exc}") from exc
+            yield Frame(k - 1, stamp, T, T, dets)
+
+
+# ----------------------------------------------------------------------- a fleet in one pool
+
+
+@dataclass(frozen=True)
+class FleetRobot:
+    """One vehicle of a fleet world: its path and its true start pose (its odometry frame)."""
+
+    name: str
+    path_xy: np.ndarray
+    yaw: np.ndarray
+    z_m: float
+    T_world_start: np.ndarray  # (4, 4): where its odometry frame sits in the world
+
+
+@dataclass(frozen=True)
+class FleetWorld:
+    """Several vehicles surveying one pool: shared objects and appearance model, one path and
+    one odometry frame each. Everything follows from (seed, robot names, laps)."""
+
+    seed: int
+    objects_xyz_m: np.ndarray
+    object_ids: list[str]
+    classes: np.ndarray
+    truth_emb: np.ndarray
+    model: EmbeddingModel
+    robots: list[FleetRobot]
+    cfg: RunConfig
+
+    def robot(self, name: str) -> FleetRobot:
+        for r in self.robots:
+            if r.name == name:
+                return r
+        raise ValueError(f"no robot {name!r} in this fleet (have {[r.name for r in self.robots]})")
+
+    def T_rel_true(self, a: str, b: str) -> np.ndarray:
+        """True pose of robot b's odometry frame in robot a's: inv(T_world_a) T_world_b."""
+        return np.linalg.inv(self.robot(a).T_world_start) @ self.robot(b).T_world_start
+
+    def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
+        """The robot's frames, detections placed in its own odometry frame (origin: its start).
+        A later session starts where the robot is put back in the water, a new frame."""
+        r = self.robot(name)
+        idx = [x.name for x in self.robots].index(name)
+        rng = np.random.default_rng([self.seed, 31, idx, session])
+        path, yaw = r.path_xy, r.yaw
+        if session:
+            shift = int(len(path) * (0.3 + 0.2 * (session % 2)))
+            path, yaw = np.roll(path, -shift, axis=0), np.roll(yaw, -shift)
+        n = len(path)
+        stamps = np.arange(n) * self.cfg.frame_dt_s
+        est_xy, est_yaw = _odometry(path, yaw, self.cfg, rng)
+        T0 = _pose(*path[0], r.z_m, yaw[0])
+        T0_inv = np.linalg.inv(T0)
+        poses_true = np.stack([_pose(*path[k], r.z_m, yaw[k]) for k in range(n)])
+        poses_est = np.stack([T0_inv @ _pose(*est_xy[k], r.z_m, est_yaw[k]) for k in range(n)])
+        yield from _frames(Family.UNDERWATER, poses_true, poses_est, stamps, self.objects_xyz_m,
+                           self.truth_emb, self.object_ids, len(UNDERWATER_CLASSES), self.cfg,
+                           rng, self.model)
+
+    def session_start(self, name: str, session: int = 0) -> np.ndarray:
+        """True world pose of the odometry frame of a robot's session."""
+        r = self.robot(name)
+        if not session:
+            return r.T_world_start
+        shift = int(len(r.path_xy) * (0.3 + 0.2 * (session % 2)))
+        k = shift % len(r.path_xy)
+        return _pose(*r.path_xy[k], r.z_m, r.yaw[k])
+
+
+def fleet_world(seed: int = 0, robots: Sequence[str] = ("auv1", "auv2", "auv3"),
+                laps: int = 2, n_objects: int = 24) -> FleetWorld:
+    """A 30 x 16 m pool with n_objects objects and one vehicle per name, each on its own
+    pattern (loops and lawnmowers over overlapping parts of the pool), starting in its own
+    place, so their odometry frames differ by an unknown rigid transform."""
+    rng = np.random.default_rng([seed, 5])
+    pool = np.array([30.0, 16.0])
+    classes = rng.choice(len(UNDERWATER_CLASSES), size=n_objects,
+                         p=rng.dirichlet(np.ones(len(UNDERWATER_CLASSES)) * 3.0))
+    xy = rng.uniform([2.0, 1.5], pool - [2.0, 1.5], size=(n_objects, 2))
+    z = np.where(classes == UNDERWATER_CLASSES.index("buoy"), rng.uniform(-2.5, -1.5, n_objects),
+                 rng.uniform(-4.0, -3.5, n_objects))
+    objects = np.column_stack([xy, z])
+    model = world_embedding_model(Family.UNDERWATER, seed)
+    truth_emb = model.instances(classes, rng)
+    ids = [f"{UNDERWATER_CLASSES[c]}_{k}" for k, c in enumerate(classes)]
+    cfg = RunConfig(
+        speed_mps=0.5, frame_dt_s=1.0, range_m=(0.5, 5.0), fov_deg=100.0, p_detect=0.7,
+        pos_sigma_m=(0.1, 0.4), outlier_rate=0.03, false_per_frame=0.05,
+        odo_scale_sigma=0.02, yaw_rw_rad=np.radians(0.2), yaw_bias_rad=np.radians(0.01),
+        tracking=TrackingConfig(cos_min=0.6, window_s=60.0),
+    )
+    patterns = [
+        np.array([[2, 2], [18, 2], [18, 14], [2, 14], [2, 2]], float),  # west loop
+        np.array([[28, 14], [12, 14], [12, 2], [28, 2], [28, 14]], float),  # east loop
+        np.array([[3, 5], [27, 5], [27, 11], [3, 11], [3, 5]], float),  # middle loop
+        np.array([[2, 8], [28, 8], [28, 3], [2, 3], [2, 13], [28, 13]], float),
+    ]
+    out = []
+    for i, name in enumerate(robots):
+        way = np.vstack([patterns[i % len(patterns)]] * laps)
+        path, yaw = _sample_path(way, cfg.speed_mps * cfg.frame_dt_s)
+        zr = -2.0 + 0.3 * i
+        out.append(FleetRobot(name, path, yaw, zr, _pose(*path[0], zr, yaw[0])))
+    return FleetWorld(seed, objects, ids, classes, truth_emb, model, out, cfg)
 
 
 def underwater_run(run: int = 1, seed: int = 0, image_s: ImageUncertainty | None = None) -> Run:
@@ -674,13 +897,19 @@ def _first_revisit(xy: np.ndarray, min_gap: int, radius_m: float = 15.0) -> int:
 __all__ = [
     "EmbeddingModel",
     "Family",
+    "FleetRobot",
+    "FleetWorld",
+    "Frame",
     "ObjectNode",
     "Run",
     "RunConfig",
     "Scenario",
     "drive_run",
+    "fleet_world",
     "image_s_dataset",
     "load_kitti_poses",
     "make_scenario",
+    "read_observation_log",
     "underwater_run",
+    "write_observation_log",
 ]

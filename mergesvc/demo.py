@@ -1,0 +1,355 @@
+"""The multi-robot demo: a merge service and three vehicles as separate processes on loopback
+(optionally through the acoustic-link bridge), a seeded pool mission, and a summary scored
+against the ground truth: submaps, bytes, factors, precision, frame alignment before and after
+merging, and a PNG of the merged map.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mergesvc import keys
+from mergesvc.agent import AgentConfig, build_submaps
+from mergesvc.codec import Profile, Projection, decode_message
+from mergesvc.model import Factor
+from mergesvc.scenario import fleet_world, image_s_dataset
+
+log = logging.getLogger(__name__)
+
+ROBOTS = ("auv1", "auv2", "auv3")
+
+
+@dataclass(frozen=True)
+class DemoPlan:
+    seed: int = 0
+    laps: int = 2
+    n_objects: int = 24
+    time_scale: float = 0.02  # wall seconds per simulated second
+    profile: Profile = Profile.COMPACT
+    link: str = "zenoh"  # or "acoustic": through the simulated modem
+    timeout_s: float = 120.0
+
+    @classmethod
+    def quick(cls, **kw: Any) -> DemoPlan:
+        return cls(laps=1, time_scale=0.01, timeout_s=60.0, **kw)
+
+
+@dataclass
+class DemoResult:
+    ok: bool
+    summary: dict[str, Any] = field(default_factory=dict)
+    failures: list[str] = field(default_factory=list)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def fleet_projection(seed: int, path: Path, k: int | None = None) -> Projection:
+    """The fleet-shared embedding projection, learned from earlier survey data of the world
+    (not from this mission's submaps) and versioned by its content id."""
+    y, _, _ = image_s_dataset(4000, seed + 1000)
+    proj = Projection.fit(y, k)
+    proj.save(path)
+    return proj
+
+
+def _zenoh_client(endpoint: str) -> Any:
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)
+
+
+def query_status(session: Any, fleet: str, timeout_s: float = 3.0) -> dict[str, Any] | None:
+    for reply in session.get(f"{keys.fleet_root(fleet)}/status", timeout=timeout_s):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return None
+
+
+def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) -> DemoResult:
+    """Start everything, run the mission, score it, stop everything (always)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fleet = f"demo{plan.seed}"
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    proj_path = out_dir / "projection.npz"
+    fleet_projection(plan.seed, proj_path)
+    store = out_dir / "merge.db"
+    for p in out_dir.glob("merge.db*"):
+        p.unlink()
+    cli = [sys.executable, "-m", "mergesvc.cli"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    procs: dict[str, subprocess.Popen] = {}
+    logs: dict[str, Path] = {}
+
+    def spawn(name: str, args: list[str]) -> None:
+        logs[name] = out_dir / f"{name}.log"
+        fh = logs[name].open("w")
+        procs[name] = subprocess.Popen([*cli, "-v", *args], stdout=fh, stderr=subprocess.STDOUT,
+                                       env=env, start_new_session=True)
+
+    result = DemoResult(ok=False)
+    t_start = time.monotonic()
+    session = None
+    factors: dict[str, Factor] = {}
+    try:
+        spawn("service", ["serve", "--fleet", fleet, "--store", str(store), "--mode", "router",
+                          "--listen", endpoint, "--projection", str(proj_path)])
+        session = _wait_for_service(endpoint, fleet, procs["service"], deadline_s=30.0)
+
+        def on_factor(sample: Any) -> None:
+            try:
+                _, f = decode_message(sample.payload.to_bytes())
+                if isinstance(f, Factor):
+                    factors[f.factor_id] = f
+            except Exception as exc:  # counted by the summary as missing factors
+                log.warning("demo: undecodable factor: %s", exc)
+
+        sub = session.declare_subscriber(f"{keys.fleet_root(fleet)}/factor/**", on_factor)
+        if plan.link == "acoustic":
+            spawn("bridge", ["link", "bridge", "--fleet", fleet, "--rate", "5", "--snr-db", "5.0",
+                             "--time-scale", str(plan.time_scale), "--connect", endpoint,
+                             *[x for r in ROBOTS for x in ("--vehicles", r)]])
+            time.sleep(1.0)
+        for r in ROBOTS:
+            spawn(r, ["agent", "--robot", r, "--fleet", fleet, "--seed", str(plan.seed),
+                      "--laps", str(plan.laps), "--objects", str(plan.n_objects),
+                      "--profile", plan.profile.value, "--projection", str(proj_path),
+                      "--time-scale", str(plan.time_scale), "--connect", endpoint,
+                      *(["--acoustic"] if plan.link == "acoustic" else [])])
+        echo(f"service and {len(ROBOTS)} vehicles running on {endpoint} "
+             f"({plan.link} link, {plan.profile.value} codec)")
+        deadline = t_start + plan.timeout_s
+        for r in ROBOTS:
+            code = procs[r].wait(timeout=max(deadline - time.monotonic(), 1.0))
+            if code != 0:
+                result.failures.append(f"{r} exited with {code} (see {logs[r]})")
+        status = _wait_until_idle(session, fleet, deadline, procs)
+        sub.undeclare()
+        if status is None:
+            result.failures.append("the service did not answer its status query")
+            return result
+        result.summary = score_demo(plan, status, factors, logs, out_dir)
+        result.summary["elapsed_s"] = round(time.monotonic() - t_start, 1)
+        if result.summary["factors_accepted"] == 0:
+            result.failures.append("no factor was accepted")
+    except subprocess.TimeoutExpired as exc:
+        result.failures.append(f"timed out: {exc}")
+    except Exception as exc:
+        result.failures.append(f"{type(exc).__name__}: {exc}")
+    finally:
+        if session is not None:
+            with contextlib.suppress(Exception):
+                session.close()
+        for name, p in procs.items():
+            _stop(p)
+            if name == "service" and p.returncode not in (0, -signal.SIGINT, -signal.SIGTERM):
+                result.failures.append(f"service exited with {p.returncode} (see {logs[name]})")
+    result.ok = not result.failures
+    (out_dir / "summary.json").write_text(json.dumps(
+        {"ok": result.ok, "failures": result.failures, **result.summary}, indent=1,
+        default=float))
+    return result
+
+
+def _stop(p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(timeout=8.0)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=5.0)
+
+
+def _wait_for_service(endpoint: str, fleet: str, proc: subprocess.Popen,
+                      deadline_s: float) -> Any:
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the service exited with {proc.returncode} at start")
+        try:
+            session = _zenoh_client(endpoint)
+        except Exception:
+            time.sleep(0.3)
+            continue
+        if query_status(session, fleet, 1.0) is not None:
+            return session
+        session.close()
+        time.sleep(0.3)
+    raise RuntimeError("the service did not come up")
+
+
+def _wait_until_idle(session: Any, fleet: str, deadline: float,
+                     procs: dict[str, subprocess.Popen]) -> dict[str, Any] | None:
+    """Until every received submap is processed (or the deadline)."""
+    last = None
+    stable = 0
+    while time.monotonic() < deadline:
+        if procs["service"].poll() is not None:
+            return last
+        st = query_status(session, fleet, 2.0)
+        if st is not None:
+            s = st["submaps"]
+            done = s["processed"] + s["duplicate"] + s["rejected"]
+            idle = s["queued"] == 0 and done >= s["received"]
+            same = last is not None and last["submaps"] == s
+            last = st
+            stable = stable + 1 if idle and same else 0
+            if stable >= 2:
+                return st
+        time.sleep(0.5)
+    return last
+
+
+def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor],
+               logs: dict[str, Path], out_dir: Path) -> dict[str, Any]:
+    """Everything the summary says, against the mission's ground truth."""
+    world = fleet_world(plan.seed, ROBOTS, plan.laps, plan.n_objects)
+    local = {r: build_submaps(AgentConfig(robot=r), world.frames(r))[0] for r in ROBOTS}
+
+    def truth(robot: str, oid: str) -> str | None:
+        try:
+            return local[robot].tracker.track(oid).truth_id
+        except Exception:
+            return None
+
+    active = [f for f in factors.values() if f.status is None or f.status.value == "accepted"]
+    retracted = {f.factor_id for f in factors.values() if f.status and
+                 f.status.value == "retracted"}
+    right = wrong = 0
+    for f in active:
+        if f.factor_id in retracted:
+            continue
+        for c in f.correspondences:
+            ta, tb = truth(f.robot_a, c.object_a), truth(f.robot_b, c.object_b)
+            ok = ta is not None and ta == tb
+            right += ok
+            wrong += not ok
+    anchor = status.get("anchor") or "auv1/s0"
+    a_robot = anchor.split("/")[0]
+    poses = {f: np.asarray(T) for f, T in status.get("frame_poses", {}).items()}
+    align = {}
+    for r in ROBOTS:
+        if f"{r}/s0" == anchor:
+            continue
+        T_true = world.T_rel_true(a_robot, r)
+        before = _pose_error(np.eye(4), T_true)
+        after = _pose_error(poses[f"{r}/s0"], T_true) if f"{r}/s0" in poses else None
+        align[r] = {"before_m": before[0], "before_deg": before[1],
+                    "after_m": after[0] if after else None,
+                    "after_deg": after[1] if after else None}
+    sent = {r: _agent_totals(logs.get(r)) for r in ROBOTS}
+    summary = {
+        "submaps_sent": sum(s["submaps"] for s in sent.values()),
+        "bytes_on_wire": sum(s["bytes"] for s in sent.values()),
+        "bytes_per_submap": (sum(s["bytes"] for s in sent.values())
+                             / max(sum(s["submaps"] for s in sent.values()), 1)),
+        "submaps_processed": status["submaps"]["processed"],
+        "factors_accepted": status["factors"]["accepted"],
+        "factors_retracted": status["factors"]["retracted"],
+        "correspondences_right": right,
+        "correspondences_wrong": wrong,
+        "precision": right / (right + wrong) if right + wrong else None,
+        "alignment": align,
+        "anchor": anchor,
+        "latency_ms": status["latency_ms"],
+    }
+    summary["figure"] = str(plot_merged(world, local, poses, anchor, active, out_dir /
+                                        "merged_map.png"))
+    return summary
+
+
+def _agent_totals(path: Path | None) -> dict[str, int]:
+    """The agent prints one JSON line of totals when it ends."""
+    out = {"submaps": 0, "bytes": 0}
+    if path is None or not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        if line.startswith("{") and '"submaps_sent"' in line:
+            d = json.loads(line)
+            out = {"submaps": d["submaps_sent"], "bytes": d["bytes_sent"]}
+    return out
+
+
+def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    d = np.linalg.inv(T_true) @ T_est
+    ang = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(ang)
+
+
+def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
+                factors: list[Factor], path: Path) -> Path:
+    """Each robot's trajectory and objects in the anchor frame (as the service aligned them),
+    inter-robot correspondences drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 5.5), dpi=110)
+    colors = {"auv1": "tab:blue", "auv2": "tab:orange", "auv3": "tab:green"}
+    a_robot = anchor.split("/")[0]
+    T_aw = np.linalg.inv(world.robot(a_robot).T_world_start)
+    obj = (world.objects_xyz_m @ T_aw[:3, :3].T + T_aw[:3, 3])[:, :2]
+    ax.scatter(*obj.T, marker="x", c="0.6", s=30, label="true objects (anchor frame)")
+    placed: dict[tuple[str, str], np.ndarray] = {}
+    for r, lm in local.items():
+        T = poses.get(f"{r}/s0")
+        if T is None:
+            continue
+        xy = np.array([T[:3, :3] @ p + T[:3, 3] for p in
+                       (t.position_xyz_m for t in lm.tracker.tracks)])
+        for t, p in zip(lm.tracker.tracks, xy):
+            placed[(r, t.track_id)] = p
+        ax.scatter(*xy[:, :2].T, s=12, color=colors.get(r, "k"), label=f"{r} objects")
+        traj = np.array(list(_trajectory(world, r)))
+        traj = traj @ T[:3, :3].T + T[:3, 3]
+        ax.plot(*traj[:, :2].T, lw=0.7, color=colors.get(r, "k"), alpha=0.6)
+    for f in factors:
+        for c in f.correspondences:
+            a, b = placed.get((f.robot_a, c.object_a)), placed.get((f.robot_b, c.object_b))
+            if a is not None and b is not None:
+                ax.plot([a[0], b[0]], [a[1], b[1]], color="k", lw=0.6, alpha=0.5)
+    ax.plot([], [], color="k", lw=0.6, label="inter-robot correspondences")
+    ax.set_aspect("equal")
+    ax.set_title(f"merged map in {anchor}'s frame")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _trajectory(world: Any, robot: str):
+    for fr in world.frames(robot):
+        yield fr.T_est[:3, 3]
+
+
+__all__ = ["DemoPlan", "DemoResult", "run_demo"]

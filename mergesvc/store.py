@@ -1,0 +1,619 @@
+"""Persistence stage: one SQLite file in WAL mode holding every accepted submap (written before it
+is processed), the inter-robot factors sent, and the robot-session frames seen. A restart redoes
+`unprocessed_submaps()`; replays are idempotent on the natural keys.
+
+Durability: `synchronous=FULL` by default. In WAL mode NORMAL already survives a process crash
+(kill -9: a committed transaction is in the WAL file, which the OS keeps), but a power cut or OS
+crash may roll back the last commits; FULL fsyncs the WAL at every commit, so a submap the service
+acknowledged survives that too. Submaps arrive at most a few per second, so the fsync per commit
+is affordable. NORMAL is available for bulk imports and tests.
+
+Threads: one connection opened with `check_same_thread=False`, every public method holds one
+re-entrant lock for its whole transaction, so the Zenoh callback thread and the worker thread may
+share a Store. Other processes (a status command) may open the same file: WAL lets readers run
+while one writer commits; writers wait up to `busy_timeout_s`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from mergesvc.errors import InputError, StoreError
+from mergesvc.graph import frame_name
+from mergesvc.model import FactorStatus
+
+logger = logging.getLogger(__name__)
+
+#: Version of the tables below; a file written by a newer build is refused.
+STORE_SCHEMA_VERSION = 1
+#: `PRAGMA application_id` of a mergesvc store ("MRGS"), so a foreign SQLite file is refused.
+APPLICATION_ID = 0x4D524753
+#: Status of a submap that is stored but not yet processed.
+PENDING = "pending"
+
+_MAX_ID_LENGTH = 128
+_MAX_STATUS_LENGTH = 64
+
+_SCHEMA = """
+CREATE TABLE schema_version (
+    version INTEGER NOT NULL,
+    created_at_s REAL NOT NULL
+);
+CREATE TABLE submaps (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    robot_id TEXT NOT NULL,
+    session_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    payload BLOB NOT NULL,
+    sha256 TEXT NOT NULL,
+    received_at_s REAL NOT NULL,
+    status TEXT NOT NULL DEFAULT 'pending',
+    detail TEXT NOT NULL DEFAULT '',
+    processed_at_s REAL,
+    UNIQUE (robot_id, session_id, seq)
+);
+CREATE INDEX submaps_pending ON submaps (status, id);
+CREATE TABLE submap_conflicts (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    robot_id TEXT NOT NULL,
+    session_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    payload BLOB NOT NULL,
+    sha256 TEXT NOT NULL,
+    received_at_s REAL NOT NULL
+);
+CREATE TABLE factors (
+    factor_id TEXT PRIMARY KEY,
+    frame_a TEXT NOT NULL,
+    frame_b TEXT NOT NULL,
+    payload BLOB NOT NULL,
+    status TEXT NOT NULL CHECK (status IN ('accepted', 'retracted')),
+    created_at_s REAL NOT NULL,
+    updated_at_s REAL NOT NULL
+);
+CREATE TABLE frames (
+    frame TEXT PRIMARY KEY,
+    robot_id TEXT NOT NULL,
+    session_id TEXT NOT NULL,
+    first_seen_s REAL NOT NULL,
+    last_seen_s REAL NOT NULL
+);
+"""
+_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames")
+
+
+class Synchronous(str, Enum):
+    """SQLite `synchronous` setting (see the module docstring)."""
+
+    NORMAL = "NORMAL"
+    FULL = "FULL"
+
+
+class SubmapConflictError(StoreError):
+    """A submap key (robot, session, seq) was stored before with different bytes.
+
+    The new payload is kept in `submap_conflicts` (nothing is lost); the stored one is unchanged.
+    """
+
+
+@dataclass(frozen=True)
+class StoredSubmap:
+    """One stored submap. status is PENDING until `mark_processed`."""
+
+    row_id: int
+    robot_id: str
+    session_id: str
+    seq: int
+    payload: bytes
+    sha256: str
+    received_at_s: float
+    status: str
+    detail: str
+    processed_at_s: float | None
+
+    @property
+    def frame(self) -> str:
+        return frame_name(self.robot_id, self.session_id)
+
+    @property
+    def processed(self) -> bool:
+        return self.status != PENDING
+
+
+@dataclass(frozen=True)
+class StoredFactor:
+    factor_id: str
+    frame_a: str
+    frame_b: str
+    payload: bytes
+    status: FactorStatus
+    created_at_s: float
+    updated_at_s: float
+
+
+@dataclass(frozen=True)
+class StoredFrame:
+    frame: str
+    robot_id: str
+    session_id: str
+    first_seen_s: float
+    last_seen_s: float
+
+
+def _check_id(value: Any, name: str) -> str:
+    if not isinstance(value, str) or not 1 <= len(value) <= _MAX_ID_LENGTH:
+        raise InputError(f"{name} must be a string of 1 to {_MAX_ID_LENGTH} characters")
+    return value
+
+
+def _check_bytes(value: Any, name: str) -> bytes:
+    if not isinstance(value, (bytes, bytearray, memoryview)):
+        raise InputError(f"{name} must be bytes, got {type(value).__name__}")
+    return bytes(value)
+
+
+def _check_time(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{name} must be a finite number of seconds, got {value!r}")
+    return float(value)
+
+
+def _check_factor_status(status: Any) -> FactorStatus:
+    try:
+        return FactorStatus(status)
+    except ValueError:
+        allowed = ", ".join(s.value for s in FactorStatus)
+        raise InputError(f"factor status must be one of {allowed}, got {status!r}") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+class Store:
+    """The service's SQLite store. `Store(":memory:")` for tests; use as a context manager.
+
+    Every write is one transaction, committed before the method returns.
+    """
+
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        synchronous: Synchronous | str = Synchronous.FULL,
+        check_integrity: bool = True,
+        busy_timeout_s: float = 5.0,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.path = str(path)
+        self.synchronous = Synchronous(synchronous)
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._memory = self.path == ":memory:" or self.path.startswith("file::memory:")
+        try:
+            self._conn: sqlite3.Connection | None = sqlite3.connect(
+                self.path,
+                timeout=busy_timeout_s,
+                isolation_level=None,  # autocommit; transactions are explicit (BEGIN IMMEDIATE)
+                check_same_thread=False,  # shared by threads under self._lock
+            )
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot open store {self.path}: {_one_line(exc)}") from exc
+        try:
+            self._open(check_integrity)
+        except sqlite3.DatabaseError as exc:
+            self._conn.close()
+            self._conn = None
+            raise StoreError(
+                f"store {self.path} is unreadable or corrupt: {_one_line(exc)}"
+            ) from exc
+        except BaseException:
+            self._conn.close()
+            self._conn = None
+            raise
+
+    # -- lifecycle -------------------------------------------------------------------------------
+
+    def _open(self, check_integrity: bool) -> None:
+        conn = self._conn
+        assert conn is not None
+        # The first statement reads the header: a file that is not SQLite fails here.
+        mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if not self._memory and str(mode).lower() != "wal":
+            raise StoreError(f"store {self.path}: cannot enable WAL mode (journal_mode={mode})")
+        conn.execute(f"PRAGMA synchronous={self.synchronous.value}")
+        if check_integrity:
+            rows = conn.execute("PRAGMA quick_check").fetchall()
+            if [r[0] for r in rows] != ["ok"]:
+                raise StoreError(f"store {self.path} is corrupt: {rows[0][0]}")
+        with self._transaction() as c:
+            tables = {
+                r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+            }
+            tables.discard("sqlite_sequence")
+            if not tables:
+                self._create(c)
+                return
+            app_id = c.execute("PRAGMA application_id").fetchone()[0]
+            if app_id != APPLICATION_ID or "schema_version" not in tables:
+                raise StoreError(f"{self.path} is an SQLite file but not a mergesvc store")
+            version = c.execute("SELECT MAX(version) FROM schema_version").fetchone()[0]
+        if version is None or version > STORE_SCHEMA_VERSION:
+            raise StoreError(
+                f"store {self.path} has schema version {version}; this build reads version "
+                f"{STORE_SCHEMA_VERSION} (written by a newer mergesvc?)"
+            )
+        if version < STORE_SCHEMA_VERSION:  # no older versions exist yet: nothing to migrate
+            raise StoreError(f"store {self.path} has unknown old schema version {version}")
+
+    def _create(self, c: sqlite3.Connection) -> None:
+        c.execute(f"PRAGMA application_id={APPLICATION_ID}")
+        for statement in _SCHEMA.split(";"):
+            if statement.strip():
+                c.execute(statement)
+        c.execute(
+            "INSERT INTO schema_version (version, created_at_s) VALUES (?, ?)",
+            (STORE_SCHEMA_VERSION, self._clock()),
+        )
+        logger.info("created store %s (schema version %d)", self.path, STORE_SCHEMA_VERSION)
+
+    def close(self) -> None:
+        """Close the connection (checkpoints the WAL). Idempotent."""
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    self._conn.close()
+                except sqlite3.Error as exc:
+                    raise StoreError(f"closing store {self.path}: {_one_line(exc)}") from exc
+                finally:
+                    self._conn = None
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextmanager
+    def _transaction(self, write: bool = True) -> Iterator[sqlite3.Connection]:
+        """One transaction under the lock; sqlite errors become StoreError."""
+        with self._lock:
+            conn = self._conn
+            if conn is None:
+                raise StoreError(f"store {self.path} is closed")
+            try:
+                # IMMEDIATE takes the write lock up front: no upgrade deadlock between processes.
+                conn.execute("BEGIN IMMEDIATE" if write else "BEGIN")
+            except sqlite3.Error as exc:
+                raise StoreError(f"store {self.path}: {_one_line(exc)}") from exc
+            try:
+                yield conn
+                conn.execute("COMMIT")
+            except BaseException as exc:
+                if conn.in_transaction:
+                    try:
+                        conn.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        logger.exception("rollback failed on %s", self.path)
+                if isinstance(exc, sqlite3.Error):
+                    raise StoreError(f"store {self.path}: {_one_line(exc)}") from exc
+                raise
+
+    # -- submaps ---------------------------------------------------------------------------------
+
+    def put_submap(
+        self,
+        robot_id: str,
+        session_id: str,
+        seq: int,
+        payload_bytes: bytes,
+        received_at_s: float,
+    ) -> tuple[int, bool]:
+        """Persist a submap; returns (row id, created).
+
+        A replay of the same key with identical bytes returns the stored row and created=False.
+        The same key with different bytes raises SubmapConflictError after recording the new
+        payload in `submap_conflicts`. The robot-session frame is recorded in the same commit.
+        """
+        robot_id = _check_id(robot_id, "robot_id")
+        session_id = _check_id(session_id, "session_id")
+        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+            raise InputError(f"seq must be an integer >= 0, got {seq!r}")
+        payload = _check_bytes(payload_bytes, "payload_bytes")
+        t = _check_time(received_at_s, "received_at_s")
+        frame = frame_name(robot_id, session_id)
+        digest = hashlib.sha256(payload).hexdigest()
+        with self._transaction() as c:
+            row = c.execute(
+                "SELECT id, sha256 FROM submaps WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                (robot_id, session_id, seq),
+            ).fetchone()
+            if row is None:
+                cur = c.execute(
+                    "INSERT INTO submaps (robot_id, session_id, seq, payload, sha256, "
+                    "received_at_s) VALUES (?, ?, ?, ?, ?, ?)",
+                    (robot_id, session_id, seq, payload, digest, t),
+                )
+                self._touch_frame(c, frame, robot_id, session_id, t)
+                return int(cur.lastrowid), True
+            row_id, stored_digest = row
+            if stored_digest == digest:
+                return int(row_id), False
+            c.execute(
+                "INSERT INTO submap_conflicts (robot_id, session_id, seq, payload, sha256, "
+                "received_at_s) VALUES (?, ?, ?, ?, ?, ?)",
+                (robot_id, session_id, seq, payload, digest, t),
+            )
+        # Raised after the commit, so the conflicting payload is kept.
+        raise SubmapConflictError(
+            f"submap {frame}#{seq} was stored before with different content "
+            f"(sha256 {stored_digest[:12]} vs {digest[:12]}); kept the first, logged the conflict"
+        )
+
+    def mark_processed(self, submap_row_id: int, status: str, detail: str = "") -> None:
+        """Record the outcome of processing a submap (any status but PENDING). Idempotent."""
+        status = str(status.value if isinstance(status, Enum) else status)
+        if not 1 <= len(status) <= _MAX_STATUS_LENGTH or status == PENDING:
+            raise InputError(f"status must be 1 to {_MAX_STATUS_LENGTH} characters, not {PENDING}")
+        if not isinstance(detail, str):
+            raise InputError("detail must be a string")
+        with self._transaction() as c:
+            cur = c.execute(
+                "UPDATE submaps SET status = ?, detail = ?, processed_at_s = ? WHERE id = ?",
+                (status, detail, self._clock(), int(submap_row_id)),
+            )
+            if cur.rowcount != 1:
+                raise StoreError(f"no submap with row id {submap_row_id} in {self.path}")
+
+    _SUBMAP_COLUMNS = (
+        "id, robot_id, session_id, seq, payload, sha256, received_at_s, status, detail, "
+        "processed_at_s"
+    )
+
+    @staticmethod
+    def _submap(row: tuple[Any, ...]) -> StoredSubmap:
+        return StoredSubmap(
+            row_id=int(row[0]),
+            robot_id=row[1],
+            session_id=row[2],
+            seq=int(row[3]),
+            payload=bytes(row[4]),
+            sha256=row[5],
+            received_at_s=float(row[6]),
+            status=row[7],
+            detail=row[8],
+            processed_at_s=None if row[9] is None else float(row[9]),
+        )
+
+    def unprocessed_submaps(self) -> list[StoredSubmap]:
+        """Submaps still PENDING, in arrival order: what a restart must process."""
+        with self._transaction(write=False) as c:
+            rows = c.execute(
+                f"SELECT {self._SUBMAP_COLUMNS} FROM submaps WHERE status = ? ORDER BY id",
+                (PENDING,),
+            ).fetchall()
+        return [self._submap(r) for r in rows]
+
+    def submap(self, submap_row_id: int) -> StoredSubmap:
+        with self._transaction(write=False) as c:
+            row = c.execute(
+                f"SELECT {self._SUBMAP_COLUMNS} FROM submaps WHERE id = ?", (int(submap_row_id),)
+            ).fetchone()
+        if row is None:
+            raise StoreError(f"no submap with row id {submap_row_id} in {self.path}")
+        return self._submap(row)
+
+    def submaps(
+        self,
+        robot_id: str | None = None,
+        session_id: str | None = None,
+        *,
+        status: str | None = None,
+    ) -> list[StoredSubmap]:
+        """Stored submaps in arrival order, optionally filtered."""
+        where, args = [], []
+        for column, value in (("robot_id", robot_id), ("session_id", session_id)):
+            if value is not None:
+                where.append(f"{column} = ?")
+                args.append(value)
+        if status is not None:
+            where.append("status = ?")
+            args.append(str(status))
+        clause = f" WHERE {' AND '.join(where)}" if where else ""
+        with self._transaction(write=False) as c:
+            rows = c.execute(
+                f"SELECT {self._SUBMAP_COLUMNS} FROM submaps{clause} ORDER BY id", args
+            ).fetchall()
+        return [self._submap(r) for r in rows]
+
+    def submap_conflicts(self) -> list[tuple[str, str, int, bytes, float]]:
+        """(robot_id, session_id, seq, payload, received_at_s) of every refused replay."""
+        with self._transaction(write=False) as c:
+            rows = c.execute(
+                "SELECT robot_id, session_id, seq, payload, received_at_s FROM submap_conflicts "
+                "ORDER BY id"
+            ).fetchall()
+        return [(r[0], r[1], int(r[2]), bytes(r[3]), float(r[4])) for r in rows]
+
+    # -- factors ---------------------------------------------------------------------------------
+
+    def put_factor(
+        self,
+        factor_id: str,
+        frame_a: str,
+        frame_b: str,
+        payload_bytes: bytes,
+        status: FactorStatus | str = FactorStatus.ACCEPTED,
+    ) -> bool:
+        """Persist a factor; True if new. Idempotent on factor_id: the first write wins (a replay
+        with other bytes is logged and ignored); change the status with `set_factor_status`."""
+        factor_id = _check_id(factor_id, "factor_id")
+        frame_a = _check_id(frame_a, "frame_a")
+        frame_b = _check_id(frame_b, "frame_b")
+        payload = _check_bytes(payload_bytes, "payload_bytes")
+        st = _check_factor_status(status)
+        now = self._clock()
+        with self._transaction() as c:
+            row = c.execute(
+                "SELECT payload FROM factors WHERE factor_id = ?", (factor_id,)
+            ).fetchone()
+            if row is None:
+                c.execute(
+                    "INSERT INTO factors (factor_id, frame_a, frame_b, payload, status, "
+                    "created_at_s, updated_at_s) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (factor_id, frame_a, frame_b, payload, st.value, now, now),
+                )
+                return True
+        if bytes(row[0]) != payload:
+            logger.warning("factor %s replayed with different bytes: kept the first", factor_id)
+        return False
+
+    def set_factor_status(self, factor_id: str, status: FactorStatus | str) -> bool:
+        """Set accepted / retracted; True if the status changed. StoreError if unknown."""
+        st = _check_factor_status(status)
+        with self._transaction() as c:
+            row = c.execute(
+                "SELECT status FROM factors WHERE factor_id = ?", (factor_id,)
+            ).fetchone()
+            if row is None:
+                raise StoreError(f"no factor {factor_id!r} in {self.path}")
+            if row[0] == st.value:
+                return False
+            c.execute(
+                "UPDATE factors SET status = ?, updated_at_s = ? WHERE factor_id = ?",
+                (st.value, self._clock(), factor_id),
+            )
+            return True
+
+    def factors(self, status: FactorStatus | str | None = None) -> list[StoredFactor]:
+        """Stored factors in creation order, optionally only one status."""
+        sql = (
+            "SELECT factor_id, frame_a, frame_b, payload, status, created_at_s, updated_at_s "
+            "FROM factors"
+        )
+        args: tuple[Any, ...] = ()
+        if status is not None:
+            sql += " WHERE status = ?"
+            args = (_check_factor_status(status).value,)
+        with self._transaction(write=False) as c:
+            rows = c.execute(sql + " ORDER BY rowid", args).fetchall()
+        return [
+            StoredFactor(
+                factor_id=r[0],
+                frame_a=r[1],
+                frame_b=r[2],
+                payload=bytes(r[3]),
+                status=FactorStatus(r[4]),
+                created_at_s=float(r[5]),
+                updated_at_s=float(r[6]),
+            )
+            for r in rows
+        ]
+
+    # -- frames ----------------------------------------------------------------------------------
+
+    @staticmethod
+    def _touch_frame(
+        c: sqlite3.Connection, frame: str, robot_id: str, session_id: str, t: float
+    ) -> bool:
+        cur = c.execute(
+            "INSERT OR IGNORE INTO frames (frame, robot_id, session_id, first_seen_s, "
+            "last_seen_s) VALUES (?, ?, ?, ?, ?)",
+            (frame, robot_id, session_id, t, t),
+        )
+        if cur.rowcount == 1:
+            return True
+        c.execute(
+            "UPDATE frames SET first_seen_s = MIN(first_seen_s, ?), "
+            "last_seen_s = MAX(last_seen_s, ?) WHERE frame = ?",
+            (t, t, frame),
+        )
+        return False
+
+    def put_frame(self, robot_id: str, session_id: str, seen_at_s: float) -> bool:
+        """Record that a robot-session frame was seen; True if new. (put_submap does this.)"""
+        robot_id = _check_id(robot_id, "robot_id")
+        session_id = _check_id(session_id, "session_id")
+        t = _check_time(seen_at_s, "seen_at_s")
+        frame = frame_name(robot_id, session_id)
+        with self._transaction() as c:
+            return self._touch_frame(c, frame, robot_id, session_id, t)
+
+    def frames(self) -> list[StoredFrame]:
+        """Frames in the order they were first recorded."""
+        with self._transaction(write=False) as c:
+            rows = c.execute(
+                "SELECT frame, robot_id, session_id, first_seen_s, last_seen_s FROM frames "
+                "ORDER BY rowid"
+            ).fetchall()
+        return [StoredFrame(r[0], r[1], r[2], float(r[3]), float(r[4])) for r in rows]
+
+    # -- status ----------------------------------------------------------------------------------
+
+    def counts(self) -> dict[str, Any]:
+        """For a status endpoint: submaps and factors per status, frames, refused replays."""
+        with self._transaction(write=False) as c:
+            submaps = dict(c.execute("SELECT status, COUNT(*) FROM submaps GROUP BY status"))
+            factors = dict(c.execute("SELECT status, COUNT(*) FROM factors GROUP BY status"))
+            n_frames = c.execute("SELECT COUNT(*) FROM frames").fetchone()[0]
+            n_conflicts = c.execute("SELECT COUNT(*) FROM submap_conflicts").fetchone()[0]
+        return {
+            "submaps": {str(k): int(v) for k, v in submaps.items()},
+            "submaps_pending": int(submaps.get(PENDING, 0)),
+            "factors": {str(k): int(v) for k, v in factors.items()},
+            "frames": int(n_frames),
+            "submap_conflicts": int(n_conflicts),
+        }
+
+    def stats(self) -> dict[str, Any]:
+        """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical)."""
+        with self._transaction(write=False) as c:
+            rows = {t: int(c.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0]) for t in _TABLES}
+            page_bytes = int(c.execute("PRAGMA page_count").fetchone()[0]) * int(
+                c.execute("PRAGMA page_size").fetchone()[0]
+            )
+            journal = str(c.execute("PRAGMA journal_mode").fetchone()[0])
+        file_bytes = wal_bytes = 0
+        if not self._memory:
+            file_bytes = os.path.getsize(self.path) if os.path.exists(self.path) else 0
+            wal = self.path + "-wal"
+            wal_bytes = os.path.getsize(wal) if os.path.exists(wal) else 0
+        return {
+            "path": self.path,
+            "schema_version": STORE_SCHEMA_VERSION,
+            "journal_mode": journal,
+            "synchronous": self.synchronous.value,
+            "rows": rows,
+            "file_bytes": file_bytes,
+            "wal_bytes": wal_bytes,
+            "page_bytes": page_bytes,
+        }
+
+
+__all__ = [
+    "APPLICATION_ID",
+    "PENDING",
+    "STORE_SCHEMA_VERSION",
+    "Store",
+    "StoredFactor",
+    "StoredFrame",
+    "StoredSubmap",
+    "SubmapConflictError",
+    "Synchronous",
+]

@@ -1,0 +1,460 @@
+"""Tests of mergesvc.graph: GNC pose graph over robot-session frames (real GTSAM) and the fusion
+of the objects of aligned frames."""
+
+from __future__ import annotations
+
+import itertools
+
+import gtsam
+import numpy as np
+import pytest
+
+from mergesvc.errors import InputError
+from mergesvc.graph import (
+    GraphConfig,
+    ObjectLink,
+    PoseGraph,
+    _bridges,
+    frame_name,
+    fuse_objects,
+    links_from_factor,
+    pose3_from_transform,
+    pose_error,
+    split_frame,
+)
+from mergesvc.model import (
+    Correspondence,
+    Factor,
+    FactorStatus,
+    ObjectArrays,
+    ObjectMap,
+    ObjectNode,
+    Transform,
+)
+
+A, B, C, D, E, F = (f"{r}/s0" for r in "ABCDEF")
+SIGMA_ROT_RAD = 0.01
+SIGMA_TRANS_M = 0.1
+
+
+def random_pose(rng: np.random.Generator, rot_rad: float = 1.0, trans_m: float = 30.0):
+    return gtsam.Pose3.Expmap(
+        np.r_[rng.uniform(-rot_rad, rot_rad, 3), rng.uniform(-1, 1, 3) * trans_m]
+    )
+
+
+def random_covariance(rng: np.random.Generator) -> np.ndarray:
+    """A correlated SPD covariance with about SIGMA_ROT_RAD / SIGMA_TRANS_M marginal sigmas."""
+    scale = np.diag(np.r_[[SIGMA_ROT_RAD] * 3, [SIGMA_TRANS_M] * 3])
+    Q, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    corr = Q @ np.diag(rng.uniform(0.5, 1.5, 6)) @ Q.T
+    d = np.sqrt(np.diag(corr))
+    corr = corr / np.outer(d, d)
+    return scale @ corr @ scale
+
+
+class World:
+    """Three robots' frames with known poses in a world frame; A is the anchor."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.T_world = {
+            A: random_pose(self.rng),
+            B: random_pose(self.rng),
+            C: random_pose(self.rng),
+        }
+
+    def truth(self, a: str, b: str) -> gtsam.Pose3:
+        return self.T_world[a].between(self.T_world[b])
+
+    def T_anchor(self, frame: str) -> gtsam.Pose3:
+        return self.truth(A, frame)
+
+    def measure(self, a: str, b: str) -> tuple[gtsam.Pose3, np.ndarray]:
+        """A correct factor: truth perturbed by noise drawn from its covariance."""
+        cov = random_covariance(self.rng)
+        xi = self.rng.multivariate_normal(np.zeros(6), cov)
+        return self.truth(a, b).compose(gtsam.Pose3.Expmap(xi)), cov
+
+
+def gross_error(T: gtsam.Pose3) -> gtsam.Pose3:
+    """A wrong loop closure: 80 degrees of yaw and 15 m off."""
+    return T.compose(gtsam.Pose3.Expmap(np.r_[0.0, 0.0, 1.4, 15.0, -10.0, 3.0]))
+
+
+def redundant_graph(world: World, *, known_inlier: bool = False) -> PoseGraph:
+    """Two correct factors per pair (a loop with redundancy) plus one wrong A-C factor."""
+    graph = PoseGraph(anchor=A)
+    for k, (a, b) in itertools.product(range(2), [(A, B), (B, C), (A, C)]):
+        T, cov = world.measure(a, b)
+        graph.add_factor(f"{a[0]}{b[0]}{k}", a, b, T, cov, known_inlier=known_inlier)
+    T, cov = world.measure(A, C)
+    # Wrong and overconfident: the smallest covariance, so it would be the first choice of a
+    # naive initialisation and dominates a plain least-squares solve.
+    graph.add_factor("wrong", A, C, gross_error(T), cov / 4, known_inlier=known_inlier)
+    return graph
+
+
+def assert_psd(S: np.ndarray) -> None:
+    assert S.shape == (6, 6)
+    np.testing.assert_allclose(S, S.T, rtol=0, atol=1e-12 * np.abs(S).max())
+    assert np.linalg.eigvalsh(S).min() > 0
+
+
+# --------------------------------------------------------------------------------------------
+# Pose graph
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_gnc_recovers_true_poses_and_flags_exactly_the_wrong_factor(seed: int) -> None:
+    world = World(seed)
+    sol = redundant_graph(world).optimize()
+    assert sol.gnc_ran
+    assert sol.outlier_factor_ids == ["wrong"]
+    assert sol.ambiguous_factor_ids == []
+    assert sol.unchecked_factor_ids == []
+    assert sol.weights["wrong"] < 0.5
+    assert all(w >= 0.5 for f, w in sol.weights.items() if f != "wrong")
+    assert sol.inlier_factor_ids == [f for f in sol.weights if f != "wrong"]
+    assert set(sol.T_anchor_frame) == {A, B, C}
+    for frame in (A, B, C):
+        rot_err, trans_err = pose_error(sol.T_anchor_frame[frame], world.T_anchor(frame))
+        # Two or more factors of sigma 0.01 rad / 0.1 m per frame: 4 sigma bounds.
+        assert rot_err < 4 * SIGMA_ROT_RAD * np.sqrt(3)
+        assert trans_err < 4 * SIGMA_TRANS_M * np.sqrt(3)
+        assert_psd(sol.covariance_66[frame])
+    assert sol.marginals_error is None
+
+
+def test_without_gnc_the_wrong_factor_corrupts_the_frames() -> None:
+    """The same graph solved as plain least squares (all factors known inliers) is far off,
+    so the test above really measures GNC's robustness."""
+    world = World(0)
+    sol = redundant_graph(world, known_inlier=True).optimize()
+    assert not sol.gnc_ran
+    assert sol.outlier_factor_ids == []
+    _, trans_err = pose_error(sol.T_anchor_frame[C], world.T_anchor(C))
+    assert trans_err > 1.0
+
+
+def test_spanning_tree_rejects_nothing() -> None:
+    """No redundancy: every factor is a bridge, nothing can contradict it."""
+    world = World(1)
+    graph = PoseGraph()
+    T_ab, cov_ab = world.measure(A, B)
+    T_bc = gross_error(world.truth(B, C))
+    graph.add_factor("AB", A, B, T_ab, cov_ab)
+    graph.add_factor("BC", B, C, T_bc, random_covariance(world.rng))
+    sol = graph.optimize()
+    assert graph.anchor == A  # the first frame added
+    assert not sol.gnc_ran
+    assert sol.outlier_factor_ids == [] and sol.ambiguous_factor_ids == []
+    assert sol.unchecked_factor_ids == ["AB", "BC"]
+    # The solution is the measurements chained.
+    assert sol.T_anchor_frame[B].equals(T_ab, 1e-6)
+    assert sol.T_anchor_frame[C].equals(T_ab.compose(T_bc), 1e-6)
+    assert max(sol.errors.values()) < 1e-9
+
+
+def test_bridge_stays_unchecked_beside_a_checked_loop() -> None:
+    """A loop A-B-C (redundant) plus a wrong bridge C-D: the bridge is not judged."""
+    world = World(2)
+    graph = redundant_graph(world)
+    graph.add_factor("CD", C, D, gross_error(gtsam.Pose3()), np.eye(6) * 1e-4)
+    sol = graph.optimize()
+    assert sol.unchecked_factor_ids == ["CD"]
+    assert sol.weights["CD"] == 1.0
+    assert sol.outlier_factor_ids == ["wrong"]
+    assert sol.T_anchor_frame[D].equals(
+        sol.T_anchor_frame[C].compose(gross_error(gtsam.Pose3())), 1e-6
+    )
+
+
+def test_single_inconsistent_loop_is_ambiguous_not_rejected() -> None:
+    """One triangle with one wrong factor: any of the three could be the wrong one."""
+    world = World(3)
+    graph = PoseGraph()
+    for fid, (a, b) in (("AB", (A, B)), ("BC", (B, C))):
+        graph.add_factor(fid, a, b, *world.measure(a, b))
+    T, cov = world.measure(A, C)
+    graph.add_factor("wrong", A, C, gross_error(T), cov)
+    sol = graph.optimize()
+    assert sol.gnc_ran
+    assert sol.outlier_factor_ids == []
+    assert len(sol.ambiguous_factor_ids) >= 1
+    assert set(sol.ambiguous_factor_ids) <= {"AB", "BC", "wrong"}
+
+
+def test_parallel_pair_does_not_confirm_the_other_side_of_the_loop() -> None:
+    """A-B twice (consistent), B-C once, A-C wrong once: A-B is confirmed but which of B-C and
+    A-C is wrong is not identifiable, so nothing is retracted."""
+    world = World(4)
+    graph = PoseGraph()
+    graph.add_factor("AB0", A, B, *world.measure(A, B))
+    graph.add_factor("AB1", A, B, *world.measure(A, B))
+    graph.add_factor("BC", B, C, *world.measure(B, C))
+    T, cov = world.measure(A, C)
+    graph.add_factor("wrong", A, C, gross_error(T), cov)
+    sol = graph.optimize()
+    assert sol.outlier_factor_ids == []
+    assert set(sol.ambiguous_factor_ids) <= {"BC", "wrong"}
+    assert len(sol.ambiguous_factor_ids) >= 1
+
+
+def test_consistent_loop_flags_nothing() -> None:
+    world = World(5)
+    graph = PoseGraph()
+    for k, (a, b) in itertools.product(range(2), [(A, B), (B, C), (A, C)]):
+        graph.add_factor(f"{a[0]}{b[0]}{k}", a, b, *world.measure(a, b))
+    sol = graph.optimize()
+    assert sol.outlier_factor_ids == [] and sol.ambiguous_factor_ids == []
+    assert min(sol.weights.values()) >= 0.5
+
+
+def test_single_factor_marginal_equals_its_covariance() -> None:
+    """Anchor held by the prior, B = A * T_ab: the marginal of B (right perturbation) is the
+    factor covariance; two identical parallel factors halve it."""
+    rng = np.random.default_rng(6)
+    cov = random_covariance(rng)
+    T = random_pose(rng)
+    one = PoseGraph(anchor=A)
+    one.add_factor("f1", A, B, T, cov)
+    sol = one.optimize()
+    np.testing.assert_allclose(sol.covariance_66[B], cov, rtol=1e-5, atol=1e-12)
+    assert_psd(sol.covariance_66[A])
+    assert np.abs(sol.covariance_66[A]).max() < 1e-10
+
+    two = PoseGraph(anchor=A)
+    two.add_factor("f1", A, B, T, cov)
+    two.add_factor("f2", B, A, T.inverse(), cov_inverse_direction(T, cov))
+    sol2 = two.optimize()
+    assert sol2.gnc_ran and sol2.outlier_factor_ids == []
+    np.testing.assert_allclose(sol2.covariance_66[B], cov / 2, rtol=1e-5, atol=1e-12)
+
+
+def cov_inverse_direction(T_a_b: gtsam.Pose3, cov: np.ndarray) -> np.ndarray:
+    """Covariance of T_b_a = T_a_b^-1 given that of T_a_b (right perturbations): Ad(T_a_b)."""
+    Ad = T_a_b.AdjointMap()
+    return Ad @ cov @ Ad.T
+
+
+def test_disconnected_frames_are_reported_not_aligned() -> None:
+    world = World(7)
+    graph = redundant_graph(world)
+    graph.add_factor("DE", D, E, random_pose(world.rng), np.eye(6) * 1e-3)
+    graph.add_frame(F)
+    sol = graph.optimize()
+    assert sol.components[0] == [A, B, C]
+    assert sorted(map(sorted, sol.components[1:])) == [[D, E], [F]]
+    assert sorted(sol.disconnected_frames) == [D, E, F]
+    assert set(sol.T_anchor_frame) == {A, B, C}
+    assert set(sol.covariance_66) == {A, B, C}
+    assert "DE" not in sol.weights
+    # Another component is solved on request, in its own anchor's frame.
+    other = graph.optimize(anchor=D)
+    assert set(other.T_anchor_frame) == {D, E}
+    assert other.T_anchor_frame[D].equals(gtsam.Pose3(), 1e-9)
+    assert other.components[0] == [D, E]
+
+
+def test_factor_input_checks_and_replays() -> None:
+    rng = np.random.default_rng(8)
+    T = random_pose(rng)
+    cov = random_covariance(rng)
+    graph = PoseGraph()
+    assert graph.add_factor("f", A, B, T.matrix(), cov)  # (4, 4) arrays are accepted
+    assert not graph.add_factor("f", A, B, T, cov)  # identical replay: no-op
+    with pytest.raises(InputError, match="already used"):
+        graph.add_factor("f", A, B, T.compose(T), cov)
+    with pytest.raises(InputError, match="positive definite"):
+        graph.add_factor("g", A, B, T, -cov)
+    with pytest.raises(InputError, match="symmetric"):
+        graph.add_factor("g", A, B, T, cov + np.triu(np.ones((6, 6)), 1))
+    bad = T.matrix()
+    bad[:3, :3] *= 1.1
+    with pytest.raises(InputError, match="rigid"):
+        graph.add_factor("g", A, B, bad, cov)
+    with pytest.raises(InputError, match="both"):
+        graph.add_factor("g", A, A, T, cov)
+    with pytest.raises(InputError, match="unknown anchor"):
+        graph.optimize(anchor="Z/s9")
+    with pytest.raises(InputError, match="empty"):
+        PoseGraph().optimize()
+    assert graph.remove_factor("f") and not graph.remove_factor("f")
+    assert graph.frames == [A, B]
+
+
+def test_wire_factor_is_added_and_retracted_one_skipped() -> None:
+    rng = np.random.default_rng(9)
+    T = random_pose(rng)
+    cov = random_covariance(rng)
+    q = T.rotation().toQuaternion()
+    factor = Factor(
+        factor_id="x1",
+        robot_a="A",
+        session_a="s0",
+        robot_b="B",
+        session_b="s0",
+        T_a_b=Transform(
+            translation=tuple(T.translation()), quaternion_wxyz=(q.w(), q.x(), q.y(), q.z())
+        ),
+        covariance=cov.tolist(),
+        correspondences=[Correspondence(object_a="a1", object_b="b1", score=0.9)],
+    )
+    graph = PoseGraph()
+    assert graph.add_factor_model(factor)
+    sol = graph.optimize()
+    assert sol.T_anchor_frame[B].equals(T, 1e-9)
+    assert links_from_factor(factor) == [ObjectLink(A, "a1", B, "b1")]
+    retracted = factor.model_copy(update={"factor_id": "x2", "status": FactorStatus.RETRACTED})
+    assert not graph.add_factor_model(retracted)
+    assert graph.factor_ids == ["x1"]
+
+
+def test_bridges_against_brute_force() -> None:
+    """Tarjan on multigraphs (parallel edges are not bridges) vs. counting components."""
+    rng = np.random.default_rng(10)
+
+    def n_components(n: int, edges: list[tuple[int, int]]) -> int:
+        parent = list(range(n))
+
+        def find(i: int) -> int:
+            while parent[i] != i:
+                i = parent[i]
+            return i
+
+        for u, v in edges:
+            parent[find(u)] = find(v)
+        return len({find(i) for i in range(n)})
+
+    for _ in range(200):
+        n = int(rng.integers(1, 8))
+        m = int(rng.integers(0, 10))
+        edges = [tuple(int(x) for x in rng.choice(n, 2, replace=n < 2)) for _ in range(m)]
+        edges = [(u, v) for u, v in edges if u != v]
+        base = n_components(n, edges)
+        expected = {
+            e for e in range(len(edges)) if n_components(n, edges[:e] + edges[e + 1 :]) > base
+        }
+        assert _bridges(n, edges) == expected
+
+
+def test_frame_names() -> None:
+    assert frame_name("auv1", "2024-05-01") == "auv1/2024-05-01"
+    assert split_frame("auv1/s/2") == ("auv1", "s/2")
+    with pytest.raises(InputError):
+        frame_name("a/b", "s")
+    with pytest.raises(InputError):
+        split_frame("nosession")
+
+
+def test_config_is_validated() -> None:
+    assert GraphConfig().outlier_weight == 0.5
+    with pytest.raises(ValueError):
+        GraphConfig(inlier_probability=1.5)
+
+
+# --------------------------------------------------------------------------------------------
+# Object fusion
+# --------------------------------------------------------------------------------------------
+
+
+def arrays(ids, positions, embeddings, variances, n_obs) -> ObjectArrays:
+    return ObjectArrays(
+        ids=list(ids),
+        position_xyz_m=np.array(positions, dtype=float),
+        embeddings_nd=np.array(embeddings, dtype=float),
+        variances_nd=np.array(variances, dtype=float),
+        n_obs=np.array(n_obs),
+    )
+
+
+# T_A_B: 90 degrees about z, then 10 m along x.
+T_AB = gtsam.Pose3(gtsam.Rot3.Rz(np.pi / 2), np.array([10.0, 0.0, 0.0]))
+
+
+def test_two_member_object_matches_hand_computation() -> None:
+    objs = {
+        A: arrays(["a1", "a2"], [[1, 2, 0], [5, 5, 5]], [[1, 0], [1, 1]], [[1, 4], [1, 1]], [1, 2]),
+        B: arrays(["b1"], [[1, 0, 0]], [[0, 1]], [[1, 1]], [3]),
+    }
+    poses = {A: gtsam.Pose3(), B: T_AB}
+    fused = fuse_objects(objs, poses, [(A, "a1", B, "b1")])
+    assert [o.id for o in fused.objects] == ["A/s0/a1", "A/s0/a2"]
+    g = fused.objects[0]
+    # b1 in A: Rz(90) (1, 0, 0) + (10, 0, 0) = (10, 1, 0); n_obs-weighted: (1 a1 + 3 b1) / 4.
+    np.testing.assert_allclose(g.position, [7.75, 1.25, 0.0], atol=1e-12)
+    # var = 1 / (1/var_a + 1/var_b) = (1/2, 4/5); mean = var (mu_a / var_a + mu_b / var_b).
+    np.testing.assert_allclose(g.variance, [0.5, 0.8], atol=1e-12)
+    np.testing.assert_allclose(g.embedding, [0.5, 0.8], atol=1e-12)
+    assert g.n_obs == 4
+    assert fused.members["A/s0/a1"] == [(A, "a1"), (B, "b1")]
+    assert fused.member_of[(B, "b1")] == "A/s0/a1"
+    single = fused.objects[1]
+    assert single.variance == 1.0 and single.n_obs == 2 and single.position == (5.0, 5.0, 5.0)
+    assert fused.conflicts == []
+    assert fused.to_object_map().dim == 2
+
+
+def test_union_find_chains_links_into_one_object() -> None:
+    rng = np.random.default_rng(11)
+    T_AC = random_pose(rng)
+    p_true = np.array([3.0, -2.0, 1.0])  # one physical object, seen by three robots
+    frames = {A: gtsam.Pose3(), B: T_AB, C: T_AC}
+    objs = {}
+    for f, T in frames.items():
+        p_local = T.transformTo(p_true)
+        oid = f[0].lower() + "1"
+        objs[f] = arrays(
+            [oid, oid + "x"], [p_local, [0, 0, 0]], [[1, 0], [0, 1]], [[2, 2]] * 2, [1, 1]
+        )
+    links = [(A, "a1", B, "b1"), ObjectLink(B, "b1", C, "c1")]
+    fused = fuse_objects(objs, frames, links)
+    assert len(fused.objects) == 4  # one fused object + three singletons
+    g = fused.objects[0]
+    assert fused.members[g.id] == [(A, "a1"), (B, "b1"), (C, "c1")]
+    np.testing.assert_allclose(g.position, p_true, atol=1e-9)
+    np.testing.assert_allclose(g.variance, 2 / 3, rtol=1e-12)
+    assert g.n_obs == 3
+    # The same result in any link order (union-find and the Gaussian product are commutative).
+    again = fuse_objects(objs, frames, links[::-1])
+    assert [o.model_dump() for o in again.objects] == [o.model_dump() for o in fused.objects]
+
+
+def test_fusion_skips_unaligned_frames_reports_conflicts_and_keeps_labels() -> None:
+    def node(oid: str, label: str | None) -> ObjectNode:
+        return ObjectNode(
+            id=oid, position=(0, 0, 0), embedding=[1.0, 0.0], variance=1.0, label=label
+        )
+
+    objs = {
+        A: ObjectMap(
+            robot_id="A", session_id="s0", objects=[node("a1", "chair"), node("a2", None)]
+        ),
+        B: ObjectMap(robot_id="B", session_id="s0", objects=[node("b1", "chair")]),
+        D: ObjectMap(robot_id="D", session_id="s0", objects=[node("d1", "table")]),
+    }
+    poses = {A: gtsam.Pose3(), B: T_AB}  # D is not aligned
+    links = [(A, "a1", B, "b1"), (B, "b1", A, "a2"), (A, "a1", D, "d1")]
+    fused = fuse_objects(objs, poses, links)
+    # Lists of ObjectNode and (4, 4) poses are accepted too, with the same result.
+    as_lists = {f: list(m.objects) for f, m in objs.items()}
+    same = fuse_objects(as_lists, {f: T.matrix() for f, T in poses.items()}, links)
+    assert same == fused
+    assert len(fused.objects) == 1
+    assert fused.objects[0].label == "chair"
+    assert fused.conflicts == ["A/s0/a1"]  # a1 and a2 were two objects in A's own map
+    assert (D, "d1") not in fused.member_of
+    with pytest.raises(InputError, match="no object"):
+        fuse_objects(objs, poses, [(A, "zz", B, "b1")])
+
+
+def test_wire_quaternion_is_normalised() -> None:
+    """The wire accepts |q| within 1e-3 of 1; the rotation built from it must be orthonormal."""
+    q = np.array([0.9, 0.1, -0.3, 0.2])
+    T = pose3_from_transform([1.0, 2.0, 3.0], 1.0009 * q / np.linalg.norm(q))
+    R = T.rotation().matrix()
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    with pytest.raises(InputError):
+        pose3_from_transform([0, 0, 0], [0, 0, 0, 0])

@@ -1,0 +1,377 @@
+"""Tests of mergesvc.store: SQLite (WAL) persistence of submaps, factors and frames, including a
+real kill -9 of a writing process."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from mergesvc.errors import InputError, StoreError
+from mergesvc.model import FactorStatus
+from mergesvc.store import (
+    PENDING,
+    STORE_SCHEMA_VERSION,
+    Store,
+    SubmapConflictError,
+    Synchronous,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def payload(seq: int, size: int = 2000) -> bytes:
+    return (f"submap {seq};".encode() * size)[:size]
+
+
+@pytest.fixture
+def store() -> Store:
+    with Store(":memory:") as s:
+        yield s
+
+
+# --------------------------------------------------------------------------------------------
+# Submaps
+# --------------------------------------------------------------------------------------------
+
+
+def test_submap_round_trip(store: Store) -> None:
+    row, created = store.put_submap("auv1", "s1", 0, payload(0), 12.5)
+    assert created
+    (got,) = store.submaps()
+    assert got.row_id == row
+    assert (got.robot_id, got.session_id, got.seq, got.frame) == ("auv1", "s1", 0, "auv1/s1")
+    assert got.payload == payload(0)
+    assert got.received_at_s == 12.5
+    assert got.status == PENDING and not got.processed and got.processed_at_s is None
+    assert store.submap(row) == got
+    assert [f.frame for f in store.frames()] == ["auv1/s1"]
+
+
+def test_identical_replay_creates_nothing(store: Store) -> None:
+    row, created = store.put_submap("auv1", "s1", 3, payload(3), 1.0)
+    again, created_again = store.put_submap("auv1", "s1", 3, payload(3), 2.0)
+    assert created and not created_again and again == row
+    assert len(store.submaps()) == 1
+    # Another session or robot with the same seq is another submap.
+    assert store.put_submap("auv1", "s2", 3, payload(3), 1.0)[1]
+    assert store.put_submap("auv2", "s1", 3, payload(3), 1.0)[1]
+    assert len(store.submaps()) == 3
+
+
+def test_conflicting_replay_raises_and_keeps_both(store: Store) -> None:
+    store.put_submap("auv1", "s1", 0, payload(0), 1.0)
+    with pytest.raises(SubmapConflictError, match=r"auv1/s1#0 .*different content"):
+        store.put_submap("auv1", "s1", 0, b"other bytes", 2.0)
+    assert issubclass(SubmapConflictError, StoreError)
+    assert store.submaps()[0].payload == payload(0)  # the first write wins
+    assert store.submap_conflicts() == [("auv1", "s1", 0, b"other bytes", 2.0)]
+    assert store.counts()["submap_conflicts"] == 1
+
+
+def test_processing_state_and_arrival_order(store: Store) -> None:
+    rows = [store.put_submap("r", "s", seq, payload(seq), float(seq))[0] for seq in (5, 1, 3)]
+    store.mark_processed(rows[1], "matched", "3 matches")
+    pending = store.unprocessed_submaps()
+    assert [s.seq for s in pending] == [5, 3]  # arrival order, not seq order
+    done = store.submap(rows[1])
+    assert done.status == "matched" and done.detail == "3 matches" and done.processed
+    store.mark_processed(rows[1], "matched", "3 matches")  # replaying the outcome is harmless
+    assert [s.seq for s in store.submaps(status="matched")] == [1]
+    with pytest.raises(InputError):
+        store.mark_processed(rows[0], PENDING)
+    with pytest.raises(StoreError, match="no submap"):
+        store.mark_processed(999, "matched")
+    counts = store.counts()
+    assert counts["submaps"] == {"pending": 2, "matched": 1}
+    assert counts["submaps_pending"] == 2
+
+
+def test_submap_filters(store: Store) -> None:
+    for robot, session, seq in [("a", "1", 0), ("a", "2", 0), ("b", "1", 0), ("a", "1", 1)]:
+        store.put_submap(robot, session, seq, payload(seq), 0.0)
+    assert [(s.session_id, s.seq) for s in store.submaps(robot_id="a")] == [
+        ("1", 0),
+        ("2", 0),
+        ("1", 1),
+    ]
+    assert len(store.submaps(robot_id="a", session_id="1")) == 2
+    assert len(store.submaps(session_id="1")) == 3
+
+
+def test_input_checks(store: Store) -> None:
+    with pytest.raises(InputError):
+        store.put_submap("r", "s", -1, b"x", 0.0)
+    with pytest.raises(InputError):
+        store.put_submap("r", "s", 0, "not bytes", 0.0)  # type: ignore[arg-type]
+    with pytest.raises(InputError):
+        store.put_submap("", "s", 0, b"x", 0.0)
+    with pytest.raises(InputError):
+        store.put_submap("r", "s", 0, b"x", float("nan"))
+    assert store.submaps() == []
+
+
+def test_unprocessed_submaps_survive_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    with Store(path) as s:
+        rows = [s.put_submap("r", "s", seq, payload(seq), float(seq))[0] for seq in range(4)]
+        s.mark_processed(rows[0], "matched")
+        s.put_factor("f1", "r/s", "q/s", b"factor")
+    with Store(path) as s:
+        assert [x.seq for x in s.unprocessed_submaps()] == [1, 2, 3]
+        assert s.submap(rows[0]).status == "matched"
+        assert [f.factor_id for f in s.factors()] == ["f1"]
+        # A replay after the restart is recognised.
+        assert s.put_submap("r", "s", 2, payload(2), 9.0) == (rows[2], False)
+
+
+# --------------------------------------------------------------------------------------------
+# Factors and frames
+# --------------------------------------------------------------------------------------------
+
+
+def test_factors(store: Store) -> None:
+    assert store.put_factor("f1", "a/1", "b/1", b"one")
+    assert not store.put_factor("f1", "a/1", "b/1", b"one")
+    assert not store.put_factor("f1", "a/1", "b/1", b"changed")  # first write wins
+    assert store.put_factor("f2", "a/1", "c/1", b"two", status="retracted")
+    assert [f.factor_id for f in store.factors()] == ["f1", "f2"]
+    assert store.factors()[0].payload == b"one"
+    assert store.set_factor_status("f1", FactorStatus.RETRACTED)
+    assert not store.set_factor_status("f1", "retracted")
+    assert [f.factor_id for f in store.factors(status="retracted")] == ["f1", "f2"]
+    assert store.factors(FactorStatus.ACCEPTED) == []
+    assert store.set_factor_status("f2", "accepted")
+    assert store.counts()["factors"] == {"accepted": 1, "retracted": 1}
+    with pytest.raises(InputError):
+        store.set_factor_status("f1", "maybe")
+    with pytest.raises(StoreError, match="no factor"):
+        store.set_factor_status("nope", "accepted")
+
+
+def test_frames_track_first_and_last_seen() -> None:
+    clock = iter(range(100)).__next__
+    with Store(":memory:", clock=lambda: float(clock())) as store:
+        store.put_submap("r", "s", 0, b"x", 10.0)
+        store.put_submap("r", "s", 1, b"y", 30.0)
+        assert store.put_frame("q", "s", 5.0)
+        assert not store.put_frame("r", "s", 20.0)
+        frames = store.frames()
+        assert [(f.frame, f.first_seen_s, f.last_seen_s) for f in frames] == [
+            ("r/s", 10.0, 30.0),
+            ("q/s", 5.0, 5.0),
+        ]
+
+
+def test_stats(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    with Store(path) as s:
+        for seq in range(3):
+            s.put_submap("r", "s", seq, payload(seq, 5000), 0.0)
+        s.put_factor("f", "r/s", "q/s", b"z")
+        st = s.stats()
+        assert st["rows"] == {
+            "schema_version": 1,
+            "submaps": 3,
+            "submap_conflicts": 0,
+            "factors": 1,
+            "frames": 1,
+        }
+        assert st["journal_mode"] == "wal"
+        assert st["synchronous"] == "FULL"
+        assert st["schema_version"] == STORE_SCHEMA_VERSION
+        assert st["wal_bytes"] > 15000  # the commits are in the WAL until a checkpoint
+        assert st["page_bytes"] > 15000
+    with Store(path) as s:  # close checkpointed the WAL into the main file
+        assert s.stats()["file_bytes"] > 15000
+    assert Store(":memory:").stats()["file_bytes"] == 0
+
+
+# --------------------------------------------------------------------------------------------
+# Concurrency and crashes
+# --------------------------------------------------------------------------------------------
+
+
+def test_threads_share_one_store(tmp_path: Path) -> None:
+    """A callback thread and a worker thread write and read at the same time."""
+    errors: list[BaseException] = []
+    with Store(tmp_path / "merge.db", synchronous=Synchronous.NORMAL) as store:
+
+        def writer(robot: str) -> None:
+            try:
+                for seq in range(100):
+                    store.put_submap(robot, "s", seq, payload(seq, 200), float(seq))
+            except BaseException as exc:  # pragma: no cover - reported below
+                errors.append(exc)
+
+        def worker() -> None:
+            try:
+                deadline = time.monotonic() + 30
+                done = 0
+                while done < 200 and time.monotonic() < deadline:
+                    for sub in store.unprocessed_submaps():
+                        store.mark_processed(sub.row_id, "matched")
+                        done += 1
+            except BaseException as exc:  # pragma: no cover - reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=writer, args=(r,)) for r in ("a", "b")]
+        threads.append(threading.Thread(target=worker))
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=60)
+        assert errors == []
+        assert store.counts()["submaps"] == {"matched": 200}
+
+
+def test_second_connection_reads_while_first_is_open(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    with Store(path) as writer, Store(path) as reader:
+        writer.put_submap("r", "s", 0, b"x", 0.0)
+        assert [s.seq for s in reader.unprocessed_submaps()] == [0]
+
+
+CHILD = """
+import sys
+from mergesvc.store import Store
+path, n, sync = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+with Store(path, synchronous=sync) as store:
+    for seq in range(n):
+        data = (f"submap {seq};".encode() * 300)[:3000]
+        row, created = store.put_submap("auv1", "s1", seq, data, float(seq))
+        print(seq, row, int(created), flush=True)  # after the commit returned
+"""
+
+
+@pytest.mark.parametrize("sync", ["FULL", "NORMAL"])
+def test_kill_9_loses_no_committed_submap(tmp_path: Path, sync: str) -> None:
+    """A child writes submaps and reports each commit; we SIGKILL it mid-stream. Every reported
+    submap must be there after reopening, exactly once, intact; at most one more (committed but
+    not yet reported)."""
+    path = tmp_path / "merge.db"
+    kill_after = 150
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(path), "1000000", sync],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=env,
+    )
+    watchdog = threading.Timer(60, proc.kill)  # bound the test whatever happens
+    watchdog.start()
+    reported: dict[int, int] = {}
+    try:
+        assert proc.stdout is not None
+        while len(reported) < kill_after:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            seq, row, created = map(int, line.split())
+            assert created == 1
+            reported[seq] = row
+        assert len(reported) == kill_after, proc.stderr.read() if proc.stderr else ""
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+        # Lines already printed before the kill are commits too.
+        for line in proc.stdout.read().splitlines():
+            parts = line.split()
+            if len(parts) == 3:
+                reported[int(parts[0])] = int(parts[1])
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == -signal.SIGKILL
+    assert os.path.exists(f"{path}-wal")  # recovery below really replays the WAL
+
+    with Store(path) as store:  # quick_check runs on open
+        rows = store.submaps()
+    by_seq = {s.seq: s for s in rows}
+    assert len(by_seq) == len(rows)  # nothing duplicated
+    for seq, row in reported.items():
+        assert by_seq[seq].row_id == row
+        assert by_seq[seq].payload == (f"submap {seq};".encode() * 300)[:3000]
+    assert sorted(by_seq) == list(range(len(rows)))  # sequential writes: no holes
+    assert len(reported) <= len(rows) <= len(reported) + 1
+    # The restart sees every submap as still to do, and replays are recognised.
+    with Store(path) as store:
+        assert len(store.unprocessed_submaps()) == len(rows)
+        for seq in reported:
+            data = (f"submap {seq};".encode() * 300)[:3000]
+            assert store.put_submap("auv1", "s1", seq, data, 0.0) == (reported[seq], False)
+
+
+# --------------------------------------------------------------------------------------------
+# Bad files
+# --------------------------------------------------------------------------------------------
+
+
+def one_line(exc: pytest.ExceptionInfo[BaseException]) -> str:
+    msg = str(exc.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_newer_schema_version_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    Store(path).close()
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE schema_version SET version = 99")
+    conn.close()
+    with pytest.raises(StoreError) as exc:
+        Store(path)
+    assert "schema version 99" in one_line(exc)
+
+
+def test_foreign_sqlite_file_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "other.db"
+    with sqlite3.connect(path) as conn:
+        conn.execute("CREATE TABLE t (x)")
+    conn.close()
+    with pytest.raises(StoreError) as exc:
+        Store(path)
+    assert "not a mergesvc store" in one_line(exc)
+
+
+def test_garbage_file_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    path.write_bytes(os.urandom(8192))
+    with pytest.raises(StoreError) as exc:
+        Store(path)
+    one_line(exc)
+
+
+def test_damaged_pages_are_detected(tmp_path: Path) -> None:
+    path = tmp_path / "merge.db"
+    with Store(path) as s:
+        for seq in range(50):
+            s.put_submap("r", "s", seq, payload(seq, 3000), 0.0)
+    data = bytearray(path.read_bytes())
+    assert len(data) > 5 * 4096
+    data[4096 : 4 * 4096] = b"\xa5" * (3 * 4096)  # overwrite pages 2-4, keep the header
+    path.write_bytes(bytes(data))
+    with pytest.raises(StoreError) as exc:
+        Store(path)
+    assert "corrupt" in one_line(exc)
+
+
+def test_unopenable_path_and_closed_store(tmp_path: Path) -> None:
+    with pytest.raises(StoreError):
+        Store(tmp_path / "missing-dir" / "merge.db")
+    s = Store(":memory:")
+    s.close()
+    s.close()  # idempotent
+    assert s.closed
+    with pytest.raises(StoreError, match="closed"):
+        s.submaps()
