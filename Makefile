@@ -13,9 +13,7 @@ $(BIN)/.installed: pyproject.toml
 	touch $@
 
 demo: $(BIN)/.installed
-	$(BIN)/mergesvc example examples/kitti --family kitti --seed 0
-	$(BIN)/mergesvc match --map examples/kitti/map.json --submap examples/kitti/submap.json
-	$(BIN)/mergesvc match --map examples/kitti/map.json --submap examples/kitti/submap.json --json
+	$(BIN)/mergesvc demo --out results/demo
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q
@@ -28,6 +26,9 @@ schemas: $(BIN)/.installed
 
 bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench match --out results/bench_match.json
+	$(BIN)/mergesvc bench paper --out results/paper
+	$(BIN)/mergesvc bench link --out results/bench_link.json
+	$(BIN)/mergesvc bench uncertainty --out results
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache

@@ -233,26 +233,73 @@ def bench_uncertainty(
 
 @bench_app.command("link")
 def bench_link(
-    out: Annotated[Path | None, typer.Option(help="write the rows as JSON here")] = None,
-    seed: Annotated[int, typer.Option(help="channel seed")] = 0,
-    bytes_per_submap: Annotated[int, typer.Option(help="uplink message size")] = 1024,
-    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
-    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
+    out: Annotated[Path | None, typer.Option(help="write the table as JSON here")] = None,
+    seeds: Annotated[int, typer.Option(help="scenarios per profile")] = 5,
+    seed: Annotated[int, typer.Option(help="first seed")] = 0,
+    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 300.0,
+    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 3600.0,
 ) -> None:
-    """Acoustic link sweep (modem rate x SNR): delivery ratio, latency, goodput."""
-    from mergesvc.link import Workload, format_sweep_table, sweep_link
+    """Codec profile x modem rate x SNR: bytes, airtime, delivery, time to deliver, accuracy."""
+    from mergesvc.bench import run_link_bench
 
-    wl = Workload(uplink_bytes=bytes_per_submap, period_s=period_s, duration_s=duration_s)
     try:
-        rows = sweep_link(workload=wl, seed=seed)
+        report = run_link_bench(seeds=seeds, period_s=period_s, duration_s=duration_s,
+                                seed=seed, echo=typer.echo)
     except MergeError as exc:
         _fail(exc)
         return
-    typer.echo(format_sweep_table(rows))
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+        out.write_text(json.dumps(report, indent=1, default=float))
         typer.echo(f"wrote {out}")
+
+
+codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
+app.add_typer(codec_app, name="codec")
+
+
+@codec_app.command("encode")
+def codec_encode(
+    in_path: Annotated[Path, typer.Argument(help="map or submap JSON (the match format)")],
+    out_path: Annotated[Path, typer.Argument(help="binary message to write")],
+    profile: Annotated[str, typer.Option(help="full, f16, int8 or compact")] = "compact",
+    projection: Annotated[
+        Path | None, typer.Option(help="fleet projection (.npz); compact fits one if absent")
+    ] = None,
+) -> None:
+    """Encode a map or submap file as one wire message; print bytes per object."""
+    from mergesvc.codec import Profile, encode_file
+
+    try:
+        stats = encode_file(in_path, out_path, Profile(profile), projection=projection)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    except ValueError as exc:
+        typer.echo(f"error: {str(exc).splitlines()[0]}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(f"wrote {out_path}: {stats.n_bytes} bytes, {stats.n_objects} objects, "
+               f"{stats.bytes_per_object:.1f} bytes/object ({profile})"
+               + (f"; projection {stats.projection_path}" if stats.projection_path else ""))
+
+
+@codec_app.command("decode")
+def codec_decode(
+    in_path: Annotated[Path, typer.Argument(help="binary message")],
+    out_path: Annotated[Path, typer.Argument(help="JSON file to write (the match format)")],
+    projection: Annotated[Path | None, typer.Option(help="fleet projection (.npz)")] = None,
+) -> None:
+    """Decode a wire message back to the JSON file format `mergesvc match` reads."""
+    from mergesvc.codec import decode_file
+
+    try:
+        env, model = decode_file(in_path, out_path, projection=projection)
+    except MergeError as exc:
+        _fail(exc)
+        return
+    n = len(getattr(model, "objects", []) or [])
+    typer.echo(f"wrote {out_path}: {env.msg_type.value} from {env.sender}, {env.n_bytes} bytes"
+               + (f", {n} objects, {env.n_bytes / n:.1f} bytes/object" if n else ""))
 
 
 scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")

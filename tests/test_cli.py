@@ -193,3 +193,39 @@ def test_link_sim_table() -> None:
     assert "rate" in r.stdout and "6.00" in r.stdout
     bad = run("link", "sim", "--rate", "2")
     assert bad.returncode == 2
+
+
+def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
+    """The README's main job in its quick form: processes start, factors are accepted, the
+    frames end up aligned, every process is stopped."""
+    r = run("demo", "--quick", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["ok"] and summary["factors_accepted"] > 0
+    assert summary["precision"] >= 0.8
+    for a in summary["alignment"].values():
+        if a["after_m"] is not None:
+            assert a["after_m"] < a["before_m"] or a["after_m"] < 2.0
+    assert (tmp_path / "merged_map.png").read_bytes()[:4] == b"\x89PNG"
+    out = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True)
+    assert out.stdout.strip() == ""  # nothing left running
+
+
+def test_codec_encode_decode_feeds_match(files: Path, tmp_path: Path) -> None:
+    """A compact-coded submap decodes to a file `mergesvc match` reads, with the same answer."""
+    binf, back = tmp_path / "sub.bin", tmp_path / "sub.json"
+    r = run("codec", "encode", "--profile", "compact", str(files / "submap.json"), str(binf))
+    assert r.returncode == 0, r.stderr
+    assert "bytes/object" in r.stdout
+    per_object = float(r.stdout.split(" bytes/object")[0].rsplit(" ", 1)[1])
+    assert per_object <= 64 + 40  # a 5-object submap carries its envelope on few objects
+    d = run("codec", "decode", str(binf), str(back))
+    assert d.returncode == 0, d.stderr
+    a = run("match", "--map", str(files / "map.json"), "--submap", str(back), "--json")
+    b = run("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
+            "--json")
+    pairs = lambda out: {(m["submap_object"], m["map_object"]) for m in json.loads(out)["matches"]}  # noqa: E731
+    assert pairs(a.stdout) == pairs(b.stdout)
+    (tmp_path / "bad.bin").write_bytes(b"\x93garbage")
+    bad = run("codec", "decode", str(tmp_path / "bad.bin"), str(tmp_path / "x.json"))
+    assert bad.returncode == 2 and bad.stderr.startswith("error:") and "Traceback" not in bad.stderr
