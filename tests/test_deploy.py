@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
 COMPOSE = ROOT / "docker-compose.yml"
 COMPOSE_TLS = DEPLOY / "compose.tls.yml"
+COMPOSE_ACOUSTIC = DEPLOY / "compose.acoustic.yml"
 CONFIGS = sorted(DEPLOY.glob("*.json5"))
 ACL_NAMES = {"auv1": "auv1", "auv2": "auv2", "service": "mergesvc", "bridge": "bridge"}
 
@@ -265,6 +266,13 @@ def test_robot_cannot_publish_factors_and_gets_only_its_own(fleet: Fleet) -> Non
         assert _deliver(fleet["auv1"].put, service_inbox, f"{root}/submap/auv1/s0/2")
         time.sleep(QUIET_S)
         assert f"{root}/factor/auv2/forged" not in auv2_inbox.keys
+        # the service's error reports reach the robot they are about, and only it
+        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox))
+        errors = (f"{root}/error/auv1", f"{root}/error/auv2")
+        with _publishers(fleet["service"], *errors) as put:
+            assert _deliver(put, auv1_inbox, errors[0], errors[1])
+        time.sleep(QUIET_S)
+        assert errors[1] not in auv1_inbox.keys
     finally:
         for sub in subs:
             sub.undeclare()
@@ -574,7 +582,9 @@ def test_compose_services_commands_and_mounts() -> None:
         assert command[0] == "agent"
         assert _option(command, "--robot") == name
         assert _option(command, "--connect") == "tcp/zenohd:7447"
-        assert _option(command, "--run") in {"1", "2", "3"}
+        # one shared simulated world; the compact profile would need a --projection file
+        assert _option(command, "--seed") == _option(services["auv1"]["command"], "--seed")
+        assert _option(command, "--profile") in {"full", "f16", "int8"}
         assert set(services[name]["depends_on"]) == {"zenohd", "service"}
         assert services[name]["restart"] == "on-failure"
     assert services["bridge"]["command"][:2] == ["link", "bridge"]
@@ -611,6 +621,20 @@ def test_compose_tls_override_mounts_each_clients_own_certificate() -> None:
             assert mounts["/certs/client-key.pem"] == f"./deploy/certs/{ACL_NAMES[name]}-key.pem"
 
 
+def test_compose_acoustic_override_puts_the_vehicles_behind_the_bridge() -> None:
+    plain, acoustic = _compose(COMPOSE), _compose(COMPOSE, COMPOSE_ACOUSTIC)
+    for name in ("auv1", "auv2"):
+        command = acoustic[name]["command"]
+        assert "--acoustic" in command
+        # the rest of the command and the mounts are those of docker-compose.yml
+        assert [arg for arg in command if arg != "--acoustic"] == plain[name]["command"]
+        assert _mounts(acoustic[name]) == _mounts(plain[name])
+    bridge = acoustic["bridge"]["command"]
+    vehicles = [bridge[i + 1] for i, arg in enumerate(bridge) if arg == "--vehicles"]
+    assert vehicles == ["auv1", "auv2"]
+    assert _option(bridge, "--fleet") == _option(acoustic["auv1"]["command"], "--fleet")
+
+
 def _docker_compose_available() -> bool:
     if shutil.which("docker") is None:
         return False
@@ -623,7 +647,11 @@ def _docker_compose_available() -> bool:
     return probe.returncode == 0
 
 
-@pytest.mark.parametrize("files", [(COMPOSE,), (COMPOSE, COMPOSE_TLS)], ids=["plain", "tls"])
+@pytest.mark.parametrize(
+    "files",
+    [(COMPOSE,), (COMPOSE, COMPOSE_TLS), (COMPOSE, COMPOSE_ACOUSTIC)],
+    ids=["plain", "tls", "acoustic"],
+)
 def test_docker_compose_config_is_valid(files: tuple[Path, ...]) -> None:
     if not _docker_compose_available():
         pytest.skip("`docker compose` (the compose plugin) is not available here")

@@ -162,7 +162,7 @@ def test_garbage_is_answered_and_the_service_survives(world) -> None:
             good[: len(good) // 2],  # truncated
             b"x" * 300_000,  # oversize
         ]
-        for k, payload in enumerate(hostile):
+        for payload in hostile:
             cs.put(f"{ROOT}/submap/auv1/s0", payload)
         # a valid submap published under another robot's key: refused (robot mismatch)
         cs.put(f"{ROOT}/submap/auv2/s0", good)
@@ -200,7 +200,7 @@ def test_service_killed_mid_run_loses_nothing_and_duplicates_nothing(world, tmp_
     ids stay unique."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     store = tmp_path / "svc.db"
-    with zenoh.open(conf("router", listen=ep)) as router, zenoh.open(
+    with zenoh.open(conf("router", listen=ep)) as _router, zenoh.open(
         conf("client", connect=ep)
     ) as cs:
         svc = _serve(ep, store)
