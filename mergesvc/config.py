@@ -89,6 +89,10 @@ class VerifyConfig(_Section):
     exact: bool = Field(True, description="prove the optimum over the candidate set")
     max_nodes: int = Field(200_000, ge=1, description="branch-and-bound node budget")
     time_limit_s: float | None = Field(2.0, gt=0)
+    optimality_gap: float = Field(
+        0.01, ge=0, description="exact search: proven optimal within this much objective "
+        "(a node score is ~1 per object); 0 = exact, slower on maps with near-duplicates"
+    )
     min_matches: int = Field(3, ge=3, description="matches needed for a 6-DoF transform")
     margin: float = Field(
         0.1, ge=0, description="objective margin a match needs over its best alternative"
@@ -99,7 +103,7 @@ class VerifyConfig(_Section):
     )
     inlier_sigmas: float = Field(3.0, gt=0, description="residual gate in edge tolerances")
     max_tilt_deg: float | None = Field(
-        30.0, gt=0, le=180, description="largest angle the transform may turn the vertical by; "
+        60.0, gt=0, le=180, description="largest angle the transform may turn the vertical by; "
         "vehicles know 'up' (IMU, depth), and distances alone cannot tell a flat set of objects "
         "from its mirror image (a 180 deg flip). None: no gravity reference"
     )

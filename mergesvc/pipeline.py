@@ -294,6 +294,7 @@ def _verify(
             incumbent=assignment,
             max_nodes=config.verify.max_nodes,
             time_limit_s=config.verify.time_limit_s,
+            gap=config.verify.optimality_gap,
         )
         if exact.score >= prop.signed.score(assignment) - 1e-9:
             assignment = exact.assignment

@@ -658,6 +658,7 @@ def solve_exact(
     time_limit_s: float | None = None,
     clock: Callable[[], float] = time.monotonic,
     cutoff: float | None = None,
+    gap: float = 0.0,
 ) -> ExactResult:
     """Maximise problem.score over feasible assignments by depth-first branch and bound.
 
@@ -665,6 +666,10 @@ def solve_exact(
         initial lower bound; ignored when infeasible for `allow_unmatched`.
     max_nodes / time_limit_s: search budget; the root is always evaluated. When exhausted the
         best assignment found is returned with optimal=False and a valid upper_bound.
+    gap: absolute optimality tolerance: subtrees that cannot beat the incumbent by more than
+        gap are pruned, so the answer is proven within gap of the optimum (upper_bound says
+        how close); 0 = exact. Near-ties (a map holding the same object twice) otherwise make
+        the search walk every equivalent configuration.
     cutoff: only solutions scoring above it matter; subtrees that cannot beat it are pruned.
         The answer is the optimum when its score exceeds cutoff; otherwise the search proved
         that nothing beats cutoff (upper_bound <= max(score, cutoff) stays valid either way).
@@ -696,6 +701,7 @@ def _solve_exact(
     time_limit_s: float | None,
     clock: Callable[[], float],
     cutoff: float | None = None,
+    gap: float = 0.0,
 ) -> ExactResult:
     start = clock()
     if not allow_unmatched:
@@ -709,6 +715,7 @@ def _solve_exact(
         clock=clock,
         cutoff=cutoff,
         start=start,
+        gap=gap,
     )
     # the objective as the problem defines it (the tables hold the same numbers, summed in
     # another order): the bound keeps its gap over the score
@@ -740,9 +747,12 @@ class ExactSearch:
         cutoff: float | None = None,
         unary_add: np.ndarray | None = None,
         start: float | None = None,
+        gap: float = 0.0,
     ) -> ExactResult:
         """Depth-first branch and bound; see `solve_exact` for the arguments. Scores in the
         result include `unary_add`. No presolve here."""
+        if not gap >= 0.0:
+            raise SolverError(f"gap must be >= 0, got {gap}")
         start = clock() if start is None else start
         t = self.tables
         if unary_add is not None:
@@ -789,17 +799,17 @@ class ExactSearch:
             """Evaluate a node, update the incumbent, push it when it must be branched on."""
             nonlocal best, best_slots, nodes
             nodes += 1
-            b = _bound(t, node, allow_unmatched, best)
+            b = _bound(t, node, allow_unmatched, best + gap)
             if b is None:
                 return -math.inf
             if b.primal_score > best:
                 improved = _local_search(t, b.primal, allow_unmatched)
                 best, best_slots = _slots_score(t, improved), improved
-            if b.est is None or _prunes(b.value, best):
+            if b.est is None or _prunes(b.value, best + gap):
                 # No child bounds: the node was pruned, is a leaf, or has one open row (the LAP
                 # is exact then, so its completion is the subtree optimum).
                 return b.value
-            choice = _choose_branch(t, b, best, allow_unmatched)
+            choice = _choose_branch(t, b, best + gap, allow_unmatched)
             if choice is not None:
                 stack.append((node, *choice))
             return b.value
@@ -807,7 +817,7 @@ class ExactSearch:
         root_bound = expand(_root(t, allow_unmatched))
         while stack:
             node, rows_, slots_, ests = stack[-1]
-            if len(slots_) == 0 or _prunes(float(ests[-1]), best):
+            if len(slots_) == 0 or _prunes(float(ests[-1]), best + gap):
                 # Children are sorted ascending by bound: if the best one is pruned, all are.
                 stack.pop()
                 continue
@@ -821,12 +831,15 @@ class ExactSearch:
             # Only reachable when the root LAP itself failed although a full matching exists.
             raise SolverError("exact solver found no feasible assignment")
         score = _slots_score(t, best_slots)
+        # what pruning proved: nothing pruned beats max(score + gap, cutoff); the root bound
+        # holds for everything
+        pruned = min(max(score + gap, floor), root_bound)
         if stopped:
             open_max = max((float(e[-1]) for *_, e in stack if len(e)), default=-math.inf)
-            upper = max(score, floor, min(open_max, root_bound))
+            upper = max(score, pruned, min(open_max, root_bound))
             logger.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
         else:
-            upper = max(score, min(floor, root_bound))
+            upper = max(score, pruned)
         return ExactResult(_to_cols(t, best_slots), score, not stopped, nodes, float(upper))
 
 
