@@ -479,6 +479,7 @@ def link_bridge(
     from mergesvc.keys import fleet_root, uw_root
     from mergesvc.link import (
         AcousticBridge,
+        ArqConfig,
         ChannelConfig,
         LinkConfig,
         ModemRate,
@@ -492,6 +493,8 @@ def link_bridge(
         cfg = LinkConfig(
             channel=ChannelConfig(rate=ModemRate(rate), snr=SnrModel(mean_db=snr_db)),
             tdma=TdmaConfig(slot_order=["topside", *names]),
+            # the topside sends every factor to both robots: room for a burst of them
+            arq=ArqConfig(max_queue_messages=64),
         )
         zconf = make_zenoh_config(
             config_file=str(config) if config else None, mode=mode,

@@ -267,7 +267,8 @@ def test_robot_cannot_publish_factors_and_gets_only_its_own(fleet: Fleet) -> Non
         time.sleep(QUIET_S)
         assert f"{root}/factor/auv2/forged" not in auv2_inbox.keys
         # the service's error reports reach the robot they are about, and only it
-        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox))
+        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/auv1", auv1_inbox))
+        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox))  # refused
         errors = (f"{root}/error/auv1", f"{root}/error/auv2")
         with _publishers(fleet["service"], *errors) as put:
             assert _deliver(put, auv1_inbox, errors[0], errors[1])
