@@ -749,13 +749,7 @@ def fleet_world(seed: int = 0, robots: Sequence[str] = ("auv1", "auv2", "auv3"),
     pattern (loops and lawnmowers over overlapping parts of the pool), starting in its own
     place, so their odometry frames differ by an unknown rigid transform."""
     rng = np.random.default_rng([seed, 5])
-    pool = np.array([30.0, 16.0])
-    classes = rng.choice(len(UNDERWATER_CLASSES), size=n_objects,
-                         p=rng.dirichlet(np.ones(len(UNDERWATER_CLASSES)) * 3.0))
-    xy = rng.uniform([2.0, 1.5], pool - [2.0, 1.5], size=(n_objects, 2))
-    z = np.where(classes == UNDERWATER_CLASSES.index("buoy"), rng.uniform(-2.5, -1.5, n_objects),
-                 rng.uniform(-4.0, -3.5, n_objects))
-    objects = np.column_stack([xy, z])
+    classes, objects = _pool_objects(n_objects, np.array([30.0, 16.0]), rng)
     model = world_embedding_model(Family.UNDERWATER, seed)
     truth_emb = model.instances(classes, rng)
     ids = [f"{UNDERWATER_CLASSES[c]}_{k}" for k, c in enumerate(classes)]
@@ -780,6 +774,19 @@ def fleet_world(seed: int = 0, robots: Sequence[str] = ("auv1", "auv2", "auv3"),
     return FleetWorld(seed, objects, ids, classes, truth_emb, model, out, cfg)
 
 
+def _pool_objects(
+    n: int, pool_xy_m: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Classes (n,) and centres (n, 3) of pool objects: on the floor (3.5-4 m deep), buoys
+    mid-water, 1.5-2 m from the walls; class frequencies skewed per pool."""
+    classes = rng.choice(len(UNDERWATER_CLASSES), size=n,
+                         p=rng.dirichlet(np.ones(len(UNDERWATER_CLASSES)) * 3.0))
+    xy = rng.uniform([2.0, 1.5], pool_xy_m - [2.0, 1.5], size=(n, 2))
+    z = np.where(classes == UNDERWATER_CLASSES.index("buoy"), rng.uniform(-2.5, -1.5, n),
+                 rng.uniform(-4.0, -3.5, n))
+    return classes, np.column_stack([xy, z])
+
+
 def underwater_run(run: int = 1, seed: int = 0, image_s: ImageUncertainty | None = None) -> Run:
     """The paper's pool runs 1-3: 2 or 4 laps of a lawnmower or loop pattern over 8-30 objects.
 
@@ -792,12 +799,7 @@ def underwater_run(run: int = 1, seed: int = 0, image_s: ImageUncertainty | None
     rng = np.random.default_rng([seed, run])
     n_obj = {1: 12, 2: 20, 3: 30}[run] + int(rng.integers(-3, 4))
     pool = np.array([25.0, 12.0])
-    classes = rng.choice(len(UNDERWATER_CLASSES), size=n_obj,
-                         p=rng.dirichlet(np.ones(len(UNDERWATER_CLASSES)) * 3.0))
-    xy = rng.uniform([2.0, 1.5], pool - [2.0, 1.5], size=(n_obj, 2))
-    z = np.where(classes == UNDERWATER_CLASSES.index("buoy"), rng.uniform(-2.5, -1.5, n_obj),
-                 rng.uniform(-4.0, -3.5, n_obj))
-    objects = np.column_stack([xy, z])
+    classes, objects = _pool_objects(n_obj, pool, rng)
     if run == 2:  # lawnmower: lanes 3 m apart, back and forth, 2 laps
         lanes = np.arange(1.5, pool[1] - 1.0, 3.0)
         pts = []
