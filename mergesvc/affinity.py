@@ -166,11 +166,14 @@ def pairwise_lengths(position_xyz_m: np.ndarray) -> np.ndarray:
     return cdist(position_xyz_m, position_xyz_m)
 
 
-def median_spacing(position_xyz_m: np.ndarray) -> float:
-    """Median nearest-neighbour distance between object centres (metres); 1.0 for one object."""
+def median_spacing(position_xyz_m: np.ndarray, tree: cKDTree | None = None) -> float:
+    """Median nearest-neighbour distance between object centres (metres); 1.0 for one object.
+
+    tree: a KD-tree already built over position_xyz_m (a map's cached one), else built here."""
     if len(position_xyz_m) < 2:
         return 1.0
-    dist, _ = cKDTree(position_xyz_m).query(position_xyz_m, k=2)
+    tree = cKDTree(position_xyz_m) if tree is None else tree
+    dist, _ = tree.query(position_xyz_m, k=2)
     spacing = float(np.median(dist[:, 1]))
     return spacing if spacing > 0 else 1.0
 

@@ -62,8 +62,8 @@ class LocalMap:
     _last_cut_m: float = 0.0
     _new_since_cut: int = 0
     _confirmed: set[str] = field(default_factory=set)
-    estimate: gtsam.Values | None = None
-    factors_received: list[str] = field(default_factory=list)
+    frame_keys: dict[str, int] = field(default_factory=dict)  # other robots' frames -> F(i)
+    path_xyz_m: list[np.ndarray] = field(default_factory=list)  # odometry estimate per frame
 
     def __post_init__(self) -> None:
         self.tracker = ObjectTracker(self.config.tracking)
@@ -103,6 +103,7 @@ class LocalMap:
                 X(k), L(self.landmark_of[tid]), gtsam.Unit3(body), rng_m, noise))
         self.isam.update(graph, values)
         self._prev_pose = frame.T_est
+        self.path_xyz_m.append(frame.T_est[:3, 3].copy())
         self.frames_seen += 1
         for t in self.tracker.tracks:
             if t.n_obs >= self.config.min_obs and t.track_id not in self._confirmed:
@@ -122,7 +123,6 @@ class LocalMap:
         tracks.sort(key=lambda t: t.last_seen_s)
         window = tracks[-self.config.window_objects:]
         est = self.isam.calculateEstimate()
-        self.estimate = est
         nodes = [self._node(t, est) for t in window]
         self._last_cut_m = self.distance_m
         self._new_since_cut = 0
@@ -144,7 +144,8 @@ class LocalMap:
         T = _pose_of(factor)
         T_me_other = T if me else T.inverse()
         cov = np.asarray(factor.covariance, dtype=np.float64)
-        key = F(_frame_index(f"{other[0]}/{other[1]}"))
+        name = f"{other[0]}/{other[1]}"
+        key = F(self.frame_keys.setdefault(name, len(self.frame_keys)))
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.BetweenFactorPose3(
             X(0), key, T_me_other, gtsam.noiseModel.Gaussian.Covariance(cov)))
@@ -154,19 +155,11 @@ class LocalMap:
             values.insert(key, est.atPose3(X(0)).compose(T_me_other))
         self.isam.update(graph, values)
         after = self.isam.calculateEstimate().atPose3(key)
-        self.factors_received.append(factor.factor_id)
         moved = 0.0 if before is None else float(
             np.linalg.norm(after.translation() - before.translation()))
         return (f"factor {factor.factor_id}: frame {other[0]}/{other[1]} at "
                 f"{np.round(after.translation(), 2).tolist()} in my frame"
                 + (f" (moved {moved:.2f} m)" if before is not None else " (first estimate)"))
-
-
-_FRAME_INDEX: dict[str, int] = {}
-
-
-def _frame_index(name: str) -> int:
-    return _FRAME_INDEX.setdefault(name, len(_FRAME_INDEX))
 
 
 def _pose_of(factor: Factor) -> gtsam.Pose3:

@@ -18,28 +18,43 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mergesvc.config import MatchConfig, load_config
-from mergesvc.model import ObjectArrays
+from mergesvc.model import ObjectArrays, ObjectMap
 from mergesvc.pipeline import MatchOutcome, match
 from mergesvc.scenario import Family, Scenario, make_scenario
 
 
-def score_outcome(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
-    """Node accuracy (paper: correct / submap objects that have a true match), precision of
-    the returned matches, outliers left unmatched, and whether the result was accepted."""
+def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
+    """The paper's node accuracy (right matches / submap objects that have a true match), and
+    beyond it: precision and recall of the accepted correspondences, outliers left unmatched,
+    the transform's error against the truth."""
     got = {m.submap_object: m.map_object for m in outcome.result.matches}
-    true_pairs = {s: m for s, m in sc.truth.items() if m is not None}
+    matchable = [s for s, m in sc.truth.items() if m is not None]
     outliers = [s for s, m in sc.truth.items() if m is None]
-    correct = sum(got.get(s) == m for s, m in true_pairs.items())
-    wrong = sum(sc.truth.get(s) != m for s, m in got.items())
-    return {
-        "accuracy": correct / max(len(true_pairs), 1),
-        "correct": correct,
-        "wrong": wrong,
-        "returned": len(got),
-        "outliers": len(outliers),
-        "outliers_unmatched": sum(s not in got for s in outliers),
-        "accepted": float(outcome.result.accepted),
+    right = sum(sc.is_correct(s, got[s]) for s in got)
+    accepted = bool(outcome.result.accepted)
+    out = {
+        "accuracy": sum(s in got and sc.is_correct(s, got[s]) for s in matchable)
+        / max(len(matchable), 1),
+        "accepted": float(accepted),
+        "returned": float(len(got)),
+        "right": float(right),
+        "wrong": float(len(got) - right),
+        "acc_returned": float(len(got)) if accepted else 0.0,
+        "acc_right": float(right) if accepted else 0.0,
+        "matchable": float(len(matchable)),
+        "outliers": float(len(outliers)),
+        "outliers_unmatched": float(sum(s not in got for s in outliers)),
+        "rot_err_deg": float("nan"),
+        "trans_err_m": float("nan"),
     }
+    t = outcome.result.transform
+    if accepted and t is not None:
+        w, x, y, z = t.quaternion_wxyz
+        R_est = Rotation.from_quat([x, y, z, w]).as_matrix()
+        dR = R_est.T @ sc.R_map_submap
+        out["rot_err_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        out["trans_err_m"] = float(np.linalg.norm(np.asarray(t.translation) - sc.t_map_submap))
+    return out
 
 
 def _spread(values: list[float]) -> dict[str, float]:
@@ -58,7 +73,7 @@ def run_case(
     for _ in range(repeats):
         outcome = match(sc.map, sc.submap, config)
         if scores is None:
-            scores = score_outcome(sc, outcome)
+            scores = score_case(sc, outcome)
         for k, v in outcome.result.timings_ms.items():
             stages.setdefault(k, []).append(v)
         totals.append(outcome.result.timings_ms["total"])
@@ -212,40 +227,6 @@ class PaperBenchPlan:
             runs=(1,), sizes=(3, 5), per_size=2, places=1, solvers=("rrwm",),
             affinities=("ucos",), repeats=1, kitti_paper=False, scale_sizes=(600, 2000),
         )
-
-
-def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
-    """The paper's node accuracy (right matches / submap objects that have a true match), and
-    beyond it: precision and recall of the accepted correspondences, outliers left unmatched,
-    the transform's error against the truth."""
-    got = {m.submap_object: m.map_object for m in outcome.result.matches}
-    matchable = [s for s, m in sc.truth.items() if m is not None]
-    outliers = [s for s, m in sc.truth.items() if m is None]
-    right = sum(sc.is_correct(s, got[s]) for s in got)
-    accepted = bool(outcome.result.accepted)
-    out = {
-        "accuracy": sum(s in got and sc.is_correct(s, got[s]) for s in matchable)
-        / max(len(matchable), 1),
-        "accepted": float(accepted),
-        "returned": float(len(got)),
-        "right": float(right),
-        "wrong": float(len(got) - right),
-        "acc_returned": float(len(got)) if accepted else 0.0,
-        "acc_right": float(right) if accepted else 0.0,
-        "matchable": float(len(matchable)),
-        "outliers": float(len(outliers)),
-        "outliers_unmatched": float(sum(s not in got for s in outliers)),
-        "rot_err_deg": float("nan"),
-        "trans_err_m": float("nan"),
-    }
-    t = outcome.result.transform
-    if accepted and t is not None:
-        w, x, y, z = t.quaternion_wxyz
-        R_est = Rotation.from_quat([x, y, z, w]).as_matrix()
-        dR = R_est.T @ sc.R_map_submap
-        out["rot_err_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
-        out["trans_err_m"] = float(np.linalg.norm(np.asarray(t.translation) - sc.t_map_submap))
-    return out
 
 
 def _aggregate(rows: list[dict[str, float]]) -> dict[str, float]:
@@ -530,8 +511,6 @@ def grow_map(sc: Scenario, n_total: int, rng: np.random.Generator) -> Scenario:
         [i for chunk in ids for i in chunk], np.vstack(pos), np.vstack(emb), np.vstack(var),
         np.concatenate(nobs),
     )
-    from mergesvc.model import ObjectMap
-
     big = ObjectMap(robot_id=sc.map.robot_id, session_id=sc.map.session_id,
                     objects=grown.to_nodes())
     return Scenario(big, sc.submap, sc.truth, sc.R_map_submap, sc.t_map_submap,

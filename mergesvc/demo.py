@@ -327,7 +327,7 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
         for t, p in zip(lm.tracker.tracks, xy):
             placed[(r, t.track_id)] = p
         ax.scatter(*xy[:, :2].T, s=12, color=colors.get(r, "k"), label=f"{r} objects")
-        traj = np.array(list(_trajectory(world, r)))
+        traj = np.array(lm.path_xyz_m)
         traj = traj @ T[:3, :3].T + T[:3, 3]
         ax.plot(*traj[:, :2].T, lw=0.7, color=colors.get(r, "k"), alpha=0.6)
     for f in factors:
@@ -345,11 +345,6 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
     fig.savefig(path)
     plt.close(fig)
     return path
-
-
-def _trajectory(world: Any, robot: str):
-    for fr in world.frames(robot):
-        yield fr.T_est[:3, 3]
 
 
 __all__ = ["DemoPlan", "DemoResult", "run_demo"]

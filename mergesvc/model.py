@@ -235,11 +235,9 @@ class ObjectArrays:
     @functools.cached_property
     def median_spacing_m(self) -> float:
         """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
-        if self.n < 2:
-            return 1.0
-        dist, _ = self.kdtree.query(self.position_xyz_m, k=2)
-        spacing = float(np.median(dist[:, 1]))
-        return spacing if spacing > 0 else 1.0
+        from mergesvc.affinity import median_spacing  # affinity imports this module
+
+        return median_spacing(self.position_xyz_m, self.kdtree)
 
     @property
     def dim(self) -> int:

@@ -850,9 +850,9 @@ def drive_run(
     rng = np.random.default_rng([seed, 7])
     if trajectory is not None:
         xy_all, _ = load_kitti_poses(trajectory)
-        keep = np.concatenate([[0], np.flatnonzero(
-            np.cumsum(np.linalg.norm(np.diff(xy_all, axis=0), axis=1)) // 8.0 > 0)])
-        way = xy_all[np.unique(keep)]
+        # drop the poses of a car standing still: a zero-length segment has no heading
+        moved = np.linalg.norm(np.diff(xy_all, axis=0), axis=1) > 1e-3
+        way = xy_all[np.concatenate([[True], moved])]
     else:
         # a 600 x 300 m block loop, then back along its first 500 m: four loop-closure places
         way = np.array([[0, 0], [600, 0], [600, 300], [0, 300], [0, 0], [500, 0]], float)

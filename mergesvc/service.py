@@ -26,7 +26,7 @@ from mergesvc import keys
 from mergesvc.codec import Profile, Projection, decode_message, encode_message
 from mergesvc.config import MatchConfig
 from mergesvc.errors import InputError, MergeError, SchemaError
-from mergesvc.graph import PoseGraph, fuse_objects
+from mergesvc.graph import GraphSolution, PoseGraph, fuse_objects
 from mergesvc.model import (
     Correspondence,
     ErrorMessage,
@@ -132,6 +132,8 @@ class MergeService:
         self._root = keys.fleet_root(config.fleet)
         self._global: ObjectMap | None = None
         self._anchor: str | None = None
+        self._frame_maps: dict[str, ObjectMap] = {}  # validated once per frame change
+        self.solution: GraphSolution | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -290,11 +292,10 @@ class MergeService:
         me = frame_name(sub.robot_id, sub.session_id)
         new_factors = []
         with self._lock:
-            others = [(f, objs) for f, objs in self.frames.items()
+            others = [(f, self._frame_map(f)) for f, objs in self.frames.items()
                       if f != me and len(objs) >= self.config.min_map_objects]
-        for other, objs in others:
+        for other, map_ in others:
             robot, session = other.split("/", 1)
-            map_ = ObjectMap(robot_id=robot, session_id=session, objects=list(objs.values()))
             self.stats.matches_tried += 1
             outcome = match(map_, sub, self.config.match)
             res = outcome.result
@@ -335,6 +336,14 @@ class MergeService:
         log.info("submap %s seq %s: %d objects, %d frames tried, %d factors, %.0f ms",
                  me, sub.seq, len(sub.objects), len(others), len(new_factors), ms)
 
+    def _frame_map(self, name: str) -> ObjectMap:
+        """A frame's objects as a map (its arrays cached with it until the frame changes)."""
+        if name not in self._frame_maps:
+            robot, session = name.split("/", 1)
+            self._frame_maps[name] = ObjectMap(robot_id=robot, session_id=session,
+                                               objects=list(self.frames[name].values()))
+        return self._frame_maps[name]
+
     def _add_to_frame(self, sub: Submap) -> None:
         name = frame_name(sub.robot_id, sub.session_id)
         if name not in self.frames:
@@ -343,6 +352,7 @@ class MergeService:
         objs = self.frames.setdefault(name, {})
         for o in sub.objects:  # the latest estimate of an object replaces the older one
             objs[o.id] = o
+        self._frame_maps.pop(name, None)
         self._global = None
         if self._anchor is None:
             self._anchor = name
@@ -395,10 +405,9 @@ class MergeService:
 
     def _frame_poses(self) -> dict[str, np.ndarray]:
         """(4, 4) pose of every frame aligned with the anchor, in the anchor frame."""
-        sol = getattr(self, "solution", None)
-        if sol is None:
+        if self.solution is None:
             return {}
-        return {f: np.asarray(T.matrix()) for f, T in sol.T_anchor_frame.items()}
+        return {f: np.asarray(T.matrix()) for f, T in self.solution.T_anchor_frame.items()}
 
     def relocalize(self, sub: Submap) -> RelocalizeReply:
         """Where a new session's frame is in the anchor frame, from a first submap."""

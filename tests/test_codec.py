@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from mergesvc import codec
-from mergesvc.bench import score_outcome
+from mergesvc.bench import score_case
 from mergesvc.codec import (
     BitReader,
     BitWriter,
@@ -267,8 +267,8 @@ def test_compact_matches_agree_with_float32() -> None:
         proj = Projection.fit(sc.map.arrays().embeddings_nd)
         _, sub = decode_message(encode_message(sc.submap, "compact", "r", 0, projection=proj), proj)
         _, mp = decode_message(encode_message(sc.map, "compact", "svc", 0, projection=proj), proj)
-        ref = score_outcome(sc, match(sc.map, sc.submap))["accuracy"]
-        got = score_outcome(sc, match(mp, sub))["accuracy"]
+        ref = score_case(sc, match(sc.map, sc.submap))["accuracy"]
+        got = score_case(sc, match(mp, sub))["accuracy"]
         assert got >= ref - 0.01, (family, seed, ref, got)
 
 

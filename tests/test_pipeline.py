@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench import score_outcome
+from mergesvc.bench import score_case
 from mergesvc.config import load_config
 from mergesvc.errors import SchemaError
 from mergesvc.model import ObjectArrays, RejectReason
@@ -29,7 +29,7 @@ def test_verified_recovers_permutation_and_transform(kitti_scenario) -> None:
     sc = kitti_scenario
     out = match(sc.map, sc.submap)
     r = out.result
-    s = score_outcome(sc, out)
+    s = score_case(sc, out)
     assert r.accepted and r.reason is RejectReason.VERIFIED
     assert s["accuracy"] >= 0.95 and s["wrong"] == 0
     assert s["outliers_unmatched"] == s["outliers"] > 0
@@ -45,7 +45,7 @@ def test_verified_recovers_permutation_and_transform(kitti_scenario) -> None:
 def test_verified_underwater_never_accepts_a_wrong_match(seed: int) -> None:
     sc = make_scenario(Family.UNDERWATER, seed)
     out = match(sc.map, sc.submap)
-    s = score_outcome(sc, out)
+    s = score_case(sc, out)
     if out.result.accepted:
         assert s["wrong"] == 0
     assert s["accuracy"] >= 0.5
@@ -54,7 +54,7 @@ def test_verified_underwater_never_accepts_a_wrong_match(seed: int) -> None:
 def test_outliers_come_out_unmatched(underwater_scenario) -> None:
     sc = underwater_scenario
     out = match(sc.map, sc.submap)
-    s = score_outcome(sc, out)
+    s = score_case(sc, out)
     assert s["outliers"] == 1 and s["outliers_unmatched"] == 1
     assert s["accuracy"] == 1.0
 
@@ -64,7 +64,7 @@ def test_outliers_come_out_unmatched(underwater_scenario) -> None:
 def test_every_solver_and_affinity_in_verified_mode(solver, affinity, kitti_scenario) -> None:
     sc = kitti_scenario
     cfg = load_config(solver={"name": solver}, affinity={"kind": affinity})
-    s = score_outcome(sc, match(sc.map, sc.submap, cfg))
+    s = score_case(sc, match(sc.map, sc.submap, cfg))
     assert s["accuracy"] >= 0.9
 
 
