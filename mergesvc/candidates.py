@@ -12,7 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mergesvc.affinity import NodeAffinity, node_affinity, reference_distance, unit_rows
+from mergesvc.affinity import (
+    NodeAffinity,
+    SameObjectModel,
+    fit_same_object_model,
+    is_isotropic,
+    log_likelihood_ratio_pairs,
+    node_affinity,
+    reference_distance,
+    unit_rows,
+)
 from mergesvc.config import AffinityConfig, CandidatesConfig
 from mergesvc.model import ObjectArrays
 
@@ -42,13 +51,15 @@ def _sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray | None:
 @dataclass(frozen=True)
 class Calibration:
     """How raw node affinities of one submap become scores: 0 at a typical unrelated map object
-    (`floor_n`, per submap object), 1 at a typical submap object's best map object (`ceil`)."""
+    (`floor_n`, per submap object), 1 at a typical submap object's best map object (`ceil`).
+    same_object: the likelihood ratio's fitted constants (that kind only)."""
 
     kind: NodeAffinity
     normalize: bool
     D_ref: float | None
     floor_n: np.ndarray
     ceil: float
+    same_object: SameObjectModel | None = None
 
 
 def pair_scores(
@@ -60,7 +71,9 @@ def pair_scores(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Raw affinity and calibrated score (<= 1) of given pairs. (m,), (m,) -> (m,), (m,)."""
     union, inverse = np.unique(map_nodes, return_inverse=True)
-    A = node_affinity(calib.kind, sub, map_, union, calib.normalize, calib.D_ref)
+    A = node_affinity(
+        calib.kind, sub, map_, union, calib.normalize, calib.D_ref, calib.same_object
+    )
     aff = A[rows, inverse]
     return aff, np.minimum((aff - calib.floor_n[rows]) / calib.ceil, 1.0)
 
@@ -76,6 +89,7 @@ def retrieve(
     kind = NodeAffinity(aff_cfg.kind)
     n1, n2 = sub.n, map_.n
     # shortlist: every map node for small maps, else the best `prefilter` by plain cosine
+    cos = None
     if n2 <= cand_cfg.prefilter:
         shortlist = np.broadcast_to(np.arange(n2), (n1, n2))
     else:
@@ -85,19 +99,37 @@ def retrieve(
     inverse = inverse.reshape(shortlist.shape)
     sample = _sample(n2, cand_cfg.sample, rng)
     D_ref = None
-    if kind is not NodeAffinity.UCOS:
+    same = None
+    if kind is NodeAffinity.LIKELIHOOD_RATIO:
+        # on unit-norm embeddings the nearest map object is the best by cosine: reuse the
+        # shortlist's product instead of a second pass over the map
+        nearest = None if cos is None or not aff_cfg.normalize_embeddings else cos.argmax(axis=1)
+        same = fit_same_object_model(sub, map_, aff_cfg.normalize_embeddings, sample, nearest)
+    elif kind is not NodeAffinity.UCOS:
         D_ref = reference_distance(
             kind, sub, map_, rng, cand_cfg.sample, aff_cfg.normalize_embeddings
         )
-    A_union = node_affinity(kind, sub, map_, union, aff_cfg.normalize_embeddings, D_ref)
-    A = np.take_along_axis(A_union, inverse, axis=1)  # (n1, shortlist)
+    if same is not None and not (
+        is_isotropic(sub.variances_nd) and is_isotropic(map_.variances_nd[union])
+    ):
+        # per-dimension variances: the likelihood ratio of the shortlisted pairs only, not of
+        # every submap object x the shortlists' union (up to n1 times the work)
+        rows = np.broadcast_to(np.arange(n1)[:, None], shortlist.shape)
+        A = log_likelihood_ratio_pairs(sub, map_, same, rows.ravel(), shortlist.ravel())
+        A = A.reshape(shortlist.shape)
+    else:
+        A_union = node_affinity(
+            kind, sub, map_, union, aff_cfg.normalize_embeddings, D_ref, same
+        )
+        A = np.take_along_axis(A_union, inverse, axis=1)  # (n1, shortlist)
     # typical unrelated map object: median affinity over the map (or a sample of it)
     if sample is None and n2 <= cand_cfg.prefilter:
         floor = np.median(A, axis=1)
     else:
         idx = np.arange(n2) if sample is None else sample
         floor = np.median(
-            node_affinity(kind, sub, map_, idx, aff_cfg.normalize_embeddings, D_ref), axis=1
+            node_affinity(kind, sub, map_, idx, aff_cfg.normalize_embeddings, D_ref, same),
+            axis=1,
         )
     k = min(cand_cfg.top_k, A.shape[1])
     top = np.argpartition(-A, k - 1, axis=1)[:, :k]
@@ -106,7 +138,7 @@ def retrieve(
     # is unusually weak (a false detection, a never-seen object) scores below 1 throughout
     lift = A_top.max(axis=1) - floor
     ceil = max(float(np.quantile(lift, cand_cfg.ceiling_quantile)), 1e-12)
-    calib = Calibration(kind, aff_cfg.normalize_embeddings, D_ref, floor, ceil)
+    calib = Calibration(kind, aff_cfg.normalize_embeddings, D_ref, floor, ceil, same)
     score = (A_top - floor[:, None]) / ceil
     keep = score > 0
     rows = np.broadcast_to(np.arange(n1)[:, None], top.shape)[keep]

@@ -9,7 +9,8 @@ Envelope (every message), a msgpack array:
     [schema_version, codec_version, type, sender, seq, profile, payload]
 Object map / submap payload, a msgpack array:
     [robot_id | nil (= sender), session_id, seq (nil: = envelope seq, -1: none), stamp, n, d,
-     ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob]
+     ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob (, up)]
+(up, optional: the declared vertical as three int8 codes, direction only; absent = undeclared)
 where the small header fields say how to read `blob`, one bit stream (MSB first) holding, in
 order: id deltas, label codes, n_obs - 1, isotropic flags, positions, variances, embeddings.
 Profiles (what each carries per object; positions in full are float64, otherwise fixed point):
@@ -728,6 +729,7 @@ def _encode_objects(
     seq_field = None  # maps have no seq; a submap's is usually the envelope's
     if isinstance(m, Submap) and m.seq != seq:
         seq_field = -1 if m.seq is None else m.seq
+    tail = [] if m.up is None else [encode_up(m.up)]
     return [
         None if m.robot_id == sender else m.robot_id,
         m.session_id,
@@ -743,7 +745,25 @@ def _encode_objects(
         var_hdr,
         emb_hdr,
         w.getvalue(),
+        *tail,
     ]
+
+
+def encode_up(up: Sequence[float]) -> list[int]:
+    """A declared vertical as three int8 codes: round(127 u / max|u|) (about 0.5 deg)."""
+    u = np.asarray(up, dtype=np.float64)
+    peak = float(np.abs(u).max())
+    if not (np.isfinite(peak) and peak > 0):
+        raise CodecError("up must be a finite non-zero vector")
+    return np.rint(127.0 * u / peak).astype(int).tolist()
+
+
+def decode_up(v: Any) -> tuple[float, float, float]:
+    codes = [_int(x, "up", -127, 127) for x in _list(v, "up", 3)]
+    norm = math.sqrt(sum(c * c for c in codes))
+    if norm == 0:
+        raise DecodeError("up: the zero vector has no direction")
+    return (codes[0] / norm, codes[1] / norm, codes[2] / norm)
 
 
 def _find_projection(pid: str, projections: Mapping[str, Projection], what: str) -> Projection:
@@ -763,9 +783,12 @@ def _decode_objects(
     limits: CodecLimits,
 ) -> tuple[ObjectMap, str | None]:
     what = f"{env.msg_type.value} payload"
-    fields = _list(payload, what, 14)
+    fields = _list(payload, what)
+    if len(fields) not in (14, 15):  # the 15th, optional: the declared vertical
+        raise DecodeError(f"{what}: expected 14 or 15 fields, got {len(fields)}")
     robot, session, seq, stamp, n, d, ids_hdr, label_hdr = fields[:8]
-    nobs_bits, var_mode, pos_hdr, var_hdr, emb_hdr, blob = fields[8:]
+    nobs_bits, var_mode, pos_hdr, var_hdr, emb_hdr, blob = fields[8:14]
+    up = decode_up(fields[14]) if len(fields) == 15 else None
     robot = _str(robot, "robot_id", optional=True, max_len=128) or env.sender
     session = _str(session, "session_id", max_len=128)
     if seq is not None:
@@ -870,6 +893,8 @@ def _decode_objects(
             obj["label"] = labels[i]
         objects.append(obj)
     doc: dict[str, Any] = {"robot_id": robot, "session_id": session, "objects": objects}
+    if up is not None:
+        doc["up"] = up
     model: type[ObjectMap] = ObjectMap
     if env.msg_type is MessageType.SUBMAP:
         model = Submap

@@ -93,7 +93,33 @@ class VerifyConfig(_Section):
         0.01, ge=0, description="exact search: proven optimal within this much objective "
         "(a node score is ~1 per object); 0 = exact, slower on maps with near-duplicates"
     )
+    conflict_sigmas: float | None = Field(
+        6.0, gt=0, description="exact search: two matches whose edge lengths disagree by more "
+        "than this many edge tolerances cannot both hold (2 x the 3-sigma residual gate: no "
+        "rigid fit keeps both); the consistency graph prunes the search. None: off"
+    )
     min_matches: int = Field(3, ge=3, description="matches needed for a 6-DoF transform")
+    min_matches_vertical: int = Field(
+        2, ge=2, description="matches needed for the gravity-aligned 4-DoF transform (yaw + "
+        "translation) when both frames' verticals are known (declared `up`, or inferred)"
+    )
+    vertical_sigma_deg: float = Field(
+        2.0, gt=0, description="how well a frame's vertical is known: the tilt prior of a "
+        "4-DoF transform's covariance"
+    )
+    infer_vertical: bool = Field(
+        True, description="without a declared `up`, infer a frame's vertical axis from a "
+        "flat object layout (see infer_min_objects, infer_max_flatness)"
+    )
+    infer_min_objects: int = Field(10, ge=4, description="objects needed to infer a vertical")
+    infer_max_flatness: float = Field(
+        0.3, gt=0, lt=1, description="a vertical is inferred only when the layout's least "
+        "spread is at most this fraction of the next (far wider than tall)"
+    )
+    share_vertical: bool = Field(
+        True, description="a submap too small to show its vertical shares the map's axis (a "
+        "vehicle cuts submaps from its own map frame); declare `up` where frames differ"
+    )
     margin: float = Field(
         0.1, ge=0, description="objective margin a match needs over its best alternative"
     )
@@ -103,9 +129,9 @@ class VerifyConfig(_Section):
     )
     inlier_sigmas: float = Field(3.0, gt=0, description="residual gate in edge tolerances")
     max_tilt_deg: float | None = Field(
-        60.0, gt=0, le=180, description="largest angle the transform may turn the vertical by; "
-        "vehicles know 'up' (IMU, depth), and distances alone cannot tell a flat set of objects "
-        "from its mirror image (a 180 deg flip). None: no gravity reference"
+        60.0, gt=0, le=180, description="largest angle the transform may turn the vertical by, "
+        "where the verticals are known (declared or inferred): distances alone cannot tell a "
+        "flat set of objects from its mirror image (a 180 deg flip). None: no tilt test"
     )
 
 

@@ -84,12 +84,26 @@ class ObjectMap(BaseModel):
     robot_id: Identifier
     session_id: Identifier
     objects: list[ObjectNode] = Field(min_length=1, max_length=MAX_OBJECTS)
+    up: tuple[float, float, float] | None = Field(
+        default=None,
+        description="optional: the direction opposite to gravity in this file's frame, e.g. "
+        "[0, 0, 1] for ENU, [0, 0, -1] for NED, [0, -1, 0] for a camera frame (y down); any "
+        "non-zero length. Without it the vertical is inferred from the object layout where "
+        "that is reliable, and nothing is assumed otherwise",
+    )
     _arrays: ObjectArrays | None = PrivateAttr(default=None)
 
     @field_validator("schema_version", mode="before")
     @classmethod
     def _version(cls, v: Any) -> int:
         return _check_version(v)
+
+    @field_validator("up")
+    @classmethod
+    def _up_nonzero(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and not sum(x * x for x in v) > 1e-12:
+            raise ValueError("up must be a non-zero vector")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> ObjectMap:
@@ -113,7 +127,7 @@ class ObjectMap(BaseModel):
     def arrays(self) -> ObjectArrays:
         """The objects as arrays; computed once (the model is frozen), then shared."""
         if self._arrays is None:
-            self._arrays = ObjectArrays.from_objects(self.objects)
+            self._arrays = ObjectArrays.from_objects(self.objects, up=self.up)
         return self._arrays
 
 
@@ -192,7 +206,8 @@ class ObjectArrays:
     """Objects as arrays, the representation the core stages compute on.
 
     ids: n object ids; position_xyz_m: (n, 3); embeddings_nd: (n, d);
-    variances_nd: (n, d) per-dimension variance; n_obs: (n,)
+    variances_nd: (n, d) per-dimension variance; n_obs: (n,); up_xyz: (3,) unit vector
+    opposite to gravity when the frame declares it, else None (see `mergesvc.vertical`)
     """
 
     ids: list[str]
@@ -200,6 +215,7 @@ class ObjectArrays:
     embeddings_nd: np.ndarray
     variances_nd: np.ndarray
     n_obs: np.ndarray
+    up_xyz: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.ids)
@@ -216,6 +232,12 @@ class ObjectArrays:
                 raise SchemaError(f"{name} has NaN or inf")
         if np.any(self.variances_nd <= 0):
             raise SchemaError("variances_nd must be positive")
+        if self.up_xyz is not None:
+            up = np.asarray(self.up_xyz, dtype=np.float64)
+            norm = float(np.linalg.norm(up)) if up.shape == (3,) else 0.0
+            if not (np.isfinite(norm) and norm > 1e-6):
+                raise SchemaError("up_xyz must be a finite non-zero 3-vector")
+            object.__setattr__(self, "up_xyz", up / norm)
 
     @property
     def n(self) -> int:
@@ -249,7 +271,9 @@ class ObjectArrays:
         return self.variances_nd.mean(axis=1)
 
     @classmethod
-    def from_objects(cls, objects: list[ObjectNode]) -> ObjectArrays:
+    def from_objects(
+        cls, objects: list[ObjectNode], up: tuple[float, float, float] | None = None
+    ) -> ObjectArrays:
         d = len(objects[0].embedding)
         var = np.empty((len(objects), d))
         for k, o in enumerate(objects):
@@ -260,6 +284,7 @@ class ObjectArrays:
             embeddings_nd=np.array([o.embedding for o in objects], dtype=np.float64),
             variances_nd=var,
             n_obs=np.array([o.n_obs for o in objects], dtype=np.int64),
+            up_xyz=None if up is None else np.asarray(up, dtype=np.float64),
         )
 
     def subset(self, index: np.ndarray) -> ObjectArrays:
@@ -270,6 +295,7 @@ class ObjectArrays:
             embeddings_nd=self.embeddings_nd[index],
             variances_nd=self.variances_nd[index],
             n_obs=self.n_obs[index],
+            up_xyz=self.up_xyz,
         )
 
     def to_nodes(self, isotropic_tol: float = 0.0) -> list[ObjectNode]:

@@ -36,11 +36,20 @@ from mergesvc.model import (
     Transform,
 )
 from mergesvc.solvers import dense, heuristic
+from mergesvc.solvers.consistency import pairwise_conflicts
 from mergesvc.solvers.exact import ExactResult, solve_exact
 from mergesvc.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.solvers.margin import row_margins
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
-from mergesvc.verify import RigidFit, fit_rigid, transform_points
+from mergesvc.verify import (
+    RigidFit,
+    align,
+    consistent_subset,
+    fit_about_vertical,
+    fit_rigid,
+    transform_points,
+)
+from mergesvc.vertical import VerticalRelation, frame_vertical, relate
 
 log = logging.getLogger(__name__)
 
@@ -134,17 +143,21 @@ def candidate_problem(
     w_e / (n1 - 1) * (a_e - threshold), a_e = exp(-(e_ij - e_ab)^2 / (2 tol_ij^2)),
     tol_ij^2 = sigma^2 + (rel * e_ij)^2. A pair inconsistent with the others costs, so a false
     detection is better left unmatched. The non-negative one (threshold 0) feeds RRWM / SM.
+    The signed one also forbids pairs whose lengths disagree by more than conflict_sigmas
+    tolerances (no rigid fit keeps both): the exact search prunes on that.
     """
     local, cols = np.unique(cands.map_nodes, return_inverse=True)
     R = cands.rows
-    e_sub = pairwise_lengths(sub.position_xyz_m)
-    e_map = pairwise_lengths(map_.position_xyz_m[local])
+    sub_xyz, map_xyz = sub.position_xyz_m, map_.position_xyz_m[local]
+    e_sub = pairwise_lengths(sub_xyz)
+    e_map = pairwise_lengths(map_xyz)
     E1 = e_sub[np.ix_(R, R)]
     E2 = e_map[np.ix_(cols, cols)]
     aff = config.affinity
     tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
     w = edge_pair_weight(sub.n, config)
     K_pos = edge_affinity(E1, E2, 2.0 * tol2)
+
     K_pos *= w
     invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
     K_pos[invalid] = 0.0
@@ -153,8 +166,11 @@ def candidate_problem(
     np.fill_diagonal(K_pos, cands.score)
     np.fill_diagonal(K_signed, cands.score - aff.node_threshold)
     n2 = len(local)
+    conflict = None
+    if config.verify.conflict_sigmas is not None:
+        conflict = pairwise_conflicts(E1, E2, np.sqrt(tol2), config.verify.conflict_sigmas, R, cols)
     return (
-        AssignmentProblem(sub.n, n2, R, cols, K_signed),
+        AssignmentProblem(sub.n, n2, R, cols, K_signed, conflict),
         AssignmentProblem(sub.n, n2, R, cols, K_pos),
         local,
     )
@@ -256,24 +272,145 @@ def _propose(
 
 def _fit(
     sub: ObjectArrays, map_: ObjectArrays, proposed: np.ndarray, sigma_m: float,
+    config: MatchConfig, rel: VerticalRelation | None,
+) -> RigidFit:
+    """Rigid fit of the proposed matches and its tilt test: 6-DoF from 3 matches; with the
+    verticals related, 4-DoF for 2 matches or for matches on a line."""
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
+    gate = _inlier_gate(sub_xyz, sigma_m, config)
+    v = config.verify
+    if len(rows) < v.min_matches:
+        # fewer than a 6-DoF fit needs: 4-DoF about the known vertical, when they are at least
+        # half the submap (2 matches out of 20 objects are no evidence)
+        if rel is None or len(rows) < v.min_matches_vertical or 2 * len(rows) < sub.n:
+            return fit_rigid(sub_xyz, map_xyz, gate, v.min_matches)  # too few
+        return _fit_vertical(sub_xyz, map_xyz, gate, sigma_m, rel, config)
+    # fit the largest mutually consistent set; the others count as outliers
+    keep = consistent_subset(sub_xyz, map_xyz, gate)
+    if keep.sum() < v.min_matches:
+        return RigidFit(RejectReason.RESIDUAL_TOO_LARGE, None, None, keep,
+                        np.full(len(keep), np.nan), np.nan)
+    fit = fit_rigid(sub_xyz[keep], map_xyz[keep], gate[keep], min_matches=v.min_matches,
+                    sigma_floor_m=0.1 * sigma_m)
+    if fit.reason is RejectReason.DEGENERATE_GEOMETRY and rel is not None:
+        fit = _fit_vertical(sub_xyz[keep], map_xyz[keep], gate[keep], sigma_m, rel, config)
+    elif fit.accepted:
+        fit = _upright(fit, sub_xyz[keep], map_xyz[keep], gate[keep], rel, sigma_m, config)
+    return _widen(fit, keep)
+
+
+def _widen(fit: RigidFit, keep: np.ndarray) -> RigidFit:
+    """A fit over the pairs where keep (k,) is true, as a fit over all k (the rest outliers)."""
+    if keep.all():
+        return fit
+    inliers = np.zeros(len(keep), dtype=bool)
+    inliers[np.flatnonzero(keep)[fit.inliers]] = True
+    residual = np.full(len(keep), np.nan)
+    residual[keep] = fit.residual_m
+    return RigidFit(fit.reason, fit.T_map_submap, fit.covariance_66, inliers, residual,
+                    fit.rmse_m)
+
+
+def vertical_relation(
+    sub: ObjectArrays, map_: ObjectArrays, config: MatchConfig
+) -> VerticalRelation | None:
+    """How the two frames' verticals relate (declared, inferred or shared; see vertical.py)."""
+    v = config.verify
+    def one(arr: ObjectArrays):
+        if arr.up_xyz is None and not v.infer_vertical:
+            return None
+        return frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
+    return relate(one(map_), one(sub), share=v.share_vertical)
+
+
+def _mirror_fits(sub_xyz: np.ndarray, map_xyz: np.ndarray, tolerance_m: np.ndarray) -> bool:
+    """Whether the mirror image of the matched submap centres fits as well: then their layout
+    is too flat for distances to tell its handedness (three matches always are)."""
+    centred = sub_xyz - sub_xyz.mean(axis=0)
+    n = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    mirrored = sub_xyz - 2.0 * np.outer(centred @ n, n)
+    T = align(mirrored, map_xyz)
+    if T is None:
+        return True
+    return bool(np.all(np.linalg.norm(transform_points(T, mirrored) - map_xyz, axis=1)
+                       <= tolerance_m))
+
+
+def _upright(
+    fit: RigidFit,
+    sub_xyz: np.ndarray,
+    map_xyz: np.ndarray,
+    tolerance_m: np.ndarray,
+    rel: VerticalRelation | None,
+    sigma_m: float,
     config: MatchConfig,
 ) -> RigidFit:
-    rows = np.flatnonzero(proposed != UNMATCHED)
-    return fit_rigid(
-        sub.position_xyz_m[rows],
-        map_.position_xyz_m[proposed[rows]],
-        _inlier_gate(sub.position_xyz_m[rows], sigma_m, config),
-        min_matches=config.verify.min_matches,
-        sigma_floor_m=0.1 * sigma_m,
-    )
+    """Tilt test of an accepted 6-DoF fit; the fit itself, a 4-DoF one, or a rejection.
 
-
-def _upright(fit: RigidFit, config: MatchConfig) -> bool:
-    """Whether the transform keeps the vertical within max_tilt_deg (always, if unset)."""
-    if config.verify.max_tilt_deg is None or fit.T_map_submap is None:
-        return True
+    sub_xyz, map_xyz, tolerance_m: all pairs of the fit ((k, 3), (k, 3), (k,)); only its
+    inliers are judged. Declared verticals: the transform must keep up up. Otherwise, when
+    the matched layout is clearly 3-D its handedness is observed and only the vertical axis
+    is checked; when it is flat (its mirror image fits too: three matches always are) the
+    known sign decides. A flat fit that turns the vertical over gets a second chance as a
+    gravity-aligned 4-DoF fit: three points nearly on a line leave the rotation about that
+    line to the noise, which the vertical pins down. No vertical, no test.
+    """
+    v = config.verify
+    if v.max_tilt_deg is None or fit.T_map_submap is None or rel is None:
+        return fit
+    inl = fit.inliers
     R = fit.T_map_submap.rotation().matrix()
-    return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0)))) <= config.verify.max_tilt_deg
+    flat = rel.declared or _mirror_fits(sub_xyz[inl], map_xyz[inl], tolerance_m[inl])
+    judged = rel if flat else VerticalRelation(rel.up_map, rel.up_sub, False, False)
+    if judged.tilt_deg(R) <= v.max_tilt_deg:
+        return fit
+    if flat and rel.signed:
+        # the refit must keep what the 6-DoF fit kept, less outliers, never below 3
+        keep = max(config.verify.min_matches, (int(inl.sum()) + 1) // 2 + 1)
+        four = _fit_vertical(sub_xyz[inl], map_xyz[inl], tolerance_m[inl], sigma_m, rel, config,
+                             min_matches=keep)
+        if four.accepted:
+            return _widen(four, inl)
+    return RigidFit(RejectReason.TILTED, fit.T_map_submap, fit.covariance_66, inl,
+                    fit.residual_m, fit.rmse_m)
+
+
+def _fit_vertical(
+    sub_xyz: np.ndarray, map_xyz: np.ndarray, tolerance_m: np.ndarray, sigma_m: float,
+    rel: VerticalRelation, config: MatchConfig, min_matches: int | None = None,
+) -> RigidFit:
+    """Gravity-aligned 4-DoF fit keeping at least min_matches inliers (default
+    verify.min_matches_vertical); with only the vertical axis known, both signs are tried and
+    exactly one must fit (the matches' vertical offsets tell), else `ambiguous`."""
+    v = config.verify
+    fits = [
+        fit_about_vertical(
+            sub_xyz, map_xyz, tolerance_m, sign * rel.up_sub, rel.up_map,
+            np.radians(v.vertical_sigma_deg), sigma_floor_m=0.1 * sigma_m,
+            min_matches=min_matches or v.min_matches_vertical,
+        )
+        for sign in ((1.0,) if rel.signed else (1.0, -1.0))
+    ]
+    good = [f for f in fits if f.accepted]
+    if len(good) > 1:
+        return RigidFit(RejectReason.AMBIGUOUS, None, None, good[0].inliers,
+                        good[0].residual_m, good[0].rmse_m)
+    return good[0] if good else fits[0]
+
+
+def _unmatch_gains(problem: AssignmentProblem, assignment: np.ndarray) -> np.ndarray:
+    """(n1,) objective lost by unmatching each matched row, the others kept; nan if unmatched.
+
+    An upper bound on the row's margin over "no match" (the others could adapt)."""
+    out = np.full(problem.n1, np.nan)
+    rows = np.flatnonzero(assignment != UNMATCHED)
+    if len(rows) == 0:
+        return out
+    idx = problem.assignment_to_indices(assignment)
+    block = problem.K[np.ix_(idx, idx)]
+    out[rows] = block.sum(axis=0) + block.sum(axis=1) - np.diag(block)
+    return out
 
 
 def _verify(
@@ -283,6 +420,7 @@ def _verify(
     config: MatchConfig,
     sigma_m: float,
     timer: StageTimer,
+    rel: VerticalRelation | None,
 ) -> _Pass:
     """Exact search over the candidates -> margin test -> rigid fit -> accept or reject."""
     assignment = prop.assignment
@@ -313,15 +451,17 @@ def _verify(
         dist = np.linalg.norm(cand_xyz - chosen_xyz[prop.signed.rows], axis=1)
         same = dist <= config.verify.inlier_sigmas * sigma_m
         margins = row_margins(prop.signed, assignment, config.verify.margin, same=same)
+        # leaving the object unmatched is an alternative too (a false detection that happens
+        # to fit a look-alike adds little): its gain over that must clear the margin as well
+        margins = np.fmin(margins, _unmatch_gains(prop.signed, assignment))
         ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
         proposed = np.where(ambiguous, UNMATCHED, proposed)
         timer.lap("margin")
-    fit = _fit(sub, map_, proposed, sigma_m, config)
+    fit = _fit(sub, map_, proposed, sigma_m, config, rel)
     reason = fit.reason
-    if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= config.verify.min_matches:
+    needed = config.verify.min_matches if rel is None else config.verify.min_matches_vertical
+    if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= needed:
         reason = RejectReason.AMBIGUOUS
-    if fit.accepted and not _upright(fit, config):
-        reason = RejectReason.TILTED
     final = proposed.copy()
     if fit.accepted:
         rows = np.flatnonzero(proposed != UNMATCHED)
@@ -342,15 +482,16 @@ def _match_verified(
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
     sigma_m, _ = edge_scales(map_, config)
+    rel = vertical_relation(sub, map_, config)
     prop = _propose(sub, map_, cands, config, sigma_m, timer)
     if config.candidates.guided:
         # Guided matching: when the solver's answer fits a rigid transform, add the map objects
         # lying where it puts each submap object (look-alike instances whose true match ranked
         # below the top-k by appearance alone) and solve again from that answer; the exact
         # search then verifies once, over the enlarged candidate set.
-        probe = _fit(sub, map_, prop.to_map(prop.assignment), sigma_m, config)
+        probe = _fit(sub, map_, prop.to_map(prop.assignment), sigma_m, config, rel)
         timer.lap("verify")
-        if probe.accepted and _upright(probe, config):
+        if probe.accepted:
             predicted = transform_points(probe.T_map_submap, sub.position_xyz_m)
             gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)
             more = expand_near(cands, sub, map_, predicted, gate, calib)
@@ -360,7 +501,7 @@ def _match_verified(
                 rows = np.flatnonzero(start != UNMATCHED)
                 start[rows[~probe.inliers]] = UNMATCHED
                 prop = _propose(sub, map_, more, config, sigma_m, timer, start=start)
-    result = _verify(sub, map_, prop, config, sigma_m, timer)
+    result = _verify(sub, map_, prop, config, sigma_m, timer, rel)
     outcome = _finish(
         result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
     )

@@ -61,10 +61,12 @@ class ServiceConfig(BaseModel):
         "trajectories differs by more than the fit's own covariance says",
     )
     match: MatchConfig = Field(
-        default_factory=lambda: MatchConfig.model_validate({"verify": {"min_matches": 4}}),
+        default_factory=lambda: MatchConfig.model_validate(
+            {"verify": {"min_matches": 4, "min_matches_vertical": 4}}
+        ),
         description="verified matching; an inter-robot factor needs 4 matched objects by "
-        "default (3 points admit coincidental fits in a small pool, and a wrong factor costs "
-        "more than a late one)",
+        "default, with or without a known vertical (3 points admit coincidental fits in a "
+        "small pool, and a wrong factor costs more than a late one)",
     )
 
 

@@ -1,6 +1,6 @@
 """Verification stage: rigid transform of the matched centres (gtsam.Pose3.Align), residual gate
 with outlier removal, accept/reject with a reason, and the transform's 6x6 covariance
-(GTSAM order: rotation, translation).
+(GTSAM order: rotation, translation); a gravity-aligned 4-DoF fit where the verticals are known.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 
 from mergesvc.model import RejectReason
+from mergesvc.vertical import rotation_between
 
 # Below this ratio of the second to the first singular value the matched centres are (nearly) on
 # a line and the rotation about that line is unobservable.
@@ -56,20 +57,131 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def pose_covariance(
-    T: gtsam.Pose3, sub_xyz: np.ndarray, sigma_m: np.ndarray | float
+    T: gtsam.Pose3,
+    sub_xyz: np.ndarray,
+    sigma_m: np.ndarray | float,
+    prior_info: np.ndarray | None = None,
 ) -> np.ndarray:
     """6x6 covariance of T (tangent space, rotation then translation, right perturbation).
 
     Linearised least squares: r_k = T exp(xi) p_k - q_k has Jacobian [-R [p_k]x, R];
-    Sigma = (sum_k J_k^T J_k / sigma_k^2)^-1.
+    Sigma = (prior_info + sum_k J_k^T J_k / sigma_k^2)^-1.
     """
     R = T.rotation().matrix()
     sig = np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(sub_xyz),))
-    info = np.zeros((6, 6))
+    info = np.zeros((6, 6)) if prior_info is None else np.array(prior_info, dtype=float)
     for p, s in zip(sub_xyz, sig):
         J = np.hstack([-R @ _skew(p), R])
         info += J.T @ J / s**2
     return np.linalg.inv(info)
+
+
+def consistent_subset(
+    sub_xyz: np.ndarray, map_xyz: np.ndarray, tolerance_m: np.ndarray
+) -> np.ndarray:
+    """(k,) bool: a set of matches whose pairwise distances all agree, found by peeling.
+
+    Two pairs can both be inliers of one rigid fit only if their distances in the two frames
+    differ by at most the sum of their tolerances (the consistency graph of CLIPPER and PCM).
+    While the kept pairs are not all consistent, the one with the fewest consistent partners
+    goes (ties: the one with the largest total disagreement). A least-squares fit started
+    from every pair is pulled off by gross outliers (a wrong match 100 m away) and can then
+    drop the right pairs instead; started from this set, it is not.
+    """
+    k = len(sub_xyz)
+    keep = np.ones(k, dtype=bool)
+    if k < 3:
+        return keep
+    d_sub = np.linalg.norm(sub_xyz[:, None] - sub_xyz[None], axis=2)
+    d_map = np.linalg.norm(map_xyz[:, None] - map_xyz[None], axis=2)
+    excess = np.abs(d_sub - d_map) - (tolerance_m[:, None] + tolerance_m[None, :])
+    ok = excess <= 0.0
+    np.fill_diagonal(ok, True)
+    while True:
+        idx = np.flatnonzero(keep)
+        sub_ok = ok[np.ix_(idx, idx)]
+        if sub_ok.all():
+            return keep
+        degree = sub_ok.sum(axis=1)
+        badness = np.maximum(excess[np.ix_(idx, idx)], 0.0).sum(axis=1)
+        worst = np.lexsort((-badness, degree))[0]
+        keep[idx[worst]] = False
+
+
+def align_about_vertical(
+    sub_xyz: np.ndarray, map_xyz: np.ndarray, up_sub: np.ndarray, up_map: np.ndarray
+) -> gtsam.Pose3 | None:
+    """Gravity-aligned least squares: T_map_submap taking up_sub to up_map, then the yaw about
+    the vertical and the translation that fit best. (k, 3) each, k >= 1 (k = 1: yaw 0).
+
+    With R0 the smallest rotation up_sub -> up_map and p' = R0 p, the yaw is the angle that
+    best aligns the horizontal parts of the centred p' onto those of the centred q:
+    theta = atan2(sum (p'_h x q_h) . up, sum p'_h . q_h) (2-D Procrustes).
+    """
+    if len(sub_xyz) == 0:
+        return None
+    R0 = rotation_between(up_sub, up_map)
+    p = (sub_xyz - sub_xyz.mean(axis=0)) @ R0.T
+    q = map_xyz - map_xyz.mean(axis=0)
+    ph = p - np.outer(p @ up_map, up_map)
+    qh = q - np.outer(q @ up_map, up_map)
+    theta = float(np.arctan2(np.cross(ph, qh).sum(axis=0) @ up_map, float((ph * qh).sum())))
+    Ry = gtsam.Rot3.AxisAngle(np.asarray(up_map, dtype=float), theta).matrix()
+    R = Ry @ R0
+    t = map_xyz.mean(axis=0) - R @ sub_xyz.mean(axis=0)
+    return gtsam.Pose3(gtsam.Rot3(R), t)
+
+
+def fit_about_vertical(
+    sub_xyz: np.ndarray,
+    map_xyz: np.ndarray,
+    tolerance_m: np.ndarray,
+    up_sub: np.ndarray,
+    up_map: np.ndarray,
+    vertical_sigma_rad: float,
+    sigma_floor_m: float = 1e-3,
+    min_matches: int = 2,
+) -> RigidFit:
+    """4-DoF fit (yaw + translation) of matched centres whose verticals are known, dropping the
+    worst pair while any exceeds its tolerance (as `fit_rigid` does).
+
+    sub_xyz, map_xyz: (k, 3); tolerance_m: (k,). Rejects with `too_few_matches` below
+    min_matches, `degenerate_geometry` when the matches do not fix the yaw (all on one
+    vertical line), `residual_too_large` when fewer than min_matches pairs fit. The covariance
+    adds a gravity prior of vertical_sigma_rad on the two tilt directions to the fit's
+    information, so it is full rank for two matches.
+    """
+    k = len(sub_xyz)
+    inl = np.ones(k, dtype=bool)
+    residual = np.full(k, np.nan)
+    if k < min_matches:
+        return RigidFit(RejectReason.TOO_FEW_MATCHES, None, None, inl, residual, np.nan)
+    T: gtsam.Pose3 | None = None
+    while True:
+        idx = np.flatnonzero(inl)
+        if len(idx) < min_matches:
+            rmse = float(np.sqrt(np.mean(residual[idx] ** 2))) if len(idx) else np.nan
+            return RigidFit(RejectReason.RESIDUAL_TOO_LARGE, T, None, inl, residual, rmse)
+        centred = sub_xyz[idx] - sub_xyz[idx].mean(axis=0)
+        horizontal = centred - np.outer(centred @ up_sub, up_sub)
+        if float(np.linalg.norm(horizontal, axis=1).max()) < float(np.min(tolerance_m[idx])):
+            return RigidFit(RejectReason.DEGENERATE_GEOMETRY, None, None, inl, residual, np.nan)
+        T = align_about_vertical(sub_xyz[idx], map_xyz[idx], up_sub, up_map)
+        residual = np.linalg.norm(transform_points(T, sub_xyz) - map_xyz, axis=1)
+        ratio = np.where(inl, residual / tolerance_m, -np.inf)
+        worst = int(np.argmax(ratio))
+        if ratio[worst] <= 1.0:
+            break
+        inl[worst] = False
+    r_in = residual[idx]
+    rmse = float(np.sqrt(np.mean(r_in**2)))
+    dof = 3 * len(idx) - 4
+    sigma = max(np.sqrt(float((r_in**2).sum()) / dof) if dof > 0 else 0.0, sigma_floor_m)
+    tilt = np.eye(3) - np.outer(up_sub, up_sub)  # rotation perturbations that tilt the vertical
+    prior = np.zeros((6, 6))
+    prior[:3, :3] = tilt / vertical_sigma_rad**2
+    cov = pose_covariance(T, sub_xyz[idx], sigma, prior_info=prior)
+    return RigidFit(RejectReason.VERIFIED, T, cov, inl, residual, rmse)
 
 
 def fit_rigid(

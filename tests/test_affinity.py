@@ -2,11 +2,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize_scalar
+from scipy.special import gammaln
+from scipy.stats import multivariate_normal, multivariate_t
 
+import mergesvc.affinity as affinity_mod
 from mergesvc.affinity import (
     NodeAffinity,
+    SameObjectModel,
     distance_to_similarity,
     edge_affinity,
+    fit_same_object_model,
+    log_likelihood_ratio,
+    log_likelihood_ratio_pairs,
     median_spacing,
     node_affinity,
     node_distance,
@@ -94,8 +102,9 @@ def test_affinities_are_bounded_and_prefer_the_same_object(kind: NodeAffinity) -
     )
     A = node_affinity(kind, a, b)
     assert A.shape == (10, 30)
-    lo = -1.0 if kind is NodeAffinity.UCOS else 0.0
-    assert np.all(lo <= A) and np.all(A <= 1.0)
+    if kind is not NodeAffinity.LIKELIHOOD_RATIO:  # a log-odds: any real number
+        lo = -1.0 if kind is NodeAffinity.UCOS else 0.0
+        assert np.all(lo <= A) and np.all(A <= 1.0)
     assert np.all(np.argmax(A, axis=1) == np.arange(10)), "larger must mean more alike"
 
 
@@ -126,3 +135,209 @@ def test_edge_affinity_and_spacing() -> None:
     assert edge_affinity(np.array(3.0), np.array(4.0), 2.0) == pytest.approx(np.exp(-0.5))
     grid = np.array([[x, y, 0.0] for x in range(5) for y in range(5)]) * 2.0
     assert median_spacing(grid) == pytest.approx(2.0)
+
+
+# ------------------------------------------------------------ same-object likelihood ratio
+
+
+def _with(objs: ObjectArrays, **arrays: np.ndarray) -> ObjectArrays:
+    fields = {"ids": objs.ids, "position_xyz_m": objs.position_xyz_m,
+              "embeddings_nd": objs.embeddings_nd, "variances_nd": objs.variances_nd,
+              "n_obs": objs.n_obs}
+    return ObjectArrays(**{**fields, **arrays})
+
+
+def _isotropic(objs: ObjectArrays) -> ObjectArrays:
+    return _with(objs, variances_nd=np.repeat(objs.variances_nd[:, :1], objs.dim, axis=1))
+
+
+def _lr_reference(mu1, var1, mu2, var2, c: float, D: float, nu: float) -> tuple[float, bool]:
+    """Eq. LR-3 from scipy's densities, LR-5 as the minimum over the ray a * dmu, a in [0, 1],
+    and C(nu, d) as the ratio's value for V -> inf (both densities at their peak).
+    Returns (LLR, whether LR-5 applied)."""
+    d = len(mu1)
+    V = c * (var1 + var2)
+    W = V + D
+    t, g = multivariate_t(np.zeros(d), np.diag(V), df=nu), multivariate_normal(np.zeros(d), W)
+    dmu = mu1 - mu2
+
+    def llr(a: float) -> float:
+        return float(t.logpdf(a * dmu) - g.logpdf(a * dmu))
+
+    at_1 = llr(1.0)
+    best = minimize_scalar(llr, bounds=(0.0, 1.0), method="bounded", options={"xatol": 1e-10})
+    C = (gammaln((nu + d) / 2) - gammaln(nu / 2) - d / 2 * np.log(nu / 2))
+    return min(at_1, float(best.fun)) - C, float(best.fun) < at_1 - 1e-9
+
+
+def _fit_reference(sub: ObjectArrays, map_: ObjectArrays) -> tuple[float, float]:
+    """Eqs. LR-2 and LR-4 by a direct loop: (c, D)."""
+    u1 = sub.embeddings_nd / np.linalg.norm(sub.embeddings_nd, axis=1, keepdims=True)
+    u2 = map_.embeddings_nd / np.linalg.norm(map_.embeddings_nd, axis=1, keepdims=True)
+    d = sub.dim
+    sq = [[float(np.sum((u1[i] - u2[a]) ** 2)) for a in range(map_.n)] for i in range(sub.n)]
+    D = float(np.median(sq)) / d
+    c_i = []
+    for i in range(sub.n):
+        a = int(np.argmin(sq[i]))
+        c_i.append(np.mean((u1[i] - u2[a]) ** 2 / (sub.variances_nd[i] + map_.variances_nd[a])))
+    return float(np.median(c_i)), D
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+@pytest.mark.parametrize("d", [3, 8])
+def test_likelihood_ratio_matches_direct_reference(isotropic: bool, d: int) -> None:
+    rng = np.random.default_rng(10 + d)
+    a, b = _objs(rng, 4, d), _objs(rng, 7, d)
+    if isotropic:
+        a, b = _isotropic(a), _isotropic(b)
+    model = fit_same_object_model(a, b)
+    c, D = _fit_reference(a, b)
+    assert model.c == pytest.approx(c, rel=1e-10) and pytest.approx(D, rel=1e-10) == model.D
+    # as fitted, with vaguer variances, and with a small D that puts pairs beyond the ray
+    # minimum of LR-5
+    clamped = 0
+    for c_scale, D_scale in ((1.0, 1.0), (30.0, 1.0), (1.0, 0.05)):
+        m = SameObjectModel(c=model.c * c_scale, D=model.D * D_scale, normalize=True)
+        L = log_likelihood_ratio(a, b, m)
+        u1 = a.embeddings_nd / np.linalg.norm(a.embeddings_nd, axis=1, keepdims=True)
+        u2 = b.embeddings_nd / np.linalg.norm(b.embeddings_nd, axis=1, keepdims=True)
+        for i in range(a.n):
+            for j in range(b.n):
+                ref, beyond = _lr_reference(u1[i], a.variances_nd[i], u2[j],
+                                            b.variances_nd[j], m.c, m.D, m.nu)
+                assert L[i, j] == pytest.approx(ref, rel=1e-6, abs=1e-6)
+                clamped += beyond
+    assert 0 < clamped < 3 * a.n * b.n
+
+
+def test_likelihood_ratio_isotropic_shortcut_equals_general_path(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rng = np.random.default_rng(11)
+    a, b = _isotropic(_objs(rng, 5, 32)), _isotropic(_objs(rng, 40, 32))
+    fast = node_affinity(NodeAffinity.LIKELIHOOD_RATIO, a, b)
+    monkeypatch.setattr(affinity_mod, "is_isotropic", lambda var: False)
+    monkeypatch.setattr(affinity_mod, "_LR_CHUNK_ELEMS", 5 * 32 * 7)  # several chunks
+    slow = node_affinity(NodeAffinity.LIKELIHOOD_RATIO, a, b)
+    np.testing.assert_allclose(fast, slow, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_likelihood_ratio_invariances(isotropic: bool) -> None:
+    rng = np.random.default_rng(12)
+    a, b = _objs(rng, 6, 24), _objs(rng, 50, 24)
+    if isotropic:
+        a, b = _isotropic(a), _isotropic(b)
+    kind = NodeAffinity.LIKELIHOOD_RATIO
+    L = node_affinity(kind, a, b)
+    # each embedding's norm (brightness) and one common unit of all variances: no effect
+    a2 = _with(a, embeddings_nd=a.embeddings_nd * rng.uniform(0.1, 10, (a.n, 1)),
+               variances_nd=a.variances_nd * 7.0)
+    b2 = _with(b, embeddings_nd=b.embeddings_nd * rng.uniform(0.1, 10, (b.n, 1)),
+               variances_nd=b.variances_nd * 7.0)
+    np.testing.assert_allclose(node_affinity(kind, a2, b2), L, rtol=1e-9, atol=1e-9)
+    # without normalisation: one scale of all embeddings (and their variances with its square)
+    raw = node_affinity(kind, a, b, normalize=False)
+    a3 = _with(a, embeddings_nd=a.embeddings_nd * 40.0, variances_nd=a.variances_nd * 1600.0)
+    b3 = _with(b, embeddings_nd=b.embeddings_nd * 40.0, variances_nd=b.variances_nd * 1600.0)
+    np.testing.assert_allclose(node_affinity(kind, a3, b3, normalize=False), raw, rtol=1e-9,
+                               atol=1e-9)
+    # permuting either side permutes the rows / columns
+    p1, p2 = rng.permutation(a.n), rng.permutation(b.n)
+    perm = node_affinity(kind, a.subset(p1), b.subset(p2))
+    np.testing.assert_allclose(perm, L[np.ix_(p1, p2)], rtol=1e-9, atol=1e-9)
+
+
+def test_likelihood_ratio_monotone() -> None:
+    d, D = 16, 0.05
+    model = SameObjectModel(c=1.0, D=D, normalize=False)
+    rng = np.random.default_rng(13)
+    direction = rng.normal(size=d)
+    direction /= np.linalg.norm(direction)
+
+    def lr(dist: float, var: float) -> float:
+        one = ObjectArrays(["s"], np.zeros((1, 3)), np.zeros((1, d)), np.full((1, d), var / 2),
+                           np.ones(1, dtype=int))
+        two = ObjectArrays(["m"], np.zeros((1, 3)), (dist * direction)[None, :],
+                           np.full((1, d), var / 2), np.ones(1, dtype=int))
+        return float(log_likelihood_ratio(one, two, model)[0, 0])
+
+    # a closer mean is more likely the same object: strictly up to the ray minimum of LR-5
+    # (|dmu|^2 = (nu + d) D + d V), then flat
+    V = 0.01
+    turn = np.sqrt((model.nu + d) * D + d * V)
+    dists = np.linspace(0.0, 0.99 * turn, 30)
+    assert np.all(np.diff([lr(x, V) for x in dists]) < 0)
+    assert lr(1.5 * turn, V) == pytest.approx(lr(turn, V), rel=1e-12)
+    assert lr(3.0 * turn, V) == pytest.approx(lr(turn, V), rel=1e-12)
+    # the variance, as eq. LR-3 says: identical means are weaker evidence the vaguer the
+    # estimates (d/2 ln(1 + D/V)); a difference far beyond what V explains is explained away
+    # by a larger V; an uninformative posterior (V >> D) gives no evidence (LLR -> 0)
+    assert lr(0.0, 0.001) > lr(0.0, 0.01) > lr(0.0, 0.1) > 0.0
+    assert lr(0.0, 0.001) == pytest.approx(d / 2 * np.log1p(D / 0.001), rel=1e-12)
+    far = 0.5 * turn
+    assert far**2 > 10 * d * 0.002
+    assert lr(far, 0.001) < lr(far, 0.002)
+    assert abs(lr(0.1, 1e6)) < 1e-3
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+@pytest.mark.parametrize("d", [128, 768])
+def test_likelihood_ratio_finite_on_extreme_inputs(isotropic: bool, d: int) -> None:
+    rng = np.random.default_rng(14)
+    n1, n2 = 5, 12
+    emb1 = rng.normal(size=(n1, d)) * np.array([1e-150, 1e150, 1.0, 1.0, 0.0])[:, None]
+    emb2 = rng.normal(size=(n2, d)) * 10.0 ** rng.uniform(-100, 100, (n2, 1))
+    emb2[0] = emb1[2]  # one identical pair
+    var1 = 10.0 ** rng.choice([-300.0, -5.0, 0.0, 300.0], size=(n1, 1 if isotropic else d))
+    var2 = 10.0 ** rng.choice([-300.0, -5.0, 0.0, 300.0], size=(n2, 1 if isotropic else d))
+    a = ObjectArrays([f"s{k}" for k in range(n1)], np.zeros((n1, 3)), emb1,
+                     np.broadcast_to(var1, (n1, d)).copy(), np.ones(n1, dtype=int))
+    b = ObjectArrays([f"m{k}" for k in range(n2)], np.zeros((n2, 3)), emb2,
+                     np.broadcast_to(var2, (n2, d)).copy(), np.ones(n2, dtype=int))
+    for normalize in (True, False):
+        with np.errstate(over="raise", invalid="raise"):  # no overflow or NaN on the way
+            L = node_affinity(NodeAffinity.LIKELIHOOD_RATIO, a, b, normalize=normalize)
+        assert np.all(np.isfinite(L))
+        Dist = node_distance(NodeAffinity.LIKELIHOOD_RATIO, a, b, normalize=normalize)
+        assert np.all(np.isfinite(Dist)) and np.all(Dist >= 0)
+        assert np.allclose(Dist.min(axis=1), 0.0)  # eq. LR-6: 0 at each row's best
+
+
+def test_likelihood_ratio_prefers_the_same_object_and_uses_the_variance() -> None:
+    # two map candidates at the same distance from the submap object: the one whose variance
+    # explains the difference wins; a far candidate with a tight variance loses to both
+    rng = np.random.default_rng(15)
+    d = 64
+    b = _isotropic(_objs(rng, 200, d))
+    x = rng.normal(size=d)
+    x /= np.linalg.norm(x)
+    step = rng.normal(size=(2, d)) * 0.03
+    emb = np.vstack([b.embeddings_nd, x + step[0], x + step[1] * np.linalg.norm(step[0])
+                     / np.linalg.norm(step[1])])
+    var = np.vstack([b.variances_nd, np.full((1, d), 1e-3), np.full((1, d), 1e-5)])
+    m = ObjectArrays([f"m{k}" for k in range(len(emb))], np.zeros((len(emb), 3)), emb, var,
+                     np.ones(len(emb), dtype=int))
+    s = ObjectArrays(["s"], np.zeros((1, 3)), x[None, :], np.full((1, d), 1e-5),
+                     np.ones(1, dtype=int))
+    L = node_affinity(NodeAffinity.LIKELIHOOD_RATIO, s, m)[0]
+    assert np.argmax(L) == 200 and L[200] > L[201] > np.median(L)
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_likelihood_ratio_of_pairs_equals_the_dense_matrix(
+    isotropic: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(affinity_mod, "_LR_CHUNK_ELEMS", 20 * 7)  # 7 pairs per chunk
+    rng = np.random.default_rng(16)
+    a, b = _objs(rng, 4, 20), _objs(rng, 30, 20)
+    if isotropic:
+        a, b = _isotropic(a), _isotropic(b)
+    model = fit_same_object_model(a, b)
+    rows, cols = rng.integers(0, a.n, 50), rng.integers(0, b.n, 50)
+    dense = log_likelihood_ratio(a, b, model)
+    np.testing.assert_allclose(
+        log_likelihood_ratio_pairs(a, b, model, rows, cols), dense[rows, cols], rtol=1e-9,
+        atol=1e-9,
+    )

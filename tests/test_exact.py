@@ -275,6 +275,27 @@ def test_good_incumbent_same_optimum_and_fewer_nodes() -> None:
     assert not_worse >= 0.9 * count
 
 
+@pytest.mark.parametrize("gap", [0.05, 0.5])
+def test_gap_bounds_the_answer_and_shrinks_the_search(gap: float) -> None:
+    """solve_exact passes gap on to the search (it once dropped it): the answer is proven
+    within gap of the optimum, and the search is no larger than the exact one (measured on
+    these seeds: never larger, strictly smaller on 14 / 20 of them at gap 0.05)."""
+    fewer = 0
+    for seed in range(20):
+        problem = medium_problem(np.random.default_rng(500 + seed), n1=10, n2=12)
+        exact = solve_exact(problem)
+        res = solve_exact(problem, gap=gap)
+        assert res.optimal
+        assert problem.is_feasible(res.assignment)
+        assert exact.score - gap - 1e-9 <= res.score <= exact.score + 1e-9
+        assert exact.score - 1e-9 <= res.upper_bound <= res.score + gap + 1e-9
+        assert res.nodes_expanded <= exact.nodes_expanded
+        fewer += res.nodes_expanded < exact.nodes_expanded
+    assert fewer >= 10
+    with pytest.raises(SolverError, match="gap"):
+        solve_exact(problem, gap=-1.0)
+
+
 def test_incumbent_prunes_on_a_fixed_problem() -> None:
     rng = np.random.default_rng(7)
     problem = medium_problem(rng, n1=10, n2=12)

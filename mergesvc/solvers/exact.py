@@ -1,6 +1,8 @@
 """Exact depth-first branch and bound for the candidate-restricted Lawler QAP of problem.py.
 
-Also a brute-force reference (tiny problems only) and an optional pygmtools A* cross-check.
+Honours the optional pairwise conflict constraint (geometric consistency, consistency.py) in the
+bound, the propagation and every primal solution. Also a brute-force reference (tiny problems
+only) and an optional pygmtools A* cross-check.
 """
 
 # Why our own exact solver: pygmtools' A* (the only exact graph-matching solver in our stack)
@@ -25,6 +27,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import maximum_bipartite_matching
 
 from mergesvc.errors import SolverError
+from mergesvc.solvers.consistency import repair_conflicts
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 logger = logging.getLogger(__name__)
@@ -84,8 +87,10 @@ class _Tables:
     slot_of: (n1, nc) int, slot of (row, compact col), -1 when not a candidate
     unary: (n1, kmax) float, u_i(a) = K[p, p] (0 on padding)
     pair: (n1, n1, kmax, kmax) float, P_ij(a, b) = K[p, q] + K[q, p]; 0 on i == j and padding
-    pair_ex: like pair but -inf where b is padding, shares a's col, or i == j; the max over b
-        of a pair_ex row is the "best partner" term of the bound
+    pair_ex: like pair but -inf where b is padding, shares a's col, conflicts with a, or
+        i == j; the max over b of a pair_ex row is the "best partner" term of the bound
+    conf: (n1, n1, kmax, kmax) bool in the layout of pair, (i, a) conflicts with (j, b); None
+        when the problem has no conflicts (every conflict test is then skipped)
     """
 
     def __init__(self, problem: AssignmentProblem) -> None:
@@ -134,11 +139,22 @@ class _Tables:
         pair[idx, idx] = 0.0
         self.pair = pair
 
-        same_col = self.ccol[:, None, :, None] == self.ccol[None, :, None, :]
-        pair_ex = pair.copy()
-        pair_ex[same_col | ~self.valid[None, :, None, :]] = -np.inf
-        pair_ex[idx, idx] = -np.inf
-        self.pair_ex = pair_ex
+        excl = self.ccol[:, None, :, None] == self.ccol[None, :, None, :]  # same col
+        excl |= ~self.valid[None, :, None, :]
+        excl[idx, idx] = True
+
+        self.conf: np.ndarray | None = None
+        if problem.conflict is not None and problem.conflict.any() and len(rows):
+            flat = p.reshape(-1)
+            Cb = problem.conflict.take(flat, axis=0).take(flat, axis=1)  # bool: take is fast
+            conf = Cb.reshape(n1, kmax, n1, kmax).transpose(0, 2, 1, 3).copy()
+            conf[pad] = False
+            conf[idx, idx] = False
+            self.conf = conf
+            # a partner that conflicts with (i, a) is no partner: the bound only counts
+            # partners consistent with the slot it bounds
+            excl |= conf
+        self.pair_ex = np.where(excl, -np.inf, pair)
 
 
 class _Node:
@@ -146,10 +162,13 @@ class _Node:
 
     assign: (n1,) int slot per row, _NO_MATCH or _UNASSIGNED
     used: (nc,) bool, compact col taken by an assigned row
-    feas: (n1, kmax) bool, slot is a candidate whose col is still free
+    feas: (n1, kmax) bool, slot is a candidate whose col is still free and that conflicts with
+        no assigned row
     fixed: score of the assigned rows among themselves
     F: (n1, kmax) float, u_i(a) + sum over assigned j of P_ij(a, a_j)
-    best: (n1, n1, kmax) float, max over feasible b (col != col(a)) of P_ij(a, b); -inf if none
+    best: (n1, n1, kmax) float, max over feasible b (col != col(a), no conflict with a) of
+        P_ij(a, b); -inf if none. Kept up to date only without conflicts (an upper bound on
+        it otherwise, exact at the root)
     best_col: (n1, n1, kmax) int, compact col of that maximiser (-1 if none), so only entries
         whose partner col gets used need recomputing when a col is taken
     """
@@ -197,6 +216,11 @@ def _child(t: _Tables, node: _Node, i: int, a: int) -> _Node:
     used[c] = True
     feas = node.feas & (t.ccol != c)
     best, best_col = node.best, node.best_col
+    if t.conf is not None:
+        # Propagate the conflicts of (i, a). The best-partner tables are not maintained: with
+        # conflicts the bound recomputes partners over what is left (`_consistency_bound`).
+        feas &= ~t.conf[i, :, a, :]
+        return _Node(assign, used, feas, fixed, F, best, best_col)
     # Only "best partner" entries whose maximiser sits on col c change; recompute those, and only
     # for pairs of still-unassigned rows with a still-feasible slot (others are never read).
     open_rows = assign == _UNASSIGNED
@@ -275,7 +299,8 @@ def _outer_lap(
 
     The LAP enforces injectivity between the open rows, which the per-entry costs ignore.
     C: (u, kmax), -inf where infeasible. Returns None when no completion exists. The LAP
-    solution is a feasible completion and is scored exactly (primal heuristic). Child bounds
+    solution, repaired when two of its pairs conflict, is a feasible completion and is scored
+    exactly (primal heuristic; -inf when it conflicts and rows may not go unmatched). Child bounds
     come from LAP duals (y, z): forcing (r, q) gives at most dual - (y_r + z_q - M[r, q]),
     keeping col q unused at most dual - z_q.
     """
@@ -306,11 +331,23 @@ def _outer_lap(
     mr = rows_u[is_real]
     slots = t.slot_of[mr, free[lc[is_real]]]
     primal[mr] = slots
-    primal_score = (
-        node.fixed
-        + float(node.F[mr, slots].sum())
-        + 0.5 * float(t.pair[mr[:, None], mr[None, :], slots[:, None], slots[None, :]].sum())
+    clash = t.conf is not None and bool(
+        t.conf[mr[:, None], mr[None, :], slots[:, None], slots[None, :]].any()
     )
+    if clash:
+        # The LAP ignores conflicts between open rows (assigned rows conflict with none of
+        # their slots, by propagation): repair, or drop the completion when rows must match.
+        if allow_unmatched:
+            primal = _repair_slots(t, primal)
+            primal_score = _slots_score(t, primal)
+        else:
+            primal_score = -math.inf
+    else:
+        primal_score = (
+            node.fixed
+            + float(node.F[mr, slots].sum())
+            + 0.5 * float(t.pair[mr[:, None], mr[None, :], slots[:, None], slots[None, :]].sum())
+        )
 
     y, z = _lap_duals(M, lc)  # lr == arange(u) since u <= ncols
     dual_value = node.fixed + float(y.sum() + z.sum())
@@ -399,12 +436,15 @@ def _bound(t: _Tables, node: _Node, allow_unmatched: bool, best: float) -> _Boun
     each open row i bounds its share by C[i, a] = F[i, a] + 1/2 (partner term), and an outer LAP
     over C respects injectivity. Stage 1 uses a cheap partner term (each j picks its best b
     independently); if that does not prune against `best`, stage 2 uses the exact inner LAPs.
-    Both are valid for any sign of K. Returns None when the node has no feasible completion.
+    Both are valid for any sign of K. With conflicts, `_bound_consistent` takes over after
+    the entry bounds. Returns None when the node has no feasible completion.
     """
     U = np.nonzero(node.assign == _UNASSIGNED)[0]
     u = len(U)
     if u == 0:
         return _Bound(node.fixed, node.assign.copy(), node.fixed, U)
+    if t.conf is not None and u >= 2:
+        return _bound_consistent(t, node, U, allow_unmatched, best)
 
     # Stage 1. With unmatched rows allowed a partner may contribute 0 (it stays unmatched).
     # Valid for any sign: P_ij(a_i, a_j) / 2 never exceeds half of either side's best partner.
@@ -452,6 +492,221 @@ def _bound(t: _Tables, node: _Node, allow_unmatched: bool, best: float) -> _Boun
     )
 
 
+def _bound_consistent(
+    t: _Tables, node: _Node, U: np.ndarray, allow_unmatched: bool, best: float
+) -> _Bound | None:
+    """`_bound` for problems with conflicts and at least two open rows (instead of stages 1
+    and 2).
+
+    The consistency bounds (`_filter_by_consistency`, entry bounds C included) come first; an
+    outer LAP over the entries they leave adds injectivity and the primal completion, and its
+    duals bound the children along with the stars and pairs. (The inner LAPs of stage 2 are
+    skipped: measured on crowded drive maps, they pruned nothing the consistency bounds had
+    not, at a third of the node cost.)
+    """
+    threshold = best + _ABS_TOL + _REL_TOL * abs(best)
+    res = _filter_by_consistency(t, node, U, node.feas[U], allow_unmatched, threshold)
+    if res is None:
+        return None
+    cb, filtered = res
+    # After filtering the bounds hold only for completions that could beat the threshold:
+    # report them no lower than it (which is what pruning proves anyway).
+    floor = best if filtered else -math.inf
+    if _prunes(cb.value, best):
+        return _Bound(max(cb.value, floor), node.assign.copy(), -math.inf, U)
+    lap = _outer_lap(t, node, U, cb.C, allow_unmatched)
+    if lap is None:  # rows must match: infeasible, or nothing left beats the threshold
+        return None if floor == -math.inf else _Bound(floor, node.assign.copy(), -math.inf, U)
+    lap.value = max(min(lap.value, cb.value), floor)
+    nf = len(lap.free)
+    pos = np.full(t.nc, -1, dtype=np.int64)
+    pos[lap.free] = np.arange(nf)
+    r_idx, a_idx = np.nonzero(np.isfinite(cb.est))
+    cols = pos[t.ccol[U[r_idx], a_idx]]
+    lap.est[r_idx, cols] = np.minimum(lap.est[r_idx, cols], cb.est[r_idx, a_idx])
+    if allow_unmatched:
+        lap.est[:, nf:] = np.minimum(lap.est[:, nf:], cb.est_unm[:, None])
+    lap.ban_est = np.minimum(lap.ban_est, lap.value)
+    if _prunes(lap.value, max(best, lap.primal_score)):
+        return _Bound(lap.value, lap.primal, lap.primal_score, U)
+    return _Bound(lap.value, lap.primal, lap.primal_score, U, lap.free, lap.est, lap.ban_est)
+
+
+@dataclass
+class _Consistent:
+    """Consistency bounds of a node's open rows (problems with conflicts), absolute values.
+
+    C: (u, kmax) entry bounds over the surviving slots (-inf elsewhere); value: bound on the
+    node; est: (u, kmax) bound on the child forcing each slot; est_unm: (u,) bound on the child
+    leaving each row unmatched (-inf when rows must match).
+    """
+
+    C: np.ndarray
+    value: float
+    est: np.ndarray
+    est_unm: np.ndarray
+
+
+def _consistency_bound(
+    t: _Tables,
+    node: _Node,
+    U: np.ndarray,
+    alive: np.ndarray,
+    allow_unmatched: bool,
+    must: np.ndarray | None = None,
+) -> _Consistent | None:
+    """Bounds that use the conflicts between the open rows' candidates. alive: (u, kmax);
+    must: optional (u,) bool, rows that may not stay unmatched (in the completions of interest).
+
+    The GL entry bound C[r, a] = F[r, a] + 1/2 sum_j (best partner of (r, a) in row j) counts
+    only partners among the alive slots. The outer LAP lets every row claim its best entry
+    although those entries may conflict; two bounds use that they cannot:
+    - row pairs: a completion's matched pairs are pairwise compatible (no conflict, distinct
+      cols), so pairing the open rows up, fixed + sum over pairs (r, s) of B_rs (the best
+      compatible C[r, a] + C[s, b], either row possibly unmatched) + sum over unpaired rows of
+      max_a C[r, a] bounds it. The pairing greedily takes the pairs that lose most (a false
+      detection whose best candidates contradict the true matches loses its whole claim).
+    - stars: the child forcing (r, a) keeps of every other row only what is compatible with
+      (r, a) (what propagation will leave): C[r, a] + sum over the others of their best there.
+    Both bound the children too; the best child of any one row bounds the node. Works on each
+    row's alive slots only: after a few assignments propagation leaves a handful per row.
+    Returns None when rows must match and some row or pair of rows has no compatible choice.
+    """
+    u, kmax = alive.shape
+    ar = np.arange(u)
+    kf = max(int(alive.sum(axis=1).max()), 1)
+    # G[r, s, a, b] = P_rs(a, b) for compatible alive slots, -inf otherwise
+    if 3 * kf >= 2 * kmax:
+        # most slots alive (near the root): a block slice is far cheaper than a gather
+        sl = np.broadcast_to(np.arange(kmax), (u, kmax))
+        ok = alive
+        G = t.pair_ex[np.ix_(U, U)]
+    else:
+        sl = np.argsort(~alive, axis=1, kind="stable")[:, :kf]  # (u, kf) alive slots first
+        ok = np.take_along_axis(alive, sl, axis=1)
+        G = t.pair_ex[U[:, None, None, None], U[None, :, None, None], sl[:, None, :, None],
+                      sl[None, :, None, :]]
+    if not ok.all():
+        G = np.where(ok[:, None, :, None] & ok[None, :, None, :], G, -np.inf)
+    compat = np.isfinite(G)
+    # what an unmatched row contributes: 0 when it may stay unmatched, else it is no option
+    if must is None:
+        must = np.full(u, not allow_unmatched)
+    floor = np.where(must, -np.inf, 0.0)
+    floor3 = floor[None, :, None]
+    partner = np.maximum(G.max(axis=3), floor3)  # (u, u, kf): best partner of (r, a) in row s
+    partner[ar, ar] = 0.0
+    Cc = np.take_along_axis(node.F[U], sl, axis=1) + 0.5 * partner.sum(axis=1)
+    Cc[~ok] = -np.inf
+    if not np.isfinite(Cc[must]).any(axis=1).all():
+        return None
+    # other[r, s, a]: best bound of row s compatible with row r at its a-th slot
+    other = np.where(compat, Cc[None, :, None, :], -np.inf).max(axis=3)
+    np.maximum(other, floor3, out=other)
+    with_r = Cc[:, None, :] + other  # pair (r, s), r at its a-th slot
+    other[ar, ar] = 0.0
+    star = Cc + other.sum(axis=1)  # (u, kf)
+    cmax = np.maximum(Cc.max(axis=1), floor)
+    # B[r, s]: r matched (s as it may), or r unmatched when it may be and s at its best
+    B = np.maximum(with_r.max(axis=2), np.where(must[:, None], -np.inf, cmax[None, :]))
+    off = ~np.eye(u, dtype=bool)
+    if not np.isfinite(B[off]).all():
+        return None
+    loss = cmax[:, None] + cmax[None, :] - B
+    np.fill_diagonal(loss, -np.inf)
+    mate = np.full(u, -1, dtype=np.int64)
+    scale = _ABS_TOL + _REL_TOL * float(np.abs(cmax).sum())
+    for _ in range(u // 2):
+        k = int(np.argmax(loss))
+        r, q = divmod(k, u)
+        if not loss[r, q] > scale:
+            break
+        mate[r], mate[q] = q, r
+        loss[[r, q], :] = -np.inf
+        loss[:, [r, q]] = -np.inf
+    single = mate < 0
+    mate0 = np.maximum(mate, 0)
+    pair_value = float(cmax[single].sum()) + 0.5 * float(B[~single, mate[~single]].sum())
+    # child bounds: the rest of the pair bound plus the forced row's pair (or own) best, and
+    # the star bound
+    rest = pair_value - np.where(single, cmax, B[ar, mate0])
+    own = np.where(single[:, None], Cc, with_r[ar, mate0])
+    child = np.minimum(rest[:, None] + own, star)
+    child[~ok] = -np.inf
+    star_unm = cmax.sum() - cmax  # the others unrestricted
+    child_unm = np.minimum(rest + np.where(single, 0.0, cmax[mate0]), star_unm)
+    child_unm[must] = -np.inf
+    value = min(pair_value, float(np.maximum(child.max(axis=1), child_unm).min()))
+    C = np.full((u, kmax), -np.inf)
+    est = np.full((u, kmax), -np.inf)
+    C[ar[:, None], sl] = Cc
+    est[ar[:, None], sl] = child
+    return _Consistent(C, node.fixed + value, node.fixed + est, node.fixed + child_unm)
+
+
+def _filter_by_consistency(
+    t: _Tables,
+    node: _Node,
+    U: np.ndarray,
+    alive: np.ndarray,
+    allow_unmatched: bool,
+    threshold: float,
+    max_rounds: int = 4,
+) -> tuple[_Consistent, bool] | None:
+    """`_consistency_bound`, then drop the slots whose child cannot beat `threshold` and
+    bound again: a dead slot no longer props up other rows' partner terms and stars, so the
+    bound tightens and more slots die. Repeats while that happens (up to max_rounds).
+
+    Returns (bounds, filtered); after filtering, the bounds hold for the completions that could
+    beat the threshold only. None when the node has no feasible completion at all.
+    """
+    cb = _consistency_bound(t, node, U, alive, allow_unmatched)
+    if cb is None:
+        return None
+    filtered = False
+    must = np.full(len(U), not allow_unmatched)
+    for _ in range(max_rounds - 1):
+        if cb.value <= threshold:
+            break
+        dead = alive & (cb.est <= threshold)
+        # a row whose unmatched child cannot beat the threshold must be matched: its
+        # candidates then bound the stars and pairs of the others without the "0" option
+        forced = ~must & (cb.est_unm <= threshold)
+        if not dead.any() and not forced.any():
+            break
+        alive = alive & ~dead
+        must = must | forced
+        nxt = _consistency_bound(t, node, U, alive, allow_unmatched, must)
+        filtered = True
+        if nxt is None:  # no full completion beats the threshold
+            cb.value = -math.inf
+            break
+        cb = nxt
+    return cb, filtered
+
+
+def _repair_slots(t: _Tables, slots: np.ndarray) -> np.ndarray:
+    """Unmatch rows of an (n1,) slot assignment until no two matched pairs conflict.
+
+    Greedy: keep the rows in order of their share of the objective, each only if it conflicts
+    with none kept so far."""
+    slots = slots.copy()
+    if t.conf is None:
+        return slots
+    mr = np.nonzero(slots >= 0)[0]
+    sl = slots[mr]
+    clash = t.conf[mr[:, None], mr[None, :], sl[:, None], sl[None, :]]
+    if not clash.any():
+        return slots
+    pair = t.pair[mr[:, None], mr[None, :], sl[:, None], sl[None, :]]
+    share = t.unary[mr, sl] + 0.5 * pair.sum(axis=1)
+    keep = np.zeros(len(mr), dtype=bool)
+    for k in np.argsort(-share, kind="stable"):
+        keep[k] = not clash[k, keep].any()
+    slots[mr[~keep]] = _NO_MATCH
+    return slots
+
+
 def _slots_score(t: _Tables, slots: np.ndarray) -> float:
     """Score of a complete (n1,) slot assignment (_NO_MATCH allowed)."""
     mr = np.nonzero(slots >= 0)[0]
@@ -469,6 +724,7 @@ def _local_search(
     Moves: move a row to a free candidate col, unmatch a row (when allowed), swap the cols of
     two matched rows (when both pairs are candidates). A better incumbent early prunes far more
     of the tree than it costs (QAPLIB: the LAP completions alone often miss the optimum).
+    With conflicts, the start must be conflict-free and no move creates a conflict.
     """
     n1 = t.n1
     slots = slots.copy()
@@ -486,7 +742,13 @@ def _local_search(
         used = np.zeros(t.nc, dtype=bool)
         used[t.ccol[mr, sl]] = True
 
-        move = np.where(t.valid & ~used[np.maximum(t.ccol, 0)], G - cur[:, None], -np.inf)
+        ok_move = t.valid & ~used[np.maximum(t.ccol, 0)]
+        n_conf = None
+        if t.conf is not None:
+            # n_conf[i, b]: matched rows j != i whose slot conflicts with (i, b)
+            n_conf = t.conf[:, mr, :, sl].sum(axis=0)
+            ok_move &= n_conf == 0
+        move = np.where(ok_move, G - cur[:, None], -np.inf)
         best_gain, best_move = -np.inf, None
         if move.size:
             i, b = np.unravel_index(int(np.argmax(move)), move.shape)
@@ -504,6 +766,12 @@ def _local_search(
                 bi0 = np.maximum(bi, 0)
                 bj0 = bi0.T  # row j takes i's col
                 ri, rj = mr[:, None], mr[None, :]
+                if n_conf is not None:
+                    # the new pairs may conflict with neither each other nor the other rows
+                    # (n_conf counts j's current slot, which leaves)
+                    ok &= n_conf[ri, bi0] == t.conf[ri, rj, bi0, sl[None, :]]
+                    ok &= n_conf[rj, bj0] == t.conf[rj, ri, bj0, sl[:, None]]
+                    ok &= ~t.conf[ri, rj, bi0, bj0]
                 # New shares of i and j minus their old shares; the (i, j) pair term is counted
                 # in both G's / both cur's, so correct it once on each side.
                 gain = (
@@ -631,20 +899,24 @@ def dominated(
     order = np.argsort(problem.rows, kind="stable")
     rows, cols = problem.rows[order], problem.cols[order]
     P = problem.K[np.ix_(order, order)]
-    P = P + P.T
-    P[rows[:, None] == rows[None, :]] = 0.0  # same row (and the diagonal)
-    P[cols[:, None] == cols[None, :]] = 0.0  # same col: cannot coexist
+    P += P.T.copy()
+    apart = rows[:, None] == rows[None, :]  # same row (and the diagonal)
+    apart |= cols[:, None] == cols[None, :]  # same col: cannot coexist
+    if problem.conflict is not None:
+        apart |= problem.conflict[np.ix_(order, order)]  # conflicting: cannot coexist either
+    P[apart] = 0.0
     np.maximum(P, 0.0, out=P)
     unary = np.diag(problem.K)[order]
     need = np.zeros(m) if slack is None else -np.asarray(slack, dtype=np.float64)[order]
     alive = np.ones(m, dtype=bool)
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     for _ in range(max_rounds):
-        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-        ub = unary + np.maximum.reduceat(np.where(alive[None, :], P, 0.0), starts, axis=1).sum(1)
+        ub = unary + np.maximum.reduceat(P, starts, axis=1).sum(1)
         drop = alive & (ub <= need)
         if not drop.any():
             break
         alive &= ~drop
+        P[:, drop] = 0.0  # a dropped candidate is no partner any more
     gone[order] = ~alive
     return gone
 
@@ -673,12 +945,16 @@ def solve_exact(
     cutoff: only solutions scoring above it matter; subtrees that cannot beat it are pruned.
         The answer is the optimum when its score exceeds cutoff; otherwise the search proved
         that nothing beats cutoff (upper_bound <= max(score, cutoff) stays valid either way).
-    Raises SolverError when allow_unmatched=False and no full assignment exists.
+    Raises SolverError when allow_unmatched=False and no full assignment exists (with
+    conflicts: also when the budget runs out before the search finds one).
     With unmatched rows allowed, dominated candidates (`dominated`) are removed first: the
     optimum over what is left is the optimum over the whole candidate set.
+    Conflicts (problem.conflict): an incumbent holding conflicting pairs is repaired first
+    (`repair_conflicts`) when rows may stay unmatched, else ignored.
     """
     if cutoff is not None and not allow_unmatched:
         raise SolverError("a cutoff needs allow_unmatched (the empty assignment is the fallback)")
+    incumbent = _repaired(problem, incumbent, allow_unmatched)
     if allow_unmatched and 0 < problem.m <= _PRESOLVE_MAX_CANDIDATES:
         gone = dominated(problem)
         if gone.any():
@@ -690,18 +966,44 @@ def solve_exact(
                     if (i, a) in lookup:
                         incumbent[i] = UNMATCHED
             problem = problem.subset(~gone)
-    return _solve_exact(problem, allow_unmatched, incumbent, max_nodes, time_limit_s, clock, cutoff)
+    return _solve_exact(
+        problem,
+        allow_unmatched=allow_unmatched,
+        incumbent=incumbent,
+        max_nodes=max_nodes,
+        time_limit_s=time_limit_s,
+        clock=clock,
+        cutoff=cutoff,
+        gap=gap,
+    )
+
+
+def _repaired(
+    problem: AssignmentProblem, incumbent: np.ndarray | None, allow_unmatched: bool
+) -> np.ndarray | None:
+    """The incumbent with conflicting rows unmatched (when that is allowed and it is a valid
+    candidate assignment otherwise); unchanged in every other case, left to the search to vet."""
+    if incumbent is None or problem.conflict is None or not allow_unmatched:
+        return incumbent
+    inc = np.asarray(incumbent)
+    if inc.shape != (problem.n1,) or not np.issubdtype(inc.dtype, np.integer):
+        return incumbent
+    try:
+        return repair_conflicts(problem, inc)
+    except SolverError:  # not a candidate assignment: the search ignores it
+        return incumbent
 
 
 def _solve_exact(
     problem: AssignmentProblem,
+    *,
     allow_unmatched: bool,
     incumbent: np.ndarray | None,
     max_nodes: int,
     time_limit_s: float | None,
     clock: Callable[[], float],
-    cutoff: float | None = None,
-    gap: float = 0.0,
+    cutoff: float | None,
+    gap: float,
 ) -> ExactResult:
     start = clock()
     if not allow_unmatched:
@@ -753,6 +1055,7 @@ class ExactSearch:
         result include `unary_add`. No presolve here."""
         if not gap >= 0.0:
             raise SolverError(f"gap must be >= 0, got {gap}")
+        incumbent = _repaired(self.problem, incumbent, allow_unmatched)
         start = clock() if start is None else start
         t = self.tables
         if unary_add is not None:
@@ -828,7 +1131,8 @@ class ExactSearch:
             expand(_child(t, node, int(rows_[-1]), int(slots_[-1])))
 
         if best_slots is None:
-            # Only reachable when the root LAP itself failed although a full matching exists.
+            # Rows must all match and no completion was conflict-free (or, without conflicts,
+            # the root LAP itself failed although a full matching exists).
             raise SolverError("exact solver found no feasible assignment")
         score = _slots_score(t, best_slots)
         # what pruning proved: nothing pruned beats max(score + gap, cutoff); the root bound
@@ -865,6 +1169,10 @@ def brute_force(
         raise SolverError(f"brute force over {total} combinations exceeds {BRUTE_FORCE_LIMIT}")
     sym = (K + K.T).tolist()
     diag = np.diag(K).tolist()
+    clash: list[set[int]] = [set() for _ in range(problem.m)]
+    if problem.conflict is not None:
+        for p, q in zip(*np.nonzero(problem.conflict), strict=True):
+            clash[int(p)].add(int(q))
 
     best_score = -math.inf
     best: list[int] | None = None
@@ -885,7 +1193,7 @@ def brute_force(
                 chosen_c[i] = UNMATCHED
                 rec(i + 1, score)
                 continue
-            if c in used:
+            if c in used or any(q in clash[p] for q in chosen_p):
                 continue
             row = sym[p]
             delta = diag[p] + sum(row[q] for q in chosen_p)

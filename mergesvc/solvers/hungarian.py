@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mergesvc.solvers.consistency import repair_conflicts
 from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 # Value of a forbidden (non-candidate) cell; finite so linear_sum_assignment always succeeds.
@@ -42,9 +43,11 @@ def harden_dense(X: np.ndarray) -> np.ndarray:
 def prune_negative(problem: AssignmentProblem, assignment: np.ndarray) -> np.ndarray:
     """Drop matches whose marginal contribution to the objective is negative, worst first.
 
-    (n1,) -> (n1,). Never lowers the objective: every removal raises it.
+    (n1,) -> (n1,). Never lowers the objective: every removal raises it. When the problem has a
+    conflict matrix, conflicting matches go first (`repair_conflicts`; that step may lower the
+    objective), so the answer is always feasible.
     """
-    a = np.asarray(assignment).copy()
+    a = repair_conflicts(problem, assignment)
     lookup = {(int(r), int(c)): p for p, (r, c) in enumerate(zip(problem.rows, problem.cols))}
     while True:
         rows = np.flatnonzero(a != UNMATCHED)

@@ -33,6 +33,9 @@ def row_margins(
     (>= margin_needed), not the exact value.
     same: optional (m,) bool, candidates that count as the chosen one (a map holding the same
     object twice, a metre apart, offers no real alternative); they are forbidden too.
+    With a conflict matrix (problem.conflict) alternatives are conflict-free assignments: the
+    presolve and the search honour it, and a single alternative candidate alone is always
+    conflict-free, so the bonus still forces row i onto one.
     """
     best = problem.score(assignment)
     out = np.full(problem.n1, np.nan)

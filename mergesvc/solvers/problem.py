@@ -2,7 +2,10 @@
 
 maximise  score(S) = sum_{p in S} sum_{q in S} K[p, q]
 over sets S of candidate assignments p = (rows[p], cols[p]) that use each submap node (row) at
-most once (exactly once when unmatched rows are not allowed) and each map node (col) at most once.
+most once (exactly once when unmatched rows are not allowed) and each map node (col) at most once,
+and, when a conflict matrix is given, never hold two conflicting candidates (pairwise geometric
+consistency, the consistency graph of CLIPPER / PCM: two pairs whose distances disagree cannot
+both hold in a rigid configuration).
 Diagonal of K: node affinity of the pair; off-diagonal: edge affinity of the two pairs.
 """
 
@@ -25,6 +28,8 @@ class AssignmentProblem:
     rows: (m,) int, submap node index of each candidate assignment, in [0, n1)
     cols: (m,) int, map node index of each candidate assignment, in [0, n2)
     K: (m, m) float64, symmetric affinity between candidate assignments
+    conflict: optional (m, m) bool, symmetric, False on the diagonal: conflict[p, q] means p
+        and q cannot both be in a feasible assignment (a hard constraint; `score` ignores it)
     """
 
     n1: int
@@ -32,6 +37,7 @@ class AssignmentProblem:
     rows: np.ndarray
     cols: np.ndarray
     K: np.ndarray
+    conflict: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         m = len(self.rows)
@@ -48,6 +54,16 @@ class AssignmentProblem:
         pairs = self.rows.astype(np.int64) * max(self.n2, 1) + self.cols
         if len(np.unique(pairs)) != m:
             raise SolverError("duplicate candidate assignments")
+        if self.conflict is not None:
+            C = self.conflict
+            if not isinstance(C, np.ndarray) or C.dtype != np.bool_:
+                raise SolverError("conflict must be a bool numpy array")
+            if C.shape != (m, m):
+                raise SolverError(f"conflict must be ({m}, {m}), got {C.shape}")
+            if not np.array_equal(C, C.T):
+                raise SolverError("conflict must be symmetric")
+            if C.diagonal().any():
+                raise SolverError("conflict must be False on the diagonal")
 
     @property
     def m(self) -> int:
@@ -62,9 +78,22 @@ class AssignmentProblem:
     def subset(self, keep: np.ndarray) -> AssignmentProblem:
         """The problem over the candidates where `keep` (m,) bool is true; same rows and cols."""
         idx = np.flatnonzero(keep)
+        conflict = None if self.conflict is None else self.conflict[np.ix_(idx, idx)]
         return AssignmentProblem(
-            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)]
+            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)], conflict
         )
+
+    def conflicts_of(self, assignment: np.ndarray) -> np.ndarray:
+        """(n1,) number of other matched rows each matched row conflicts with (0 if unmatched).
+
+        Raises SolverError when a chosen pair is not a candidate."""
+        a = np.asarray(assignment)
+        out = np.zeros(self.n1, dtype=np.int64)
+        idx = self.assignment_to_indices(a)  # raises on a non-candidate, conflicts or not
+        if self.conflict is None:
+            return out
+        out[np.flatnonzero(a != UNMATCHED)] = self.conflict[np.ix_(idx, idx)].sum(axis=1)
+        return out
 
     def assignment_to_indices(self, assignment: np.ndarray) -> np.ndarray:
         """(n1,) map node per row (UNMATCHED = -1) -> indices of the chosen candidates.
@@ -106,7 +135,6 @@ class AssignmentProblem:
         if not allow_unmatched and len(used) != self.n1:
             return False
         try:
-            self.assignment_to_indices(a)
-        except SolverError:
+            return not self.conflicts_of(a).any()
+        except SolverError:  # a chosen pair is not a candidate
             return False
-        return True
