@@ -10,7 +10,8 @@ Envelope (every message), a msgpack array:
 Object map / submap payload, a msgpack array:
     [robot_id | nil (= sender), session_id, seq (nil: = envelope seq, -1: none), stamp, n, d,
      ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob (, up)]
-(up, optional: the declared vertical as three int8 codes, direction only; absent = undeclared)
+(up, optional: the declared vertical as three int8 codes, direction only; absent = undeclared.
+A decoder that predates it refuses a payload of 15 fields; one without `up` reads everywhere.)
 where the small header fields say how to read `blob`, one bit stream (MSB first) holding, in
 order: id deltas, label codes, n_obs - 1, isotropic flags, positions, variances, embeddings.
 Profiles (what each carries per object; positions in full are float64, otherwise fixed point):
@@ -752,6 +753,8 @@ def _encode_objects(
 def encode_up(up: Sequence[float]) -> list[int]:
     """A declared vertical as three int8 codes: round(127 u / max|u|) (about 0.5 deg)."""
     u = np.asarray(up, dtype=np.float64)
+    if u.shape != (3,):
+        raise CodecError(f"up must be a 3-vector, got shape {u.shape}")
     peak = float(np.abs(u).max())
     if not (np.isfinite(peak) and peak > 0):
         raise CodecError("up must be a finite non-zero vector")

@@ -98,10 +98,19 @@ class ObjectMap(BaseModel):
     def _version(cls, v: Any) -> int:
         return _check_version(v)
 
+    @field_validator("up", mode="before")
+    @classmethod
+    def _up_numbers(cls, v: Any) -> Any:
+        if isinstance(v, (list, tuple)) and any(
+            isinstance(x, bool) or not isinstance(x, (int, float)) for x in v
+        ):
+            raise ValueError("up must be three numbers")
+        return v
+
     @field_validator("up")
     @classmethod
     def _up_nonzero(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
-        if v is not None and not sum(x * x for x in v) > 1e-12:
+        if v is not None and not max(abs(x) for x in v) > 0.0:
             raise ValueError("up must be a non-zero vector")
         return v
 
@@ -234,10 +243,11 @@ class ObjectArrays:
             raise SchemaError("variances_nd must be positive")
         if self.up_xyz is not None:
             up = np.asarray(self.up_xyz, dtype=np.float64)
-            norm = float(np.linalg.norm(up)) if up.shape == (3,) else 0.0
-            if not (np.isfinite(norm) and norm > 1e-6):
+            peak = float(np.abs(up).max()) if up.shape == (3,) else 0.0
+            if not (np.isfinite(peak) and peak > 0.0):
                 raise SchemaError("up_xyz must be a finite non-zero 3-vector")
-            object.__setattr__(self, "up_xyz", up / norm)
+            up = up / peak  # scaled first: no overflow for huge components
+            object.__setattr__(self, "up_xyz", up / np.linalg.norm(up))
 
     @property
     def n(self) -> int:

@@ -49,7 +49,7 @@ from mergesvc.verify import (
     fit_rigid,
     transform_points,
 )
-from mergesvc.vertical import VerticalRelation, frame_vertical, relate
+from mergesvc.vertical import FrameVertical, VerticalRelation, frame_vertical, relate
 
 log = logging.getLogger(__name__)
 
@@ -285,16 +285,26 @@ def _fit(
         # half the submap (2 matches out of 20 objects are no evidence)
         if rel is None or len(rows) < v.min_matches_vertical or 2 * len(rows) < sub.n:
             return fit_rigid(sub_xyz, map_xyz, gate, v.min_matches)  # too few
-        return _fit_vertical(sub_xyz, map_xyz, gate, sigma_m, rel, config)
-    # fit the largest mutually consistent set; the others count as outliers
+        return _fit_vertical(sub_xyz, map_xyz, gate, sigma_m, rel, config,
+                             min_matches=len(rows))
+    # fit a mutually consistent set (greedy peeling, not a maximum clique); the rest are outliers
     keep = consistent_subset(sub_xyz, map_xyz, gate)
-    if keep.sum() < v.min_matches:
-        return RigidFit(RejectReason.RESIDUAL_TOO_LARGE, None, None, keep,
-                        np.full(len(keep), np.nan), np.nan)
+    n_keep = int(keep.sum())
+    # fewer pairs than a 6-DoF fit needs, or pairs on a line: 4-DoF, keeping a majority of
+    # the consistent pairs and at least half the submap
+    few = max(v.min_matches_vertical, n_keep // 2 + 1, (sub.n + 1) // 2)
+    if n_keep < v.min_matches:
+        if rel is None or n_keep < few:
+            return _widen(RigidFit(RejectReason.RESIDUAL_TOO_LARGE, None, None,
+                                   np.ones(n_keep, dtype=bool), np.full(n_keep, np.nan),
+                                   np.nan), keep)
+        fit = _fit_vertical(sub_xyz[keep], map_xyz[keep], gate[keep], sigma_m, rel, config)
+        return _widen(fit, keep)
     fit = fit_rigid(sub_xyz[keep], map_xyz[keep], gate[keep], min_matches=v.min_matches,
                     sigma_floor_m=0.1 * sigma_m)
-    if fit.reason is RejectReason.DEGENERATE_GEOMETRY and rel is not None:
-        fit = _fit_vertical(sub_xyz[keep], map_xyz[keep], gate[keep], sigma_m, rel, config)
+    if fit.reason is RejectReason.DEGENERATE_GEOMETRY and rel is not None and n_keep >= few:
+        fit = _fit_vertical(sub_xyz[keep], map_xyz[keep], gate[keep], sigma_m, rel, config,
+                            min_matches=few)
     elif fit.accepted:
         fit = _upright(fit, sub_xyz[keep], map_xyz[keep], gate[keep], rel, sigma_m, config)
     return _widen(fit, keep)
@@ -317,11 +327,16 @@ def vertical_relation(
 ) -> VerticalRelation | None:
     """How the two frames' verticals relate (declared, inferred or shared; see vertical.py)."""
     v = config.verify
-    def one(arr: ObjectArrays):
+
+    def one(arr: ObjectArrays) -> FrameVertical | None:
         if arr.up_xyz is None and not v.infer_vertical:
             return None
         return frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
-    return relate(one(map_), one(sub), share=v.share_vertical)
+
+    # only a submap too small to show its vertical shares the map's: a larger one whose layout
+    # is not flat enough has no vertical
+    share = v.share_vertical and v.infer_vertical and sub.n < v.infer_min_objects
+    return relate(one(map_), one(sub), share=share)
 
 
 def _mirror_fits(sub_xyz: np.ndarray, map_xyz: np.ndarray, tolerance_m: np.ndarray) -> bool:
@@ -352,9 +367,9 @@ def _upright(
     inliers are judged. Declared verticals: the transform must keep up up. Otherwise, when
     the matched layout is clearly 3-D its handedness is observed and only the vertical axis
     is checked; when it is flat (its mirror image fits too: three matches always are) the
-    known sign decides. A flat fit that turns the vertical over gets a second chance as a
-    gravity-aligned 4-DoF fit: three points nearly on a line leave the rotation about that
-    line to the noise, which the vertical pins down. No vertical, no test.
+    known sign decides. A flat fit that turns the vertical over (by 180 - max_tilt_deg or more)
+    gets a second chance as a gravity-aligned 4-DoF fit: three points nearly on a line leave the
+    rotation about that line to the noise, which the vertical pins down. No vertical, no test.
     """
     v = config.verify
     if v.max_tilt_deg is None or fit.T_map_submap is None or rel is None:
@@ -363,11 +378,17 @@ def _upright(
     R = fit.T_map_submap.rotation().matrix()
     flat = rel.declared or _mirror_fits(sub_xyz[inl], map_xyz[inl], tolerance_m[inl])
     judged = rel if flat else VerticalRelation(rel.up_map, rel.up_sub, False, False)
-    if judged.tilt_deg(R) <= v.max_tilt_deg:
+    tilt_deg = judged.tilt_deg(R)
+    if tilt_deg <= v.max_tilt_deg:
         return fit
-    if flat and rel.signed:
-        # the refit must keep what the 6-DoF fit kept, less outliers, never below 3
-        keep = max(config.verify.min_matches, (int(inl.sum()) + 1) // 2 + 1)
+    # a flat fit turned over (near 180 deg: the mirror image) may be the noise's roll about a
+    # line of matches; one turned sideways says the verticals do not relate as taken
+    if flat and rel.signed and tilt_deg >= 180.0 - v.max_tilt_deg:
+        # the refit must keep every pair the 6-DoF fit kept: a vertical whose sign was only
+        # assumed (inferred or shared) must not force a fit onto a subset; a declared one may
+        # drop outliers, down to a majority
+        n_in = int(inl.sum())
+        keep = max(v.min_matches, n_in // 2 + 1) if rel.declared else n_in
         four = _fit_vertical(sub_xyz[inl], map_xyz[inl], tolerance_m[inl], sigma_m, rel, config,
                              min_matches=keep)
         if four.accepted:
@@ -389,6 +410,8 @@ def _fit_vertical(
             sub_xyz, map_xyz, tolerance_m, sign * rel.up_sub, rel.up_map,
             np.radians(v.vertical_sigma_deg), sigma_floor_m=0.1 * sigma_m,
             min_matches=min_matches or v.min_matches_vertical,
+            # a yaw needs the matches to spread across the vertical by more than the noise
+            min_spread_m=sigma_m,
         )
         for sign in ((1.0,) if rel.signed else (1.0, -1.0))
     ]
@@ -459,7 +482,9 @@ def _verify(
         timer.lap("margin")
     fit = _fit(sub, map_, proposed, sigma_m, config, rel)
     reason = fit.reason
-    needed = config.verify.min_matches if rel is None else config.verify.min_matches_vertical
+    v = config.verify
+    needed = v.min_matches if rel is None else min(
+        v.min_matches, max(v.min_matches_vertical, (sub.n + 1) // 2))
     if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= needed:
         reason = RejectReason.AMBIGUOUS
     final = proposed.copy()

@@ -5,6 +5,7 @@ with outlier removal, accept/reject with a reason, and the transform's 6x6 covar
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -141,47 +142,31 @@ def fit_about_vertical(
     vertical_sigma_rad: float,
     sigma_floor_m: float = 1e-3,
     min_matches: int = 2,
+    min_spread_m: float = 1e-6,
 ) -> RigidFit:
     """4-DoF fit (yaw + translation) of matched centres whose verticals are known, dropping the
     worst pair while any exceeds its tolerance (as `fit_rigid` does).
 
     sub_xyz, map_xyz: (k, 3); tolerance_m: (k,). Rejects with `too_few_matches` below
-    min_matches, `degenerate_geometry` when the matches do not fix the yaw (all on one
-    vertical line), `residual_too_large` when fewer than min_matches pairs fit. The covariance
+    min_matches, `degenerate_geometry` when the matches do not fix the yaw (no match lies
+    min_spread_m or more from their centroid across the vertical: all on one vertical line),
+    `residual_too_large` when fewer than min_matches pairs fit. The covariance
     adds a gravity prior of vertical_sigma_rad on the two tilt directions to the fit's
     information, so it is full rank for two matches.
     """
-    k = len(sub_xyz)
-    inl = np.ones(k, dtype=bool)
-    residual = np.full(k, np.nan)
-    if k < min_matches:
-        return RigidFit(RejectReason.TOO_FEW_MATCHES, None, None, inl, residual, np.nan)
-    T: gtsam.Pose3 | None = None
-    while True:
-        idx = np.flatnonzero(inl)
-        if len(idx) < min_matches:
-            rmse = float(np.sqrt(np.mean(residual[idx] ** 2))) if len(idx) else np.nan
-            return RigidFit(RejectReason.RESIDUAL_TOO_LARGE, T, None, inl, residual, rmse)
+
+    def estimate(idx: np.ndarray) -> gtsam.Pose3 | None:
         centred = sub_xyz[idx] - sub_xyz[idx].mean(axis=0)
         horizontal = centred - np.outer(centred @ up_sub, up_sub)
-        if float(np.linalg.norm(horizontal, axis=1).max()) < float(np.min(tolerance_m[idx])):
-            return RigidFit(RejectReason.DEGENERATE_GEOMETRY, None, None, inl, residual, np.nan)
-        T = align_about_vertical(sub_xyz[idx], map_xyz[idx], up_sub, up_map)
-        residual = np.linalg.norm(transform_points(T, sub_xyz) - map_xyz, axis=1)
-        ratio = np.where(inl, residual / tolerance_m, -np.inf)
-        worst = int(np.argmax(ratio))
-        if ratio[worst] <= 1.0:
-            break
-        inl[worst] = False
-    r_in = residual[idx]
-    rmse = float(np.sqrt(np.mean(r_in**2)))
-    dof = 3 * len(idx) - 4
-    sigma = max(np.sqrt(float((r_in**2).sum()) / dof) if dof > 0 else 0.0, sigma_floor_m)
-    tilt = np.eye(3) - np.outer(up_sub, up_sub)  # rotation perturbations that tilt the vertical
+        if float(np.linalg.norm(horizontal, axis=1).max()) < min_spread_m:
+            return None  # one above the other: the yaw is free
+        return align_about_vertical(sub_xyz[idx], map_xyz[idx], up_sub, up_map)
+
     prior = np.zeros((6, 6))
-    prior[:3, :3] = tilt / vertical_sigma_rad**2
-    cov = pose_covariance(T, sub_xyz[idx], sigma, prior_info=prior)
-    return RigidFit(RejectReason.VERIFIED, T, cov, inl, residual, rmse)
+    # rotation perturbations that tilt the vertical
+    prior[:3, :3] = (np.eye(3) - np.outer(up_sub, up_sub)) / vertical_sigma_rad**2
+    return _fit_with_outliers(sub_xyz, map_xyz, tolerance_m, min_matches, sigma_floor_m,
+                              estimate, dof_per_fit=4, prior_info=prior)
 
 
 def fit_rigid(
@@ -191,15 +176,40 @@ def fit_rigid(
     min_matches: int = 3,
     sigma_floor_m: float = 1e-3,
 ) -> RigidFit:
-    """Align matched centres, drop the worst pair while any exceeds its tolerance, decide.
-
-    sub_xyz, map_xyz: (k, 3) matched centres; tolerance_m: (k,) residual gate per pair.
+    """Align matched centres (6-DoF), drop the worst pair while any exceeds its tolerance,
+    decide. sub_xyz, map_xyz: (k, 3) matched centres; tolerance_m: (k,) residual gate per pair.
     """
+
+    def estimate(idx: np.ndarray) -> gtsam.Pose3 | None:
+        centred = sub_xyz[idx] - sub_xyz[idx].mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False)
+        if sv[0] == 0 or sv[1] < _COLLINEAR_RATIO * sv[0]:
+            return None  # on a line: the rotation about it is free
+        return align(sub_xyz[idx], map_xyz[idx])
+
+    return _fit_with_outliers(sub_xyz, map_xyz, tolerance_m, min_matches, sigma_floor_m,
+                              estimate, dof_per_fit=6)
+
+
+def _fit_with_outliers(
+    sub_xyz: np.ndarray,
+    map_xyz: np.ndarray,
+    tolerance_m: np.ndarray,
+    min_matches: int,
+    sigma_floor_m: float,
+    estimate: Callable[[np.ndarray], gtsam.Pose3 | None],
+    dof_per_fit: int,
+    prior_info: np.ndarray | None = None,
+) -> RigidFit:
+    """The residual gate of both fits: estimate T on the inliers, drop the worst pair while any
+    exceeds its tolerance, then the covariance from the residuals. estimate(idx) -> T, or None
+    when the inliers' geometry leaves it undetermined (`degenerate_geometry`)."""
     k = len(sub_xyz)
     inl = np.ones(k, dtype=bool)
     residual = np.full(k, np.nan)
+    T: gtsam.Pose3 | None = None
 
-    def reject(reason: RejectReason, T: gtsam.Pose3 | None = None) -> RigidFit:
+    def reject(reason: RejectReason) -> RigidFit:
         rmse = float(np.sqrt(np.nanmean(residual[inl] ** 2))) if inl.any() and T else np.nan
         return RigidFit(reason, T, None, inl, residual, rmse)
 
@@ -209,11 +219,7 @@ def fit_rigid(
         idx = np.flatnonzero(inl)
         if len(idx) < min_matches:
             return reject(RejectReason.RESIDUAL_TOO_LARGE)
-        centred = sub_xyz[idx] - sub_xyz[idx].mean(axis=0)
-        sv = np.linalg.svd(centred, compute_uv=False)
-        if sv[0] == 0 or sv[1] < _COLLINEAR_RATIO * sv[0]:
-            return reject(RejectReason.DEGENERATE_GEOMETRY)
-        T = align(sub_xyz[idx], map_xyz[idx])
+        T = estimate(idx)
         if T is None:
             return reject(RejectReason.DEGENERATE_GEOMETRY)
         residual = np.linalg.norm(transform_points(T, sub_xyz) - map_xyz, axis=1)
@@ -222,10 +228,13 @@ def fit_rigid(
         if ratio[worst] <= 1.0:
             break
         inl[worst] = False
-    dof = 3 * len(idx) - 6
+    dof = 3 * len(idx) - dof_per_fit
     rss = float((residual[idx] ** 2).sum())
     # per-axis noise from the residuals, never below the floor (3 exact points have rss 0)
     sigma = max(np.sqrt(rss / dof) if dof > 0 else 0.0, sigma_floor_m)
-    cov = pose_covariance(T, sub_xyz[idx], sigma)
+    try:
+        cov = pose_covariance(T, sub_xyz[idx], sigma, prior_info=prior_info)
+    except np.linalg.LinAlgError:  # a direction the matches leave free
+        return reject(RejectReason.DEGENERATE_GEOMETRY)
     rmse = float(np.sqrt(rss / len(idx)))
     return RigidFit(RejectReason.VERIFIED, T, cov, inl, residual, rmse)

@@ -53,6 +53,12 @@ class VerticalRelation:
         return float(np.degrees(np.arccos(np.clip(c if self.signed else abs(c), -1.0, 1.0))))
 
 
+# A layout must be at least this wide across as it is long for its least spread to be the
+# vertical: a narrow strip (a row of objects along a wall or a kerb) may be thinner sideways
+# than it is tall.
+_MIN_WIDTH_RATIO = 0.1
+
+
 def infer_up_axis(
     position_xyz_m: np.ndarray, min_objects: int = 10, max_flatness: float = 0.3
 ) -> np.ndarray | None:
@@ -60,9 +66,10 @@ def infer_up_axis(
 
     position_xyz_m: (n, 3). Most object maps are far wider than they are tall (a street, a
     harbour floor, a pool): the smallest principal axis is then the vertical. Reliable only when
-    its spread is at most `max_flatness` times the second smallest (and there are enough objects
-    for the principal axes to mean something); otherwise nothing is inferred. Sign: arbitrary
-    (the component of largest magnitude made positive, so the result is reproducible).
+    its spread is at most `max_flatness` times the second smallest, the layout is not a narrow
+    strip (the second at least a tenth of the largest), and there are enough objects for the
+    principal axes to mean something; otherwise nothing is inferred. Sign: arbitrary (the
+    component of largest magnitude made positive, so the result is reproducible).
     """
     xyz = np.asarray(position_xyz_m, dtype=np.float64)
     if len(xyz) < min_objects:
@@ -70,6 +77,8 @@ def infer_up_axis(
     centred = xyz - xyz.mean(axis=0)
     _, sv, Vt = np.linalg.svd(centred, full_matrices=False)
     if len(sv) < 3 or sv[1] <= 0 or sv[2] > max_flatness * sv[1]:
+        return None
+    if sv[1] < _MIN_WIDTH_RATIO * sv[0]:
         return None
     axis = Vt[2]
     return axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
@@ -94,11 +103,11 @@ def relate(
 ) -> VerticalRelation | None:
     """How the verticals of map and submap relate, or None when either is unknown.
 
-    A submap too small to show its vertical shares the map's axis when `share` is set (a
-    submap is cut from a vehicle's own map, in the same kind of frame); its sign relation is
-    then known. Two axes that coincide in coordinates are taken to be the same axis with the
-    same sign (ENU and ENU, camera and camera); axes that differ (camera and ENU) give only an
-    unsigned relation unless both files declared theirs.
+    A submap without a vertical shares the map's axis when `share` is set (the pipeline sets it
+    only for submaps too small to show one: a submap is cut from a vehicle's own map, in the
+    same kind of frame); its sign relation is then known. Two axes that coincide in coordinates
+    are taken to be the same axis with the same sign (ENU and ENU, camera and camera); axes that
+    differ (camera and ENU) give only an unsigned relation unless both files declared theirs.
     """
     if map_v is None:
         return None
@@ -123,17 +132,22 @@ def relate(
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) smallest rotation taking unit vector a to unit vector b (Rodrigues)."""
-    v = np.cross(a, b)
+    """(3, 3) smallest rotation taking the direction of a to that of b (Rodrigues); a, b (3,)
+    non-zero, normalised here."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
     c = float(np.dot(a, b))
-    s = float(np.linalg.norm(v))
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        # opposite: half a turn about any axis perpendicular to a
+    if c < -1.0 + 1e-8:
+        # (nearly) opposite, where the cross product loses its direction: half a turn about
+        # the axis perpendicular to a closest to bisecting a and b, then the small rest
         perp = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
         perp /= np.linalg.norm(perp)
-        return 2.0 * np.outer(perp, perp) - np.eye(3)
+        half = 2.0 * np.outer(perp, perp) - np.eye(3)
+        return rotation_between(half @ a, b) @ half
+    v = np.cross(a, b)
+    s = float(np.linalg.norm(v))
+    if s < 1e-15:
+        return np.eye(3)
     k = v / s
     Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + s * Kx + (1.0 - c) * Kx @ Kx

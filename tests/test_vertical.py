@@ -155,9 +155,8 @@ def test_four_dof_fit_rejects_a_wrong_vertical_offset_and_a_vertical_pair() -> N
         RejectReason.RESIDUAL_TOO_LARGE
     )
     above = np.array([[0.0, 0.0, 0.0], [0.05, -3.0, 0.0]])  # one above the other: no yaw
-    assert fit_about_vertical(above, above, tol, up, up, np.radians(2)).reason is (
-        RejectReason.DEGENERATE_GEOMETRY
-    )
+    fit = fit_about_vertical(above, above, tol, up, up, np.radians(2), min_spread_m=0.1)
+    assert fit.reason is RejectReason.DEGENERATE_GEOMETRY
     cov = fit_about_vertical(sub, good, tol, up, up, np.radians(2)).covariance_66
     assert cov is not None and np.all(np.linalg.eigvalsh(cov) > 0)
 
@@ -313,3 +312,96 @@ def test_a_flat_fit_turned_over_gets_the_four_dof_fit_instead() -> None:
     assert _upright(six, sub, far, tol, declared, 0.2, cfg).reason is RejectReason.TILTED
     # no vertical: no test
     assert _upright(six, sub, far, tol, None, 0.2, cfg) is six
+
+
+def test_a_narrow_strip_infers_no_vertical() -> None:
+    """A row of objects along a kerb: thinner sideways than tall, so its least spread is not
+    the vertical and nothing may be inferred."""
+    rng = np.random.default_rng(7)
+    xyz = rng.uniform([-50.0, -0.5, 0.0], [50.0, 0.5, 4.0], size=(40, 3))
+    assert infer_up_axis(xyz) is None
+
+
+def test_yaw_fit_about_a_tilted_vertical_matches_brute_force() -> None:
+    """The 4-DoF fit with verticals off every axis: a grid search over the yaw about up_map
+    (after taking up_sub onto up_map) finds no lower cost."""
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        up_map = rng.normal(size=3)
+        up_map /= np.linalg.norm(up_map)
+        up_sub = rng.normal(size=3)
+        up_sub /= np.linalg.norm(up_sub)
+        sub = rng.normal(size=(5, 3)) * 4
+        mp = rng.normal(size=(5, 3)) * 4
+        T = align_about_vertical(sub, mp, up_sub, up_map)
+        assert np.allclose(T.rotation().matrix() @ up_sub, up_map, atol=1e-9)
+        R0 = rotation_between(up_sub, up_map)
+
+        def cost(theta: float, up_map=up_map, R0=R0, sub=sub, mp=mp) -> float:
+            R = Rotation.from_rotvec(theta * up_map).as_matrix() @ R0
+            p = sub @ R.T
+            return float((((p - p.mean(0)) - (mp - mp.mean(0))) ** 2).sum())
+
+        best = min(cost(x) for x in np.radians(np.arange(0.0, 360.0, 0.05)))
+        p = transform_points(T, sub)
+        assert float((((p - p.mean(0)) - (mp - mp.mean(0))) ** 2).sum()) <= best + 1e-9
+
+
+def test_four_dof_covariance_puts_the_gravity_prior_on_the_tilts() -> None:
+    """Matches on a horizontal line leave the roll about that line to the prior alone: its
+    variance is the prior's; the yaw is fixed by the points (GTSAM order: rotation first, in
+    the submap frame)."""
+    up = np.array([0.0, 0.0, 1.0])
+    sub = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
+    R = Rotation.from_euler("z", 40.0, degrees=True).as_matrix()
+    mp = sub @ R.T + [1.0, 2.0, 3.0]
+    sigma_g = np.radians(2.0)
+    fit = fit_about_vertical(sub, mp, np.full(4, 0.3), up, up, sigma_g, sigma_floor_m=0.05)
+    assert fit.accepted
+    C = fit.covariance_66
+    assert np.isclose(C[0, 0], sigma_g**2, rtol=1e-6)  # roll about the line (x): prior only
+    assert C[2, 2] < 0.1 * sigma_g**2  # yaw (z): the points fix it
+
+
+def test_small_submaps_in_another_convention(pool_pairs: list[Scenario]) -> None:
+    """ENU map, small submaps in NED or camera axes. Declared, no accepted transform is turned
+    over (the truth here carries the run's odometry drift, tens of degrees of yaw); undeclared,
+    the shared vertical is wrong for them (the README says to declare `up`), yet the
+    correspondences accepted stay right."""
+    right = wrong = 0
+    for sc in pool_pairs[:10]:
+        for name in ("ned", "camera"):
+            for declare in (True, False):
+                conv = _convert(sc, CONVENTIONS["enu"], CONVENTIONS[name], declare=declare)
+                out = match(conv.map, conv.submap)
+                if not out.result.accepted:
+                    continue
+                s = score_case(conv, out)
+                right, wrong = right + int(s["right"]), wrong + int(s["wrong"])
+                if declare:
+                    assert s["rot_err_deg"] < 90.0, name
+    assert right > 0 and wrong <= 0.05 * (right + wrong)
+
+
+def test_an_outlier_that_leaves_two_consistent_pairs_still_fits_about_the_vertical() -> None:
+    """3 proposed matches of a 3-object submap, one 50 m off: the two consistent ones fix a
+    4-DoF transform (the wrong one is an outlier), where a 6-DoF fit has too few."""
+    from mergesvc.model import ObjectArrays
+    from mergesvc.pipeline import _fit
+
+    def arrays(xyz: np.ndarray, up: np.ndarray | None) -> ObjectArrays:
+        n = len(xyz)
+        return ObjectArrays([f"o{i}" for i in range(n)], xyz, np.ones((n, 4)), np.ones((n, 4)),
+                            np.ones(n, dtype=np.int64), up)
+
+    up = np.array([0.0, 0.0, 1.0])
+    sub_xyz = np.array([[0.0, 0.0, 0.0], [4.0, 1.0, 0.5], [2.0, 6.0, 1.0]])
+    Rz = Rotation.from_euler("z", 30.0, degrees=True).as_matrix()
+    map_xyz = sub_xyz @ Rz.T + [10.0, 0.0, 0.0]
+    map_xyz[2] += [50.0, 0.0, 0.0]
+    sub, map_ = arrays(sub_xyz, up), arrays(map_xyz, up)
+    rel = vertical_relation(sub, map_, MatchConfig())
+    assert rel is not None and rel.declared
+    fit = _fit(sub, map_, np.arange(3), 0.2, MatchConfig(), rel)
+    assert fit.accepted and list(fit.inliers) == [True, True, False]
+    assert np.allclose(fit.T_map_submap.rotation().matrix(), Rz, atol=1e-6)
