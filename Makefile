@@ -29,6 +29,7 @@ bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench paper --out results/paper
 	$(BIN)/mergesvc bench link --out results/bench_link.json
 	$(BIN)/mergesvc bench uncertainty --out results
+	$(BIN)/mergesvc bench generalize --seeds 3 --out results/generalize.json
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache

@@ -367,9 +367,10 @@ def _upright(
     inliers are judged. Declared verticals: the transform must keep up up. Otherwise, when
     the matched layout is clearly 3-D its handedness is observed and only the vertical axis
     is checked; when it is flat (its mirror image fits too: three matches always are) the
-    known sign decides. A flat fit that turns the vertical over (by 180 - max_tilt_deg or more)
-    gets a second chance as a gravity-aligned 4-DoF fit: three points nearly on a line leave the
-    rotation about that line to the noise, which the vertical pins down. No vertical, no test.
+    known sign decides. A flat fit that tilts gets a second chance as a gravity-aligned 4-DoF
+    fit that must keep every pair the 6-DoF fit kept (a declared vertical may drop outliers,
+    down to a majority): three points nearly on a line leave the rotation about that line to
+    the noise, which the vertical pins down. No vertical, no test.
     """
     v = config.verify
     if v.max_tilt_deg is None or fit.T_map_submap is None or rel is None:
@@ -378,12 +379,11 @@ def _upright(
     R = fit.T_map_submap.rotation().matrix()
     flat = rel.declared or _mirror_fits(sub_xyz[inl], map_xyz[inl], tolerance_m[inl])
     judged = rel if flat else VerticalRelation(rel.up_map, rel.up_sub, False, False)
-    tilt_deg = judged.tilt_deg(R)
-    if tilt_deg <= v.max_tilt_deg:
+    if judged.tilt_deg(R) <= v.max_tilt_deg:
         return fit
-    # a flat fit turned over (near 180 deg: the mirror image) may be the noise's roll about a
-    # line of matches; one turned sideways says the verticals do not relate as taken
-    if flat and rel.signed and tilt_deg >= 180.0 - v.max_tilt_deg:
+    # a flat fit that tilts may be the noise's roll about a line of matches (three points
+    # nearly in a row): refit about the vertical, keeping every pair
+    if flat and rel.signed:
         # the refit must keep every pair the 6-DoF fit kept: a vertical whose sign was only
         # assumed (inferred or shared) must not force a fit onto a subset; a declared one may
         # drop outliers, down to a majority
