@@ -257,8 +257,8 @@ def bench_link(
 @bench_app.command("generalize")
 def bench_generalize(
     quick: Annotated[bool, typer.Option(help="a few small cells for CI (under a minute)")] = False,
-    seed: Annotated[int, typer.Option(help="first world seed")] = 0,
-    seeds: Annotated[int, typer.Option(help="seeds per cell (median and spread)")] = 1,
+    seed: Annotated[int, typer.Option(min=0, help="first world seed")] = 0,
+    seeds: Annotated[int, typer.Option(min=1, help="seeds per cell (median and spread)")] = 1,
     out: Annotated[
         Path | None, typer.Option(help="write the report as JSON here (and .md beside it)")
     ] = None,
@@ -278,9 +278,16 @@ def bench_generalize(
 
     from mergesvc.generalize import METHODS, GeneralizePlan, run_generalize
 
+    if data is not None and not data.is_dir():
+        raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
     plan = (GeneralizePlan.quick if quick else GeneralizePlan.full)(seed, seeds, data)
     if cell:
+        names = [c.name for c in plan.cells]
         plan.cells = [c for c in plan.cells if any(k in c.name for k in cell)]
+        if not plan.cells:
+            raise typer.BadParameter(
+                f"no cell matches {', '.join(cell)}; cells: {', '.join(names)}",
+                param_hint="--cell")
     if not paper:
         plan.methods = tuple(m for m in METHODS if m != "paper")
     with Progress(transient=True) as bar:

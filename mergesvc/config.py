@@ -117,8 +117,8 @@ class VerifyConfig(_Section):
         "spread is at most this fraction of the next (far wider than tall)"
     )
     share_vertical: bool = Field(
-        True, description="a submap too small to show its vertical shares the map's axis (a "
-        "vehicle cuts submaps from its own map frame); declare `up` where frames differ"
+        True, description="a submap of fewer than infer_min_objects objects shares the map's "
+        "axis (a vehicle cuts submaps from its own map frame); declare `up` where frames differ"
     )
     margin: float = Field(
         0.1, ge=0, description="objective margin a match needs over its best alternative"

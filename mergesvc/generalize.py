@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
 from mergesvc.config import MatchConfig
@@ -41,6 +42,7 @@ from mergesvc.model import (
 )
 from mergesvc.pipeline import MatchOutcome, match
 from mergesvc.scenario import Family, Scenario, make_scenario, underwater_run
+from mergesvc.verify import align
 
 log = logging.getLogger(__name__)
 
@@ -70,14 +72,9 @@ C_CAMERA = np.array(  # x right = -left, y down = -up, z forward
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A uniformly random rotation matrix (3, 3)."""
-    q = rng.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    """A uniformly random rotation matrix (3, 3): a normalised Gaussian quaternion (w, x, y, z)."""
+    w, x, y, z = rng.normal(size=4)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()  # scipy: scalar last
 
 
 def convention_rotation(name: str, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -366,13 +363,12 @@ class World:
 
 
 def fit_rigid_kabsch(src_xyz: np.ndarray, dst_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares R, t with dst ~ R src + t; (n, 3) each, n >= 3 not collinear."""
-    cs, cd = src_xyz.mean(axis=0), dst_xyz.mean(axis=0)
-    H = (src_xyz - cs).T @ (dst_xyz - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
+    """Least-squares R, t with dst ~ R src + t; (n, 3) each, n >= 3 not collinear
+    (`verify.align`, gtsam's Umeyama)."""
+    T = align(src_xyz, dst_xyz)
+    if T is None:
+        raise ValueError("a rigid fit needs at least 3 point pairs")
+    return T.rotation().matrix(), np.asarray(T.translation())
 
 
 def _local_truth(

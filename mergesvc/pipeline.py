@@ -148,16 +148,14 @@ def candidate_problem(
     """
     local, cols = np.unique(cands.map_nodes, return_inverse=True)
     R = cands.rows
-    sub_xyz, map_xyz = sub.position_xyz_m, map_.position_xyz_m[local]
-    e_sub = pairwise_lengths(sub_xyz)
-    e_map = pairwise_lengths(map_xyz)
+    e_sub = pairwise_lengths(sub.position_xyz_m)
+    e_map = pairwise_lengths(map_.position_xyz_m[local])
     E1 = e_sub[np.ix_(R, R)]
     E2 = e_map[np.ix_(cols, cols)]
     aff = config.affinity
     tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
     w = edge_pair_weight(sub.n, config)
     K_pos = edge_affinity(E1, E2, 2.0 * tol2)
-
     K_pos *= w
     invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
     K_pos[invalid] = 0.0
@@ -280,10 +278,10 @@ def _fit(
     sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
     gate = _inlier_gate(sub_xyz, sigma_m, config)
     v = config.verify
+    least = _least_vertical_matches(sub.n, config)
     if len(rows) < v.min_matches:
-        # fewer than a 6-DoF fit needs: 4-DoF about the known vertical, when they are at least
-        # half the submap (2 matches out of 20 objects are no evidence)
-        if rel is None or len(rows) < v.min_matches_vertical or 2 * len(rows) < sub.n:
+        # fewer than a 6-DoF fit needs: 4-DoF about the known vertical
+        if rel is None or len(rows) < least:
             return fit_rigid(sub_xyz, map_xyz, gate, v.min_matches)  # too few
         return _fit_vertical(sub_xyz, map_xyz, gate, sigma_m, rel, config,
                              min_matches=len(rows))
@@ -291,13 +289,12 @@ def _fit(
     keep = consistent_subset(sub_xyz, map_xyz, gate)
     n_keep = int(keep.sum())
     # fewer pairs than a 6-DoF fit needs, or pairs on a line: 4-DoF, keeping a majority of
-    # the consistent pairs and at least half the submap
-    few = max(v.min_matches_vertical, n_keep // 2 + 1, (sub.n + 1) // 2)
+    # the consistent pairs
+    few = max(least, n_keep // 2 + 1)
     if n_keep < v.min_matches:
         if rel is None or n_keep < few:
-            return _widen(RigidFit(RejectReason.RESIDUAL_TOO_LARGE, None, None,
-                                   np.ones(n_keep, dtype=bool), np.full(n_keep, np.nan),
-                                   np.nan), keep)
+            return RigidFit(RejectReason.RESIDUAL_TOO_LARGE, None, None, keep,
+                            np.full(len(keep), np.nan), np.nan)
         fit = _fit_vertical(sub_xyz[keep], map_xyz[keep], gate[keep], sigma_m, rel, config)
         return _widen(fit, keep)
     fit = fit_rigid(sub_xyz[keep], map_xyz[keep], gate[keep], min_matches=v.min_matches,
@@ -308,6 +305,12 @@ def _fit(
     elif fit.accepted:
         fit = _upright(fit, sub_xyz[keep], map_xyz[keep], gate[keep], rel, sigma_m, config)
     return _widen(fit, keep)
+
+
+def _least_vertical_matches(n_sub: int, config: MatchConfig) -> int:
+    """Matches a 4-DoF fit needs: min_matches_vertical, and at least half the submap's objects
+    (2 matches out of 20 objects are no evidence)."""
+    return max(config.verify.min_matches_vertical, (n_sub + 1) // 2)
 
 
 def _widen(fit: RigidFit, keep: np.ndarray) -> RigidFit:
@@ -482,9 +485,9 @@ def _verify(
         timer.lap("margin")
     fit = _fit(sub, map_, proposed, sigma_m, config, rel)
     reason = fit.reason
-    v = config.verify
-    needed = v.min_matches if rel is None else min(
-        v.min_matches, max(v.min_matches_vertical, (sub.n + 1) // 2))
+    needed = config.verify.min_matches
+    if rel is not None:
+        needed = min(needed, _least_vertical_matches(sub.n, config))
     if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= needed:
         reason = RejectReason.AMBIGUOUS
     final = proposed.copy()

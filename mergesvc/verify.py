@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from mergesvc.affinity import pairwise_lengths
 from mergesvc.model import RejectReason
 from mergesvc.vertical import rotation_between
 
@@ -93,9 +94,8 @@ def consistent_subset(
     keep = np.ones(k, dtype=bool)
     if k < 3:
         return keep
-    d_sub = np.linalg.norm(sub_xyz[:, None] - sub_xyz[None], axis=2)
-    d_map = np.linalg.norm(map_xyz[:, None] - map_xyz[None], axis=2)
-    excess = np.abs(d_sub - d_map) - (tolerance_m[:, None] + tolerance_m[None, :])
+    excess = np.abs(pairwise_lengths(sub_xyz) - pairwise_lengths(map_xyz))
+    excess -= tolerance_m[:, None] + tolerance_m[None, :]
     ok = excess <= 0.0
     np.fill_diagonal(ok, True)
     while True:

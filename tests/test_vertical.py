@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 from mergesvc.bench import score_case
 from mergesvc.codec import decode_message, encode_message
 from mergesvc.config import MatchConfig, load_config
-from mergesvc.model import ObjectMap, RejectReason, Submap
+from mergesvc.generalize import rotate_world
+from mergesvc.model import RejectReason, Submap
 from mergesvc.pipeline import match, vertical_relation
 from mergesvc.scenario import Family, Scenario, make_scenario, underwater_run
 from mergesvc.verify import align_about_vertical, fit_about_vertical, transform_points
@@ -31,27 +32,10 @@ CONVENTIONS = {
 }
 
 
-def _in_frame(m: ObjectMap, Q: np.ndarray, declare: bool) -> ObjectMap:
-    """The same objects in coordinates rotated by Q (p -> Q p); `up` declared if asked."""
-    doc = m.model_dump()
-    for o in doc["objects"]:
-        o["position"] = tuple((Q @ np.asarray(o["position"])).tolist())
-    if declare:
-        doc["up"] = tuple((Q @ np.array([0.0, 0.0, 1.0])).tolist())
-    return type(m).model_validate(doc)
-
-
 def _convert(sc: Scenario, Q_map: np.ndarray, Q_sub: np.ndarray, declare: bool) -> Scenario:
-    """A scenario whose map is expressed in convention Q_map and submap in Q_sub."""
-    return Scenario(
-        map=_in_frame(sc.map, Q_map, declare),
-        submap=_in_frame(sc.submap, Q_sub, declare),
-        truth=sc.truth,
-        R_map_submap=Q_map @ sc.R_map_submap @ Q_sub.T,
-        t_map_submap=Q_map @ sc.t_map_submap,
-        paper_radius_m=sc.paper_radius_m,
-        equivalent=sc.equivalent,
-    )
+    """A scenario whose map is expressed in convention Q_map and submap in Q_sub, through
+    files (`up` declared if asked)."""
+    return rotate_world(sc, Q_map, Q_sub, declare_up=declare)
 
 
 def _answer(out) -> tuple[bool, RejectReason, dict[str, str]]:
@@ -79,7 +63,7 @@ def test_nothing_is_inferred_from_a_round_or_tiny_layout() -> None:
 
 def test_declared_beats_inferred_and_relations() -> None:
     sc = make_scenario(Family.KITTI, 0)
-    declared = _in_frame(sc.map, np.eye(3), declare=True).arrays()
+    declared = _convert(sc, np.eye(3), np.eye(3), declare=True).map.arrays()
     v = frame_vertical(declared)
     assert v is not None and v.source is VerticalSource.DECLARED
     inferred = frame_vertical(sc.map.arrays())
@@ -89,7 +73,8 @@ def test_declared_beats_inferred_and_relations() -> None:
     assert rel is not None and rel.signed and not rel.declared
     assert relate(inferred, None, share=False) is None
     # axes that differ in coordinates (camera vs ENU) relate only up to sign
-    cam = frame_vertical(_in_frame(sc.map, CONVENTIONS["camera"], False).arrays())
+    cam_q = CONVENTIONS["camera"]
+    cam = frame_vertical(_convert(sc, cam_q, cam_q, declare=False).map.arrays())
     rel = relate(inferred, cam)
     assert rel is not None and not rel.signed
     assert relate(None, cam) is None
