@@ -6,8 +6,8 @@ from scipy.optimize import minimize_scalar
 from scipy.special import gammaln
 from scipy.stats import multivariate_normal, multivariate_t
 
-import mergesvc.affinity as affinity_mod
-from mergesvc.affinity import (
+import mergesvc.core.affinity as affinity_mod
+from mergesvc.core.affinity import (
     NodeAffinity,
     SameObjectModel,
     distance_to_similarity,
@@ -22,7 +22,7 @@ from mergesvc.affinity import (
     radius_edges,
     weighted_cosine,
 )
-from mergesvc.model import ObjectArrays
+from mergesvc.core.model import ObjectArrays
 
 
 def _objs(rng: np.random.Generator, n: int, d: int) -> ObjectArrays:
@@ -79,7 +79,7 @@ def test_gaussian_distances_match_dense_reference(normalize: bool) -> None:
 
 
 def test_chunking_gives_the_same_distances(monkeypatch: pytest.MonkeyPatch) -> None:
-    import mergesvc.affinity as aff
+    import mergesvc.core.affinity as aff
 
     rng = np.random.default_rng(3)
     a, b = _objs(rng, 3, 7), _objs(rng, 50, 7)

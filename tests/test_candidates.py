@@ -7,17 +7,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mergesvc.affinity import NodeAffinity, fit_same_object_model, unit_rows
-from mergesvc.bench import (
+from mergesvc.bench.suite import (
     AffinityUncertaintyPlan,
     constant_variance,
     run_affinity_uncertainty_bench,
     score_case,
 )
-from mergesvc.candidates import pair_scores, retrieve
-from mergesvc.config import load_config
-from mergesvc.pipeline import match
-from mergesvc.scenario import Family, Scenario, make_scenario
+from mergesvc.core.affinity import NodeAffinity, fit_same_object_model, unit_rows
+from mergesvc.core.candidates import pair_scores, retrieve
+from mergesvc.core.config import load_config
+from mergesvc.core.pipeline import match
+from mergesvc.sim.scenario import Family, Scenario, make_scenario
 
 
 def _true_index(sc: Scenario) -> dict[int, int]:

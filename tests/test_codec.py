@@ -10,9 +10,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from mergesvc import codec
-from mergesvc.bench import score_case
-from mergesvc.codec import (
+from mergesvc.bench.suite import score_case
+from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap, load_model
+from mergesvc.core.pipeline import match
+from mergesvc.errors import CodecError, DecodeError, SchemaError
+from mergesvc.sim.scenario import make_scenario
+from mergesvc.wire import codec
+from mergesvc.wire.codec import (
     BitReader,
     BitWriter,
     CodecLimits,
@@ -26,10 +30,6 @@ from mergesvc.codec import (
     encode_file,
     encode_message,
 )
-from mergesvc.errors import CodecError, DecodeError, SchemaError
-from mergesvc.model import ErrorMessage, Factor, ObjectMap, Submap, load_model
-from mergesvc.pipeline import match
-from mergesvc.scenario import make_scenario
 
 D = 16
 RES_M = 0.01  # default position resolution

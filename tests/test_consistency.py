@@ -10,12 +10,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from mergesvc.core.solvers.consistency import pairwise_conflicts, repair_conflicts
+from mergesvc.core.solvers.exact import ExactResult, brute_force, dominated, solve_exact
+from mergesvc.core.solvers.hungarian import harden, prune_negative
+from mergesvc.core.solvers.margin import row_margins
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 from mergesvc.errors import SolverError
-from mergesvc.solvers.consistency import pairwise_conflicts, repair_conflicts
-from mergesvc.solvers.exact import ExactResult, brute_force, dominated, solve_exact
-from mergesvc.solvers.hungarian import harden, prune_negative
-from mergesvc.solvers.margin import row_margins
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 # ----------------------------------------------------------------------------------------------
 # helpers

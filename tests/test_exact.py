@@ -11,16 +11,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mergesvc.errors import SolverError
-from mergesvc.solvers.exact import (
+from mergesvc.core.solvers.exact import (
     ExactResult,
     astar_crosscheck,
     brute_force,
     dominated,
     solve_exact,
 )
-from mergesvc.solvers.margin import row_margins
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.margin import row_margins
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.errors import SolverError
 
 QAPLIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "qaplib"
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mergesvc.generalize import (
+from mergesvc.bench.generalize import (
     C_CAMERA,
     C_NED,
     DINO_CENTROIDS,
@@ -41,8 +41,8 @@ from mergesvc.generalize import (
     run_generalize,
     supports_up,
 )
-from mergesvc.model import ObjectArrays
-from mergesvc.scenario import Family, Scenario, make_scenario
+from mergesvc.core.model import ObjectArrays
+from mergesvc.sim.scenario import Family, Scenario, make_scenario
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 HAS_DINO = data_available(SHARED_DATA, DINO_CENTROIDS)

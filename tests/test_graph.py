@@ -1,5 +1,5 @@
-"""Tests of mergesvc.graph: GNC pose graph over robot-session frames (real GTSAM) and the fusion
-of the objects of aligned frames."""
+"""Tests of mergesvc.core.graph: GNC pose graph over robot-session frames (real GTSAM) and the
+fusion of the objects of aligned frames."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from mergesvc.errors import InputError
-from mergesvc.graph import (
+from mergesvc.core.graph import (
     GraphConfig,
     ObjectLink,
     PoseGraph,
@@ -22,7 +21,7 @@ from mergesvc.graph import (
     pose_error,
     split_frame,
 )
-from mergesvc.model import (
+from mergesvc.core.model import (
     Correspondence,
     Factor,
     FactorStatus,
@@ -31,6 +30,7 @@ from mergesvc.model import (
     ObjectNode,
     Transform,
 )
+from mergesvc.errors import InputError
 
 A, B, C, D, E, F = (f"{r}/s0" for r in "ABCDEF")
 SIGMA_ROT_RAD = 0.01

@@ -16,7 +16,7 @@ import zenoh
 from pydantic import ValidationError
 
 from mergesvc.errors import ConfigError, DecodeError, LinkError
-from mergesvc.link import (
+from mergesvc.link.acoustic import (
     FRAGMENT_HEADER_BYTES,
     MAX_MESSAGE_BYTES,
     MINIFRAME_BYTES,
@@ -628,7 +628,7 @@ def test_make_zenoh_config_maps_errors() -> None:
 
 
 def test_public_names_are_exported() -> None:
-    import mergesvc.link as link
+    import mergesvc.link.acoustic as link
 
     assert all(hasattr(link, name) for name in link.__all__)
     public = {

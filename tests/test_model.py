@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mergesvc import errors
-from mergesvc.model import (
+from mergesvc.core.model import (
     MatchResult,
     ObjectArrays,
     ObjectMap,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from mergesvc.pipeline import match
-from mergesvc.scenario import drive_run, image_s_dataset, underwater_run
+from mergesvc.core.pipeline import match
+from mergesvc.sim.scenario import drive_run, image_s_dataset, underwater_run
 
 
 @pytest.fixture(scope="module")

@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from mergesvc import keys
-from mergesvc.agent import Agent, AgentConfig, build_submaps
-from mergesvc.codec import Profile, decode_message, encode_message
-from mergesvc.demo import free_port, query_status
-from mergesvc.model import ErrorMessage, Factor
-from mergesvc.scenario import fleet_world
-from mergesvc.service import MergeService, RelocalizeReply, ServiceConfig
+from mergesvc.core.model import ErrorMessage, Factor
+from mergesvc.fleet.agent import Agent, AgentConfig, build_submaps
+from mergesvc.fleet.demo import free_port, query_status
+from mergesvc.fleet.service import MergeService, RelocalizeReply, ServiceConfig
+from mergesvc.sim.scenario import fleet_world
+from mergesvc.wire import keys
+from mergesvc.wire.codec import Profile, decode_message, encode_message
 
 ROBOTS = ("auv1", "auv2", "auv3")
 FLEET = "t"
@@ -233,7 +233,7 @@ def test_service_killed_mid_run_loses_nothing_and_duplicates_nothing(world, tmp_
             close_all(first)
         finally:
             _kill(svc, signal.SIGTERM)
-        from mergesvc.store import Store
+        from mergesvc.fleet.store import Store
 
         with Store(store) as db:
             rows = db.submaps()

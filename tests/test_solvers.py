@@ -6,10 +6,10 @@ import numpy as np
 import pygmtools as pygm
 import pytest
 
-from mergesvc.solvers import dense, heuristic
-from mergesvc.solvers.exact import brute_force
-from mergesvc.solvers.hungarian import harden, harden_dense, prune_negative
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers import dense, heuristic
+from mergesvc.core.solvers.exact import brute_force
+from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 pygm.set_backend("numpy")
 

@@ -1,5 +1,5 @@
-"""Tests of mergesvc.store: SQLite (WAL) persistence of submaps, factors and frames, including a
-real kill -9 of a writing process."""
+"""Tests of mergesvc.fleet.store: SQLite (WAL) persistence of submaps, factors and frames, including
+a real kill -9 of a writing process."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
+from mergesvc.core.model import FactorStatus
 from mergesvc.errors import InputError, StoreError
-from mergesvc.model import FactorStatus
-from mergesvc.store import (
+from mergesvc.fleet.store import (
     PENDING,
     STORE_SCHEMA_VERSION,
     Store,
@@ -241,7 +241,7 @@ def test_second_connection_reads_while_first_is_open(tmp_path: Path) -> None:
 
 CHILD = """
 import sys
-from mergesvc.store import Store
+from mergesvc.fleet.store import Store
 path, n, sync = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 with Store(path, synchronous=sync) as store:
     for seq in range(n):

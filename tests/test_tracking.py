@@ -1,4 +1,5 @@
-"""Tests of mergesvc.tracking: semantic / position Kalman filters and data-association gates."""
+"""Tests of mergesvc.core.tracking: semantic / position Kalman filters and data-association
+gates."""
 
 from __future__ import annotations
 
@@ -10,8 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from mergesvc.errors import ConfigError, InputError
-from mergesvc.tracking import (
+from mergesvc.core.tracking import (
     CHI2_3DOF_99,
     Detection,
     ObjectTracker,
@@ -22,6 +22,7 @@ from mergesvc.tracking import (
     fuse_gaussians_full,
     fuse_observations,
 )
+from mergesvc.errors import ConfigError, InputError
 
 # --------------------------------------------------------------------------------------------
 # Dense references

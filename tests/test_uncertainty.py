@@ -1,4 +1,4 @@
-"""Tests of mergesvc.uncertainty: ranking loss and MLP gradients against finite differences,
+"""Tests of mergesvc.sim.uncertainty: ranking loss and MLP gradients against finite differences,
 learning on a synthetic degradation model (and not from shuffled labels), determinism, files."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from scipy.stats import spearmanr
 
 from mergesvc.errors import ConfigError, DecodeError, InputError, SchemaError
-from mergesvc.uncertainty import (
+from mergesvc.sim.uncertainty import (
     FORMAT_VERSION,
     FitHistory,
     UncertaintyConfig,

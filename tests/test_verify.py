@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mergesvc.model import RejectReason
-from mergesvc.verify import fit_rigid, pose_covariance, transform_points
+from mergesvc.core.model import RejectReason
+from mergesvc.core.verify import fit_rigid, pose_covariance, transform_points
 
 
 def _pose(rng: np.random.Generator) -> gtsam.Pose3:

@@ -7,21 +7,21 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench import score_case
-from mergesvc.codec import decode_message, encode_message
-from mergesvc.config import MatchConfig, load_config
-from mergesvc.generalize import rotate_world
-from mergesvc.model import RejectReason, Submap
-from mergesvc.pipeline import match, vertical_relation
-from mergesvc.scenario import Family, Scenario, make_scenario, underwater_run
-from mergesvc.verify import align_about_vertical, fit_about_vertical, transform_points
-from mergesvc.vertical import (
+from mergesvc.bench.generalize import rotate_world
+from mergesvc.bench.suite import score_case
+from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.model import RejectReason, Submap
+from mergesvc.core.pipeline import match, vertical_relation
+from mergesvc.core.verify import align_about_vertical, fit_about_vertical, transform_points
+from mergesvc.core.vertical import (
     VerticalSource,
     frame_vertical,
     infer_up_axis,
     relate,
     rotation_between,
 )
+from mergesvc.sim.scenario import Family, Scenario, make_scenario, underwater_run
+from mergesvc.wire.codec import decode_message, encode_message
 
 # world (ENU: x east, y north, z up) -> each convention's coordinates
 CONVENTIONS = {
@@ -275,9 +275,9 @@ def test_up_field_validates_and_travels_on_the_wire(drive_case: Scenario) -> Non
 def test_a_flat_fit_turned_over_gets_the_four_dof_fit_instead() -> None:
     """Three matches nearly on a line: the noise picks the roll about that line; a fit that
     turns the vertical over is refitted about the known vertical and kept when it fits."""
-    from mergesvc.pipeline import _upright
-    from mergesvc.verify import fit_rigid
-    from mergesvc.vertical import VerticalRelation
+    from mergesvc.core.pipeline import _upright
+    from mergesvc.core.verify import fit_rigid
+    from mergesvc.core.vertical import VerticalRelation
 
     up = np.array([0.0, 0.0, 1.0])
     sub = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 0.6, 0.0]])
@@ -371,8 +371,8 @@ def test_small_submaps_in_another_convention(pool_pairs: list[Scenario]) -> None
 def test_an_outlier_that_leaves_two_consistent_pairs_still_fits_about_the_vertical() -> None:
     """3 proposed matches of a 3-object submap, one 50 m off: the two consistent ones fix a
     4-DoF transform (the wrong one is an outlier), where a 6-DoF fit has too few."""
-    from mergesvc.model import ObjectArrays
-    from mergesvc.pipeline import _fit
+    from mergesvc.core.model import ObjectArrays
+    from mergesvc.core.pipeline import _fit
 
     def arrays(xyz: np.ndarray, up: np.ndarray | None) -> ObjectArrays:
         n = len(xyz)

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mergesvc.config import MatchConfig, load_config
-from mergesvc.model import ObjectArrays, ObjectMap
-from mergesvc.pipeline import MatchOutcome, match
-from mergesvc.scenario import Family, Scenario, make_scenario
+from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.model import ObjectArrays, ObjectMap
+from mergesvc.core.pipeline import MatchOutcome, match
+from mergesvc.sim.scenario import Family, Scenario, make_scenario
 
 
 def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
@@ -297,8 +297,8 @@ def run_paper_bench(
     """Table I (underwater runs x submap sizes) and Table II (KITTI-like places), for the
     paper's pipeline and ours, each solver and affinity; a scale sweep; JSON, markdown and
     figures under out_dir. Returns the report."""
-    from mergesvc.figures import plot_accuracy_vs_size, plot_correspondences
-    from mergesvc.scenario import drive_run, underwater_run
+    from mergesvc.bench.figures import plot_accuracy_vs_size, plot_correspondences
+    from mergesvc.sim.scenario import drive_run, underwater_run
 
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -554,8 +554,8 @@ def run_uncertainty_bench(
     prediction, or one constant (no uncertainty at all). Node accuracy of both modes.
     Then each node affinity with tracked and with constant variances on `affinity_seeds`
     worlds (run_affinity_uncertainty_bench; 0 skips it)."""
-    from mergesvc.scenario import image_s_dataset, underwater_run
-    from mergesvc.uncertainty import UncertaintyConfig, evaluate, fit
+    from mergesvc.sim.scenario import image_s_dataset, underwater_run
+    from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
 
     n_test = max(samples // 5, 100)
     y, loss, s_true = image_s_dataset(samples + n_test, seed)
@@ -642,7 +642,7 @@ def candidate_separation(
     """The candidate stage alone (calibrated node scores, no geometry): for each submap object
     with a true match, its best score at a right ("right") and at a wrong ("wrong") map object;
     for each false detection, its best score ("false"). 0 where there is no such candidate."""
-    from mergesvc.candidates import retrieve
+    from mergesvc.core.candidates import retrieve
 
     cands, _ = retrieve(sub_arr, map_arr, config.candidates, config.affinity,
                         np.random.default_rng(config.seed))
@@ -669,7 +669,7 @@ def _auc(pos: list[float], neg: list[float]) -> float:
 
 
 def _affinity_worlds(seed: int, plan: AffinityUncertaintyPlan) -> dict[str, list[Scenario]]:
-    from mergesvc.scenario import drive_run, underwater_run
+    from mergesvc.sim.scenario import drive_run, underwater_run
 
     uw = [sc for r in plan.runs for size in plan.sizes
           for sc in underwater_run(r, seed).windows(size, plan.per_size)]
@@ -777,8 +777,7 @@ def run_link_bench(
     """Profile x modem rate x SNR: bytes per object, bytes and airtime of one 20-object submap,
     delivery ratio and mean time to deliver (3 vehicles sharing the TDMA cycle, one submap each
     every period_s), and node accuracy after decoding (the submap decoded, the map as is)."""
-    from mergesvc.codec import Profile, Projection, decode_message, encode_message
-    from mergesvc.link import (
+    from mergesvc.link.acoustic import (
         DEFAULT_SWEEP_SNR_DB,
         RATE_SPECS,
         ModemRate,
@@ -786,6 +785,7 @@ def run_link_bench(
         frame_error_prob,
         sweep_link,
     )
+    from mergesvc.wire.codec import Profile, Projection, decode_message, encode_message
 
     profiles: dict[str, dict[str, float]] = {}
     for prof in Profile:

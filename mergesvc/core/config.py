@@ -14,7 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from mergesvc.affinity import NodeAffinity
+from mergesvc.core.affinity import NodeAffinity
 from mergesvc.errors import ConfigError
 
 

@@ -26,9 +26,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import maximum_bipartite_matching
 
+from mergesvc.core.solvers.consistency import repair_conflicts
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 from mergesvc.errors import SolverError
-from mergesvc.solvers.consistency import repair_conflicts
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
 
 logger = logging.getLogger(__name__)
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.solvers.exact import ExactSearch, dominated
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.exact import ExactSearch, dominated
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 
 def row_margins(

@@ -216,7 +216,7 @@ class ObjectArrays:
 
     ids: n object ids; position_xyz_m: (n, 3); embeddings_nd: (n, d);
     variances_nd: (n, d) per-dimension variance; n_obs: (n,); up_xyz: (3,) unit vector
-    opposite to gravity when the frame declares it, else None (see `mergesvc.vertical`)
+    opposite to gravity when the frame declares it, else None (see `mergesvc.core.vertical`)
     """
 
     ids: list[str]
@@ -267,7 +267,7 @@ class ObjectArrays:
     @functools.cached_property
     def median_spacing_m(self) -> float:
         """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
-        from mergesvc.affinity import median_spacing  # affinity imports this module
+        from mergesvc.core.affinity import median_spacing  # affinity imports this module
 
         return median_spacing(self.position_xyz_m, self.kdtree)
 

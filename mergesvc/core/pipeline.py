@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mergesvc.affinity import (
+from mergesvc.core.affinity import (
     NodeAffinity,
     distance_to_similarity,
     edge_affinity,
@@ -24,10 +24,9 @@ from mergesvc.affinity import (
     pairwise_lengths,
     radius_edges,
 )
-from mergesvc.candidates import Candidates, expand_near, retrieve
-from mergesvc.config import MatchConfig, MatchMode, SolverName
-from mergesvc.errors import SchemaError
-from mergesvc.model import (
+from mergesvc.core.candidates import Candidates, expand_near, retrieve
+from mergesvc.core.config import MatchConfig, MatchMode, SolverName
+from mergesvc.core.model import (
     Match,
     MatchResult,
     ObjectArrays,
@@ -35,13 +34,13 @@ from mergesvc.model import (
     RejectReason,
     Transform,
 )
-from mergesvc.solvers import dense, heuristic
-from mergesvc.solvers.consistency import pairwise_conflicts
-from mergesvc.solvers.exact import ExactResult, solve_exact
-from mergesvc.solvers.hungarian import harden, harden_dense, prune_negative
-from mergesvc.solvers.margin import row_margins
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
-from mergesvc.verify import (
+from mergesvc.core.solvers import dense, heuristic
+from mergesvc.core.solvers.consistency import pairwise_conflicts
+from mergesvc.core.solvers.exact import ExactResult, solve_exact
+from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
+from mergesvc.core.solvers.margin import row_margins
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.verify import (
     RigidFit,
     align,
     consistent_subset,
@@ -49,7 +48,8 @@ from mergesvc.verify import (
     fit_rigid,
     transform_points,
 )
-from mergesvc.vertical import FrameVertical, VerticalRelation, frame_vertical, relate
+from mergesvc.core.vertical import FrameVertical, VerticalRelation, frame_vertical, relate
+from mergesvc.errors import SchemaError
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mergesvc.affinity import (
+from mergesvc.core.affinity import (
     NodeAffinity,
     SameObjectModel,
     fit_same_object_model,
@@ -22,8 +22,8 @@ from mergesvc.affinity import (
     reference_distance,
     unit_rows,
 )
-from mergesvc.config import AffinityConfig, CandidatesConfig
-from mergesvc.model import ObjectArrays
+from mergesvc.core.config import AffinityConfig, CandidatesConfig
+from mergesvc.core.model import ObjectArrays
 
 
 @dataclass(frozen=True)

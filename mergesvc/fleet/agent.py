@@ -18,9 +18,9 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mergesvc.model import Factor, ObjectNode, Submap
-from mergesvc.scenario import Frame
-from mergesvc.tracking import ObjectTracker, Track, TrackingConfig
+from mergesvc.core.model import Factor, ObjectNode, Submap
+from mergesvc.core.tracking import ObjectTracker, Track, TrackingConfig
+from mergesvc.sim.scenario import Frame
 
 log = logging.getLogger(__name__)
 

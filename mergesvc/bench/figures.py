@@ -13,9 +13,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from mergesvc.pipeline import MatchOutcome
-from mergesvc.scenario import Scenario
-from mergesvc.verify import transform_points
+from mergesvc.core.pipeline import MatchOutcome
+from mergesvc.core.verify import transform_points
+from mergesvc.sim.scenario import Scenario
 
 
 def plot_correspondences(

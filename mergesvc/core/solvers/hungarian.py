@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mergesvc.solvers.consistency import repair_conflicts
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.consistency import repair_conflicts
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 # Value of a forbidden (non-candidate) cell; finite so linear_sum_assignment always succeeds.
 _FORBIDDEN = -1e12

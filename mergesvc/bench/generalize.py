@@ -5,7 +5,7 @@ noise, declared vertical), with verified mode, paper mode and cosine + Hungarian
 Worlds come from real data where it exists (`../shared/data`): the KITTI-00 ground truth drive
 (camera axes, y down) with the ORB-SLAM2 estimate of the same drive as the map's drifting frame,
 and class centroids from 12 real DINO ViT-S centroids; and from the project's own generators
-(`mergesvc.scenario`) re-expressed in other frames. Every world is built in a gravity-aligned
+(`mergesvc.sim.scenario`) re-expressed in other frames. Every world is built in a gravity-aligned
 frame (z up, vehicles x forward, y left) and then written, as `match` files parsed with
 `parse_model`, in the frame conventions of the cell: camera (x right, y down, z forward), ENU
 (z up), NED (z down), a random rotation of the whole world, or the map in one convention and the
@@ -29,9 +29,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench import score_case
-from mergesvc.config import MatchConfig
-from mergesvc.model import (
+from mergesvc.bench.suite import score_case
+from mergesvc.core.config import MatchConfig
+from mergesvc.core.model import (
     Match,
     MatchResult,
     ObjectArrays,
@@ -40,13 +40,13 @@ from mergesvc.model import (
     Submap,
     parse_model,
 )
-from mergesvc.pipeline import MatchOutcome, match
-from mergesvc.scenario import Family, Scenario, make_scenario, underwater_run
-from mergesvc.verify import align
+from mergesvc.core.pipeline import MatchOutcome, match
+from mergesvc.core.verify import align
+from mergesvc.sim.scenario import Family, Scenario, make_scenario, underwater_run
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+DEFAULT_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 KITTI_GT = "kitti00/KITTI_00_gt.txt"
 KITTI_ORB = "kitti00/KITTI_00_ORB.txt"
 DINO_CENTROIDS = "dino_underwater/object_encodings_2obj1loop.txt"

@@ -21,8 +21,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from mergesvc.model import ObjectArrays, ObjectMap, ObjectNode, Submap
-from mergesvc.tracking import Detection, ObjectTracker, Track, TrackingConfig, fuse_observations
+from mergesvc.core.model import ObjectArrays, ObjectMap, ObjectNode, Submap
+from mergesvc.core.tracking import (
+    Detection,
+    ObjectTracker,
+    Track,
+    TrackingConfig,
+    fuse_observations,
+)
 
 log = logging.getLogger(__name__)
 

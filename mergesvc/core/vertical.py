@@ -15,7 +15,7 @@ from enum import Enum
 
 import numpy as np
 
-from mergesvc.model import ObjectArrays
+from mergesvc.core.model import ObjectArrays
 
 
 class VerticalSource(str, Enum):

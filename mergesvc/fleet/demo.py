@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc import keys
-from mergesvc.agent import AgentConfig, build_submaps
-from mergesvc.codec import Profile, Projection, decode_message
-from mergesvc.model import Factor
-from mergesvc.scenario import fleet_world, image_s_dataset
+from mergesvc.core.model import Factor
+from mergesvc.fleet.agent import AgentConfig, build_submaps
+from mergesvc.sim.scenario import fleet_world, image_s_dataset
+from mergesvc.wire import keys
+from mergesvc.wire.codec import Profile, Projection, decode_message
 
 log = logging.getLogger(__name__)
 

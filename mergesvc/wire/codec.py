@@ -49,8 +49,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from mergesvc.errors import CodecError, DecodeError, InputError, SchemaError
-from mergesvc.model import (
+from mergesvc.core.model import (
     MAX_EMBEDDING_DIM,
     MAX_FILE_BYTES,
     SCHEMA_VERSION,
@@ -61,6 +60,7 @@ from mergesvc.model import (
     Submap,
     _format_validation_error,
 )
+from mergesvc.errors import CodecError, DecodeError, InputError, SchemaError
 
 log = logging.getLogger(__name__)
 

@@ -30,9 +30,9 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
+from mergesvc.core.graph import frame_name
+from mergesvc.core.model import FactorStatus
 from mergesvc.errors import InputError, StoreError
-from mergesvc.graph import frame_name
-from mergesvc.model import FactorStatus
 
 logger = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 
 def pairwise_conflicts(

@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from mergesvc.model import ObjectArrays
+from mergesvc.core.model import ObjectArrays
 
 log = logging.getLogger(__name__)
 

@@ -27,9 +27,16 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mergesvc.core.model import (
+    MAX_ID_LENGTH,
+    Factor,
+    FactorStatus,
+    ObjectArrays,
+    ObjectMap,
+    ObjectNode,
+)
+from mergesvc.core.tracking import fuse_gaussians
 from mergesvc.errors import InputError, SolverError
-from mergesvc.model import MAX_ID_LENGTH, Factor, FactorStatus, ObjectArrays, ObjectMap, ObjectNode
-from mergesvc.tracking import fuse_gaussians
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +64,7 @@ def split_frame(frame: str) -> tuple[str, str]:
 
 
 class GraphConfig(BaseModel):
-    """Settings of the global pose graph (a candidate section for mergesvc.config)."""
+    """Settings of the global pose graph (a candidate section for mergesvc.core.config)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from mergesvc.affinity import pairwise_lengths
-from mergesvc.model import RejectReason
-from mergesvc.vertical import rotation_between
+from mergesvc.core.affinity import pairwise_lengths
+from mergesvc.core.model import RejectReason
+from mergesvc.core.vertical import rotation_between
 
 # Below this ratio of the second to the first singular value the matched centres are (nearly) on
 # a line and the rotation about that line is unobservable.

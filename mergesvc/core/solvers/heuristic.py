@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.solvers.hungarian import harden
-from mergesvc.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.hungarian import harden
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 
 def _group_sum(values: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:

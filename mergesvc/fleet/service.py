@@ -22,12 +22,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mergesvc import keys
-from mergesvc.codec import Profile, Projection, decode_message, encode_message
-from mergesvc.config import MatchConfig
-from mergesvc.errors import InputError, MergeError, SchemaError
-from mergesvc.graph import GraphSolution, PoseGraph, fuse_objects
-from mergesvc.model import (
+from mergesvc.core.config import MatchConfig
+from mergesvc.core.graph import GraphSolution, PoseGraph, fuse_objects
+from mergesvc.core.model import (
     Correspondence,
     ErrorMessage,
     Factor,
@@ -37,8 +34,11 @@ from mergesvc.model import (
     Submap,
     Transform,
 )
-from mergesvc.pipeline import match
-from mergesvc.store import Store
+from mergesvc.core.pipeline import match
+from mergesvc.errors import InputError, MergeError, SchemaError
+from mergesvc.fleet.store import Store
+from mergesvc.wire import keys
+from mergesvc.wire.codec import Profile, Projection, decode_message, encode_message
 
 log = logging.getLogger(__name__)
 
