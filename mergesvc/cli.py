@@ -96,7 +96,7 @@ def example(
     seed: Annotated[int, typer.Option(help="scenario seed")] = 0,
 ) -> None:
     """Write a seeded example map, submap and their ground truth."""
-    from mergesvc.sim.scenario import Family, make_scenario
+    from mergesvc.sim import Family, make_scenario
 
     try:
         sc = make_scenario(Family(family), seed)
@@ -155,7 +155,7 @@ def bench_match(
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
 ) -> None:
     """Latency and accuracy of verified vs paper mode on seeded scenarios."""
-    from mergesvc.bench.suite import run_match_bench
+    from mergesvc.bench import run_match_bench
 
     kinds = tuple(a.value for a in (affinity or list(NodeAffinity)))
     try:
@@ -190,7 +190,7 @@ def bench_paper(
     recall, transform errors, stage timings and a scale sweep; figures under --out."""
     from rich.progress import Progress
 
-    from mergesvc.bench.suite import PaperBenchPlan, run_paper_bench
+    from mergesvc.bench import PaperBenchPlan, run_paper_bench
 
     plan = PaperBenchPlan.quick() if quick else PaperBenchPlan()
     changes: dict[str, object] = {"seed": seed, "kitti_paper": kitti_paper and plan.kitti_paper}
@@ -223,7 +223,7 @@ def bench_uncertainty(
 ) -> None:
     """What the learned uncertainty head changes: Table I accuracy with the simulator's true
     image uncertainty, the head's prediction, and a constant (uncertainty-unaware)."""
-    from mergesvc.bench.suite import run_uncertainty_bench
+    from mergesvc.bench import run_uncertainty_bench
 
     try:
         run_uncertainty_bench(out, seed=seed, samples=samples, echo=typer.echo)
@@ -240,7 +240,7 @@ def bench_link(
     duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 3600.0,
 ) -> None:
     """Codec profile x modem rate x SNR: bytes, airtime, delivery, time to deliver, accuracy."""
-    from mergesvc.bench.suite import run_link_bench
+    from mergesvc.bench import run_link_bench
 
     try:
         report = run_link_bench(seeds=seeds, period_s=period_s, duration_s=duration_s,
@@ -276,7 +276,7 @@ def bench_generalize(
     cosine + Hungarian side by side."""
     from rich.progress import Progress
 
-    from mergesvc.bench.generalize import METHODS, GeneralizePlan, run_generalize
+    from mergesvc.bench import METHODS, GeneralizePlan, run_generalize
 
     if data is not None and not data.is_dir():
         raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
@@ -322,7 +322,7 @@ def codec_encode(
     ] = None,
 ) -> None:
     """Encode a map or submap file as one wire message; print bytes per object."""
-    from mergesvc.wire.codec import Profile, encode_file
+    from mergesvc.wire import Profile, encode_file
 
     try:
         stats = encode_file(in_path, out_path, Profile(profile), projection=projection)
@@ -344,7 +344,7 @@ def codec_decode(
     projection: Annotated[Path | None, typer.Option(help="fleet projection (.npz)")] = None,
 ) -> None:
     """Decode a wire message back to the JSON file format `mergesvc match` reads."""
-    from mergesvc.wire.codec import decode_file
+    from mergesvc.wire import decode_file
 
     try:
         env, model = decode_file(in_path, out_path, projection=projection)
@@ -382,7 +382,7 @@ def scenario_underwater(
     per_size: Annotated[int, typer.Option(help="submaps per size")] = 5,
 ) -> None:
     """A pool run through the tracker: the first half's map, submaps from the second half."""
-    from mergesvc.sim.scenario import underwater_run
+    from mergesvc.sim import underwater_run
 
     if run not in (1, 2, 3) or per_size < 1 or any(k < 1 for k in size or []):
         typer.echo("error: --run must be 1, 2 or 3; sizes and --per-size >= 1", err=True)
@@ -404,7 +404,7 @@ def scenario_drive(
     ] = None,
 ) -> None:
     """A KITTI-like drive through the tracker: the map, submaps at loop-closure places."""
-    from mergesvc.sim.scenario import drive_run
+    from mergesvc.sim import drive_run
 
     if trajectory is not None and not trajectory.is_file():
         typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
@@ -434,7 +434,7 @@ def uncertainty_train(
     Spearman correlation of predicted and true error."""
     import numpy as np
 
-    from mergesvc.sim.scenario import Family, image_s_dataset
+    from mergesvc.sim import Family, image_s_dataset
     from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
 
     try:
@@ -468,7 +468,7 @@ def uncertainty_eval(
     family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
 ) -> None:
     """Spearman / Kendall / pairwise accuracy of a trained head on fresh observations."""
-    from mergesvc.sim.scenario import Family, image_s_dataset
+    from mergesvc.sim import Family, image_s_dataset
     from mergesvc.sim.uncertainty import UncertaintyHead, evaluate
 
     try:
@@ -499,7 +499,7 @@ def link_sim(
     seed: Annotated[int, typer.Option(help="channel seed")] = 0,
 ) -> None:
     """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting)."""
-    from mergesvc.link.acoustic import ModemRate, Workload, format_sweep_table, sweep_link
+    from mergesvc.link import ModemRate, Workload, format_sweep_table, sweep_link
 
     try:
         rates = tuple(ModemRate(r) for r in (rate or [1, 3, 5]))
@@ -530,7 +530,7 @@ def link_bridge(
 ) -> None:
     """Bridge the vehicle side of the key space to the topside through the simulated modem."""
 
-    from mergesvc.link.acoustic import (
+    from mergesvc.link import (
         AcousticBridge,
         ArqConfig,
         ChannelConfig,
@@ -574,7 +574,7 @@ def link_bridge(
 
 def _zenoh_conf(mode: str | None, connect: list[str] | None, listen: list[str] | None,
                 config: Path | None):
-    from mergesvc.link.acoustic import make_zenoh_config
+    from mergesvc.link import make_zenoh_config
 
     return make_zenoh_config(
         config_file=str(config) if config else None, mode=mode, connect=tuple(connect or ()),
@@ -583,7 +583,7 @@ def _zenoh_conf(mode: str | None, connect: list[str] | None, listen: list[str] |
 
 
 def _projections(paths: list[Path] | None):
-    from mergesvc.wire.codec import Projection
+    from mergesvc.wire import Projection
 
     return [Projection.load(p) for p in paths or []]
 
@@ -659,8 +659,8 @@ def agent(
 
     from mergesvc.core.model import Factor
     from mergesvc.fleet.agent import Agent, AgentConfig
-    from mergesvc.sim.scenario import fleet_world, read_observation_log
-    from mergesvc.wire.codec import Profile, decode_message, encode_message
+    from mergesvc.sim import fleet_world, read_observation_log
+    from mergesvc.wire import Profile, decode_message, encode_message
 
     try:
         prof = Profile(profile)
@@ -715,7 +715,7 @@ def demo(
 ) -> None:
     """Service + 3 vehicles as processes on loopback; summary against the ground truth."""
     from mergesvc.fleet.demo import DemoPlan, run_demo
-    from mergesvc.wire.codec import Profile
+    from mergesvc.wire import Profile
 
     if link not in ("zenoh", "acoustic"):
         typer.echo("error: --link must be zenoh or acoustic", err=True)

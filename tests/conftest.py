@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
-from mergesvc.sim.scenario import Family, Scenario, make_scenario
+from mergesvc.sim import Family, Scenario, make_scenario
 
 # CI runs the property tests on a fixed set of examples (reproducible, never flaky); developers
 # get fresh random examples on every run.

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mergesvc.bench.suite import (
+from mergesvc.bench import (
     AffinityUncertaintyPlan,
     constant_variance,
     run_affinity_uncertainty_bench,
@@ -17,7 +17,7 @@ from mergesvc.core.affinity import NodeAffinity, fit_same_object_model, unit_row
 from mergesvc.core.candidates import pair_scores, retrieve
 from mergesvc.core.config import load_config
 from mergesvc.core.pipeline import match
-from mergesvc.sim.scenario import Family, Scenario, make_scenario
+from mergesvc.sim import Family, Scenario, make_scenario
 
 
 def _true_index(sc: Scenario) -> dict[int, int]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from mergesvc.sim.scenario import Family, make_scenario
+from mergesvc.sim import Family, make_scenario
 
 CLI = [sys.executable, "-m", "mergesvc.cli"]
 

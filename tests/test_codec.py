@@ -10,11 +10,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench.suite import score_case
+from mergesvc.bench import score_case
 from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap, load_model
 from mergesvc.core.pipeline import match
 from mergesvc.errors import CodecError, DecodeError, SchemaError
-from mergesvc.sim.scenario import make_scenario
+from mergesvc.sim import make_scenario
 from mergesvc.wire import codec
 from mergesvc.wire.codec import (
     BitReader,

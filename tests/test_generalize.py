@@ -42,7 +42,7 @@ from mergesvc.bench.generalize import (
     supports_up,
 )
 from mergesvc.core.model import ObjectArrays
-from mergesvc.sim.scenario import Family, Scenario, make_scenario
+from mergesvc.sim import Family, Scenario, make_scenario
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 HAS_DINO = data_available(SHARED_DATA, DINO_CENTROIDS)

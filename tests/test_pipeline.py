@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench.suite import score_case
+from mergesvc.bench import score_case
 from mergesvc.core.config import load_config
 from mergesvc.core.model import ObjectArrays, RejectReason
 from mergesvc.core.pipeline import match
 from mergesvc.errors import SchemaError
-from mergesvc.sim.scenario import Family, make_scenario
+from mergesvc.sim import Family, make_scenario
 
 
 def _transform_error(sc, result) -> tuple[float, float]:

@@ -7,7 +7,7 @@ import pytest
 from scipy.stats import spearmanr
 
 from mergesvc.core.pipeline import match
-from mergesvc.sim.scenario import drive_run, image_s_dataset, underwater_run
+from mergesvc.sim import drive_run, image_s_dataset, underwater_run
 
 
 @pytest.fixture(scope="module")

@@ -23,9 +23,8 @@ from mergesvc.core.model import ErrorMessage, Factor
 from mergesvc.fleet.agent import Agent, AgentConfig, build_submaps
 from mergesvc.fleet.demo import free_port, query_status
 from mergesvc.fleet.service import MergeService, RelocalizeReply, ServiceConfig
-from mergesvc.sim.scenario import fleet_world
-from mergesvc.wire import keys
-from mergesvc.wire.codec import Profile, decode_message, encode_message
+from mergesvc.sim import fleet_world
+from mergesvc.wire import Profile, decode_message, encode_message, keys
 
 ROBOTS = ("auv1", "auv2", "auv3")
 FLEET = "t"

@@ -15,7 +15,7 @@ import numpy as np
 
 from mergesvc.core.pipeline import MatchOutcome
 from mergesvc.core.verify import transform_points
-from mergesvc.sim.scenario import Scenario
+from mergesvc.sim import Scenario
 
 
 def plot_correspondences(

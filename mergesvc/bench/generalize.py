@@ -42,7 +42,7 @@ from mergesvc.core.model import (
 )
 from mergesvc.core.pipeline import MatchOutcome, match
 from mergesvc.core.verify import align
-from mergesvc.sim.scenario import Family, Scenario, make_scenario, underwater_run
+from mergesvc.sim import Family, Scenario, make_scenario, underwater_run
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from mergesvc.core.config import MatchConfig, load_config
 from mergesvc.core.model import ObjectArrays, ObjectMap
 from mergesvc.core.pipeline import MatchOutcome, match
-from mergesvc.sim.scenario import Family, Scenario, make_scenario
+from mergesvc.sim import Family, Scenario, make_scenario
 
 
 def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
@@ -298,7 +298,7 @@ def run_paper_bench(
     paper's pipeline and ours, each solver and affinity; a scale sweep; JSON, markdown and
     figures under out_dir. Returns the report."""
     from mergesvc.bench.figures import plot_accuracy_vs_size, plot_correspondences
-    from mergesvc.sim.scenario import drive_run, underwater_run
+    from mergesvc.sim import drive_run, underwater_run
 
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -554,7 +554,7 @@ def run_uncertainty_bench(
     prediction, or one constant (no uncertainty at all). Node accuracy of both modes.
     Then each node affinity with tracked and with constant variances on `affinity_seeds`
     worlds (run_affinity_uncertainty_bench; 0 skips it)."""
-    from mergesvc.sim.scenario import image_s_dataset, underwater_run
+    from mergesvc.sim import image_s_dataset, underwater_run
     from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
 
     n_test = max(samples // 5, 100)
@@ -669,7 +669,7 @@ def _auc(pos: list[float], neg: list[float]) -> float:
 
 
 def _affinity_worlds(seed: int, plan: AffinityUncertaintyPlan) -> dict[str, list[Scenario]]:
-    from mergesvc.sim.scenario import drive_run, underwater_run
+    from mergesvc.sim import drive_run, underwater_run
 
     uw = [sc for r in plan.runs for size in plan.sizes
           for sc in underwater_run(r, seed).windows(size, plan.per_size)]
@@ -777,7 +777,7 @@ def run_link_bench(
     """Profile x modem rate x SNR: bytes per object, bytes and airtime of one 20-object submap,
     delivery ratio and mean time to deliver (3 vehicles sharing the TDMA cycle, one submap each
     every period_s), and node accuracy after decoding (the submap decoded, the map as is)."""
-    from mergesvc.link.acoustic import (
+    from mergesvc.link import (
         DEFAULT_SWEEP_SNR_DB,
         RATE_SPECS,
         ModemRate,
@@ -785,7 +785,7 @@ def run_link_bench(
         frame_error_prob,
         sweep_link,
     )
-    from mergesvc.wire.codec import Profile, Projection, decode_message, encode_message
+    from mergesvc.wire import Profile, Projection, decode_message, encode_message
 
     profiles: dict[str, dict[str, float]] = {}
     for prof in Profile:

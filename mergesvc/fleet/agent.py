@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.model import Factor, ObjectNode, Submap
 from mergesvc.core.tracking import ObjectTracker, Track, TrackingConfig
-from mergesvc.sim.scenario import Frame
+from mergesvc.sim import Frame
 
 log = logging.getLogger(__name__)
 

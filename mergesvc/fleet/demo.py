@@ -24,9 +24,8 @@ import numpy as np
 
 from mergesvc.core.model import Factor
 from mergesvc.fleet.agent import AgentConfig, build_submaps
-from mergesvc.sim.scenario import fleet_world, image_s_dataset
-from mergesvc.wire import keys
-from mergesvc.wire.codec import Profile, Projection, decode_message
+from mergesvc.sim import fleet_world, image_s_dataset
+from mergesvc.wire import Profile, Projection, decode_message, keys
 
 log = logging.getLogger(__name__)
 

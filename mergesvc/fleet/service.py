@@ -37,8 +37,7 @@ from mergesvc.core.model import (
 from mergesvc.core.pipeline import match
 from mergesvc.errors import InputError, MergeError, SchemaError
 from mergesvc.fleet.store import Store
-from mergesvc.wire import keys
-from mergesvc.wire.codec import Profile, Projection, decode_message, encode_message
+from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
 
