@@ -1,2 +1,99 @@
-"""mergesvc: multi-robot object-map merging by semantic, uncertainty-aware graph matching."""
+"""mergesvc: multi-robot object-map merging by semantic, uncertainty-aware graph matching.
+
+The package is layered along the data flow; each layer imports only the ones below it
+(tests/test_layout.py enforces this):
+
+    errors    the exception hierarchy every layer raises
+    core      the matching method: models, tracking, affinity, candidates, solvers, verify,
+              pipeline, pose graph, fusion. Pure computation: no zenoh, no sockets, no files.
+    wire      bytes <-> models (the codec and its profiles), Zenoh keys and session config
+    link      the acoustic link: modem model, ARQ, event simulator, Zenoh bridge   (wire, core)
+    sim       seeded worlds with ground truth, vehicle runs, fleets, logs          (core)
+    fleet     the processes: merge service, vehicle agent, store, demo      (all of the above)
+    bench     `mergesvc bench ...`                                  (core, wire, link, sim)
+    cli       `mergesvc ...`, on top of everything; nothing imports it
+
+The names below are the public API for Python users: `mergesvc.match(map, submap)`, the file
+and message models, and the codec's entry points.
+"""
+
+from mergesvc.core.config import MatchConfig, MatchMode, NodeAffinity, SolverName
+from mergesvc.core.model import (
+    Correspondence,
+    ErrorMessage,
+    Factor,
+    FactorStatus,
+    Match,
+    MatchResult,
+    ObjectArrays,
+    ObjectMap,
+    ObjectNode,
+    RejectReason,
+    Submap,
+    Transform,
+)
+from mergesvc.core.pipeline import MatchOutcome, match
+from mergesvc.errors import (
+    CodecError,
+    ConfigError,
+    DecodeError,
+    InputError,
+    MergeError,
+    SchemaError,
+    SolverError,
+)
+from mergesvc.wire import (
+    CODEC_VERSION,
+    CodecLimits,
+    CodecSettings,
+    MessageType,
+    Profile,
+    Projection,
+    decode_file,
+    decode_message,
+    encode_file,
+    encode_message,
+    load_model,
+)
+
 __version__ = "0.1.0"
+
+__all__ = [
+    "CODEC_VERSION",
+    "CodecError",
+    "CodecLimits",
+    "CodecSettings",
+    "ConfigError",
+    "Correspondence",
+    "DecodeError",
+    "ErrorMessage",
+    "Factor",
+    "FactorStatus",
+    "InputError",
+    "Match",
+    "MatchConfig",
+    "MatchMode",
+    "MatchOutcome",
+    "MatchResult",
+    "MergeError",
+    "MessageType",
+    "NodeAffinity",
+    "ObjectArrays",
+    "ObjectMap",
+    "ObjectNode",
+    "Profile",
+    "Projection",
+    "RejectReason",
+    "SchemaError",
+    "SolverError",
+    "SolverName",
+    "Submap",
+    "Transform",
+    "__version__",
+    "decode_file",
+    "decode_message",
+    "encode_file",
+    "encode_message",
+    "load_model",
+    "match",
+]

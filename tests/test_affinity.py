@@ -8,20 +8,18 @@ from scipy.stats import multivariate_normal, multivariate_t
 
 import mergesvc.core.affinity as affinity_mod
 from mergesvc.core.affinity import (
-    NodeAffinity,
     SameObjectModel,
     distance_to_similarity,
     edge_affinity,
     fit_same_object_model,
     log_likelihood_ratio,
     log_likelihood_ratio_pairs,
-    median_spacing,
     node_affinity,
     node_distance,
-    pairwise_lengths,
-    radius_edges,
     weighted_cosine,
 )
+from mergesvc.core.config import NodeAffinity
+from mergesvc.core.geometry import median_spacing, pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
 
 

@@ -13,9 +13,9 @@ from mergesvc.bench import (
     run_affinity_uncertainty_bench,
     score_case,
 )
-from mergesvc.core.affinity import NodeAffinity, fit_same_object_model, unit_rows
+from mergesvc.core.affinity import fit_same_object_model, unit_rows
 from mergesvc.core.candidates import pair_scores, retrieve
-from mergesvc.core.config import load_config
+from mergesvc.core.config import NodeAffinity, load_config
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, Scenario, make_scenario
 

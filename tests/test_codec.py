@@ -11,25 +11,17 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
-from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap, load_model
+from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap
 from mergesvc.core.pipeline import match
 from mergesvc.errors import CodecError, DecodeError, SchemaError
 from mergesvc.sim import make_scenario
-from mergesvc.wire import codec
-from mergesvc.wire.codec import (
-    BitReader,
-    BitWriter,
-    CodecLimits,
-    CodecSettings,
-    MessageType,
-    Profile,
-    Projection,
-    bounded_bits,
-    decode_file,
-    decode_message,
-    encode_file,
-    encode_message,
-)
+from mergesvc.wire import bits as codec
+from mergesvc.wire import projection
+from mergesvc.wire.bits import BitReader, BitWriter, bounded_bits
+from mergesvc.wire.envelope import decode_message, encode_message
+from mergesvc.wire.files import decode_file, encode_file, load_model
+from mergesvc.wire.profiles import CodecLimits, CodecSettings, MessageType, Profile
+from mergesvc.wire.projection import Projection
 
 D = 16
 RES_M = 0.01  # default position resolution
@@ -211,7 +203,7 @@ def test_compact_error_is_what_the_projection_drops(fleet) -> None:
     # half a step, or by the distance beyond the outer bin centre, or |c| without bits
     bits = proj.bit_allocation(st_.embedding_bits)
     assert bits.sum() == min(st_.embedding_bits, 8 * proj.k)
-    step = np.array([st_.coef_step_scale * codec._MAX_STEP[x] if x else 0 for x in bits])
+    step = np.array([st_.coef_step_scale * projection._MAX_STEP[x] if x else 0 for x in bits])
     c = proj.coefficients(a.embeddings_nd) / proj.scale_k
     outer = (np.where(bits > 0, 2.0 ** (bits - 1), 0) - 0.5) * step
     bound = np.where(bits > 0, np.maximum(step / 2, np.abs(c) - outer), np.abs(c))

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from oracles import brute_force
 
 from mergesvc.core.solvers.consistency import pairwise_conflicts, repair_conflicts
-from mergesvc.core.solvers.exact import ExactResult, brute_force, dominated, solve_exact
+from mergesvc.core.solvers.exact import ExactResult, dominated, solve_exact
 from mergesvc.core.solvers.hungarian import harden, prune_negative
 from mergesvc.core.solvers.margin import row_margins
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem

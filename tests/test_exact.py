@@ -10,14 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from oracles import astar_crosscheck, brute_force
 
-from mergesvc.core.solvers.exact import (
-    ExactResult,
-    astar_crosscheck,
-    brute_force,
-    dominated,
-    solve_exact,
-)
+from mergesvc.core.solvers.exact import ExactResult, dominated, solve_exact
 from mergesvc.core.solvers.margin import row_margins
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 from mergesvc.errors import SolverError

@@ -13,36 +13,35 @@ import numpy as np
 import pytest
 
 from mergesvc.bench.generalize import (
-    C_CAMERA,
-    C_NED,
-    DINO_CENTROIDS,
-    KITTI_GT,
-    KITTI_ORB,
     METHODS,
-    Appearance,
     Cell,
     GeneralizePlan,
-    WorldSpec,
-    camera_to_gravity,
-    class_centroids,
-    convention_rotation,
     cosine_hungarian,
     cosine_hungarian_outcome,
-    data_available,
-    express,
-    fit_rigid_kabsch,
-    kitti_world,
-    load_dino_centroids,
-    load_kitti_poses_34,
-    pool_world,
     quick_plan,
-    rotate_points,
-    rotate_world,
     run_generalize,
-    supports_up,
 )
 from mergesvc.core.model import ObjectArrays
 from mergesvc.sim import Family, Scenario, make_scenario
+from mergesvc.sim.appearance import Appearance, class_centroids
+from mergesvc.sim.conventions import (
+    C_CAMERA,
+    C_NED,
+    convention_rotation,
+    rotate_points,
+    rotate_world,
+    supports_up,
+)
+from mergesvc.sim.real_data import (
+    DINO_CENTROIDS,
+    KITTI_GT,
+    KITTI_ORB,
+    camera_to_gravity,
+    data_available,
+    load_dino_centroids,
+    load_kitti_poses_34,
+)
+from mergesvc.sim.worlds import WorldSpec, express, fit_rigid_kabsch, kitti_world, pool_world
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 HAS_DINO = data_available(SHARED_DATA, DINO_CENTROIDS)

@@ -9,17 +9,14 @@ import gtsam
 import numpy as np
 import pytest
 
+from mergesvc.core.frames import frame_name, split_frame
+from mergesvc.core.fusion import ObjectLink, fuse_objects, links_from_factor
 from mergesvc.core.graph import (
     GraphConfig,
-    ObjectLink,
     PoseGraph,
     _bridges,
-    frame_name,
-    fuse_objects,
-    links_from_factor,
     pose3_from_transform,
     pose_error,
-    split_frame,
 )
 from mergesvc.core.model import (
     Correspondence,

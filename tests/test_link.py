@@ -16,43 +16,35 @@ import zenoh
 from pydantic import ValidationError
 
 from mergesvc.errors import ConfigError, DecodeError, LinkError
-from mergesvc.link.acoustic import (
+from mergesvc.link.arq import (
     FRAGMENT_HEADER_BYTES,
     MAX_MESSAGE_BYTES,
     MINIFRAME_BYTES,
-    RATE_SPECS,
     AckEntry,
-    AcousticBridge,
-    AcousticChannel,
-    ChannelConfig,
-    Delivery,
-    Direction,
     Fragment,
-    LinkConfig,
-    LinkSimulator,
-    LossEvent,
-    LossReason,
-    ModemRate,
-    Workload,
     decode_ack,
     decode_fragment,
-    downlink_key,
     encode_ack,
     encode_fragment,
-    fer_curves,
-    format_sweep_table,
-    frame_error_prob,
-    frame_sample,
     join_fragments,
-    key_suffix,
-    make_zenoh_config,
-    route_vehicle,
-    simulate_workload,
     split_message,
-    sweep_link,
+)
+from mergesvc.link.bridge import (
+    AcousticBridge,
+    Direction,
+    downlink_key,
+    frame_sample,
+    key_suffix,
+    route_vehicle,
     unframe_sample,
     uplink_key,
 )
+from mergesvc.link.channel import AcousticChannel
+from mergesvc.link.config import ChannelConfig, LinkConfig
+from mergesvc.link.modem import RATE_SPECS, ModemRate, fer_curves, frame_error_prob
+from mergesvc.link.simulator import Delivery, LinkSimulator, LossEvent, LossReason
+from mergesvc.link.workload import Workload, format_sweep_table, simulate_workload, sweep_link
+from mergesvc.wire.session import make_zenoh_config
 
 SHARED_TABLE = (
     Path(__file__).resolve().parents[2] / "shared" / "data" / "acomms_micromodem_per_table.json"
@@ -628,7 +620,7 @@ def test_make_zenoh_config_maps_errors() -> None:
 
 
 def test_public_names_are_exported() -> None:
-    import mergesvc.link.acoustic as link
+    import mergesvc.link as link
 
     assert all(hasattr(link, name) for name in link.__all__)
     public = {

@@ -15,9 +15,9 @@ from mergesvc.core.model import (
     RejectReason,
     Submap,
     json_schemas,
-    load_model,
     parse_model,
 )
+from mergesvc.wire.files import load_model
 
 D = 8
 

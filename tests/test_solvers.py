@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pygmtools as pygm
 import pytest
+from oracles import brute_force
 
 from mergesvc.core.solvers import dense, heuristic
-from mergesvc.core.solvers.exact import brute_force
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
@@ -125,3 +125,21 @@ def test_pygmtools_wrapper_rejects_unknown_solver() -> None:
     # and the ipfp wrapper survives a flat K (pygmtools divides 0/0 there)
     X = dense.solve_dense("ipfp", np.zeros((4, 4)), 2, 2)
     assert X.shape == (2, 2)
+
+
+def test_dense_solvers_leave_pygmtools_global_backend_alone(monkeypatch) -> None:
+    """mergesvc names the numpy backend in each call: a user who set another global backend
+    keeps it, and our calls do not depend on it (a backend that is not installed would fail)."""
+    import importlib
+
+    monkeypatch.setattr(pygm, "BACKEND", "pytorch")  # torch is not installed here
+    importlib.reload(dense)  # module import must not reset the user's choice
+    assert pygm.BACKEND == "pytorch"
+    rng = np.random.default_rng(0)
+    pos = rng.normal(size=(4, 3))
+    edges = np.array([[0, 1], [1, 2], [2, 3], [0, 3]])
+    lengths = np.linalg.norm(pos[edges[:, 0]] - pos[edges[:, 1]], axis=1)
+    K = dense.build_dense_K(np.eye(4), edges, lengths, edges, lengths, sigma=1.0)
+    X = dense.solve_dense("rrwm", K[0] if K.ndim == 3 else K, 4, 4)
+    assert harden_dense(X).tolist() == [0, 1, 2, 3]
+    assert pygm.BACKEND == "pytorch"

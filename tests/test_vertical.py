@@ -8,7 +8,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
-from mergesvc.bench.generalize import rotate_world
 from mergesvc.core.config import MatchConfig, load_config
 from mergesvc.core.model import RejectReason, Submap
 from mergesvc.core.pipeline import match, vertical_relation
@@ -20,7 +19,7 @@ from mergesvc.core.vertical import (
     relate,
     rotation_between,
 )
-from mergesvc.sim import Family, Scenario, make_scenario, underwater_run
+from mergesvc.sim import Family, Scenario, make_scenario, rotate_world, underwater_run
 from mergesvc.wire import decode_message, encode_message
 
 # world (ENU: x east, y north, z up) -> each convention's coordinates

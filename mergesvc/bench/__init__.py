@@ -1,19 +1,23 @@
 """Benchmarks (`mergesvc bench ...`) and their figures.
 
+Leaves: scoring (score_case and helpers shared by the benchmarks), match (`bench match`), paper
+(`bench paper`: the paper's tables, the scale sweep), uncertainty (`bench uncertainty`: image
+uncertainty, affinity x variances), link (`bench link`), generalize (`bench generalize`),
+figures.
+
 May import: mergesvc.core, mergesvc.wire, mergesvc.link, mergesvc.sim, mergesvc.errors.
 """
 
 from mergesvc.bench.generalize import METHODS, GeneralizePlan, run_generalize
-from mergesvc.bench.suite import (
+from mergesvc.bench.link import run_link_bench
+from mergesvc.bench.match import run_match_bench
+from mergesvc.bench.paper import PaperBenchPlan, run_paper_bench
+from mergesvc.bench.scoring import score_case
+from mergesvc.bench.uncertainty import (
     AffinityUncertaintyPlan,
-    PaperBenchPlan,
     constant_variance,
     run_affinity_uncertainty_bench,
-    run_link_bench,
-    run_match_bench,
-    run_paper_bench,
     run_uncertainty_bench,
-    score_case,
 )
 
 __all__ = [

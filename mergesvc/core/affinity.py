@@ -8,30 +8,16 @@ exp(-(e_ij - e_ab)^2 / sigma) on centre distances.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
+from mergesvc.core.config import NodeAffinity
 from mergesvc.core.model import ObjectArrays
-
-log = logging.getLogger(__name__)
 
 # Chunk of map nodes per vectorised step of the per-dimension Gaussian distances; bounds the
 # (n1, chunk, d) temporaries to a few tens of MB.
 _CHUNK_ELEMS = 4_000_000
-
-
-class NodeAffinity(str, Enum):
-    UCOS = "ucos"
-    BHATTACHARYYA = "bhattacharyya"
-    MAHALANOBIS = "mahalanobis"
-    LIKELIHOOD_RATIO = "likelihood_ratio"  # eq. LR-3: same object vs unrelated, log-odds
 
 
 def unit_rows(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -384,46 +370,6 @@ def log_likelihood_ratio_pairs(
 
 
 # --------------------------------------------------------------------------- edges
-
-
-def pairwise_lengths(position_xyz_m: np.ndarray) -> np.ndarray:
-    """(n, 3) -> (n, n) Euclidean distances between object centres."""
-    return cdist(position_xyz_m, position_xyz_m)
-
-
-def median_spacing(position_xyz_m: np.ndarray, tree: cKDTree | None = None) -> float:
-    """Median nearest-neighbour distance between object centres (metres); 1.0 for one object.
-
-    tree: a KD-tree already built over position_xyz_m (a map's cached one), else built here."""
-    if len(position_xyz_m) < 2:
-        return 1.0
-    tree = cKDTree(position_xyz_m) if tree is None else tree
-    dist, _ = tree.query(position_xyz_m, k=2)
-    spacing = float(np.median(dist[:, 1]))
-    return spacing if spacing > 0 else 1.0
-
-
-def radius_edges(
-    position_xyz_m: np.ndarray, radius_m: float, grow: float = 1.25, max_steps: int = 200
-) -> tuple[np.ndarray, float]:
-    """Edges between centres closer than the radius, relaxed until the graph is connected.
-
-    Returns ((ne, 2) int array of i < j pairs, the radius used). The radius grows by `grow` per
-    step (paper: relaxed until connected).
-    """
-    n = len(position_xyz_m)
-    tree = cKDTree(position_xyz_m)
-    r = float(radius_m)
-    for _ in range(max_steps):
-        pairs = tree.query_pairs(r, output_type="ndarray")
-        if n <= 1:
-            return pairs.reshape(-1, 2), r
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        if connected_components(graph, directed=False)[0] == 1:
-            return pairs, r
-        r *= grow
-    log.warning("graph still disconnected at radius %.3g m; using it anyway", r)
-    return pairs, r
 
 
 def edge_affinity(e1: np.ndarray, e2: np.ndarray, sigma: np.ndarray | float) -> np.ndarray:

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from mergesvc.core.affinity import (
-    NodeAffinity,
     SameObjectModel,
     fit_same_object_model,
     is_isotropic,
@@ -22,7 +21,7 @@ from mergesvc.core.affinity import (
     reference_distance,
     unit_rows,
 )
-from mergesvc.core.config import AffinityConfig, CandidatesConfig
+from mergesvc.core.config import AffinityConfig, CandidatesConfig, NodeAffinity
 from mergesvc.core.model import ObjectArrays
 
 

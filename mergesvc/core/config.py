@@ -14,8 +14,14 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from mergesvc.core.affinity import NodeAffinity
 from mergesvc.errors import ConfigError
+
+
+class NodeAffinity(str, Enum):
+    UCOS = "ucos"
+    BHATTACHARYYA = "bhattacharyya"
+    MAHALANOBIS = "mahalanobis"
+    LIKELIHOOD_RATIO = "likelihood_ratio"  # eq. LR-3: same object vs unrelated, log-odds
 
 
 class MatchMode(str, Enum):

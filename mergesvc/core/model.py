@@ -10,7 +10,6 @@ import functools
 import json
 from dataclasses import dataclass
 from enum import Enum
-from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
@@ -25,6 +24,7 @@ from pydantic import (
 )
 from scipy.spatial import cKDTree
 
+from mergesvc.core.geometry import median_spacing
 from mergesvc.errors import DecodeError, SchemaError
 
 SCHEMA_VERSION = 1
@@ -267,8 +267,6 @@ class ObjectArrays:
     @functools.cached_property
     def median_spacing_m(self) -> float:
         """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
-        from mergesvc.core.affinity import median_spacing  # affinity imports this module
-
         return median_spacing(self.position_xyz_m, self.kdtree)
 
     @property
@@ -352,19 +350,6 @@ def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -
         raise SchemaError(_format_validation_error(exc, what)) from exc
 
 
-def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
-    """Read a map or submap JSON file."""
-    p = Path(path)
-    try:
-        size = p.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise SchemaError(f"{p}: {size} bytes is larger than the limit {MAX_FILE_BYTES}")
-        data = p.read_bytes()
-    except OSError as exc:
-        raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
-    return parse_model(model, data, what=str(p))
-
-
 def json_schemas() -> dict[str, dict[str, Any]]:
     """JSON Schema of every file model, keyed by file name under schemas/."""
     return {
@@ -391,7 +376,6 @@ __all__ = [
     "Submap",
     "Transform",
     "json_schemas",
-    "load_model",
     "parse_model",
 ]
 

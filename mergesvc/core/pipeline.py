@@ -16,16 +16,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mergesvc.core.affinity import (
-    NodeAffinity,
     distance_to_similarity,
     edge_affinity,
     node_affinity,
     node_distance,
-    pairwise_lengths,
-    radius_edges,
 )
 from mergesvc.core.candidates import Candidates, expand_near, retrieve
-from mergesvc.core.config import MatchConfig, MatchMode, SolverName
+from mergesvc.core.config import MatchConfig, MatchMode, NodeAffinity, SolverName
+from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import (
     Match,
     MatchResult,

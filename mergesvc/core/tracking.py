@@ -328,6 +328,21 @@ class Detection:
         object.__setattr__(self, "stamp_s", float(stamp))
 
 
+@dataclass(frozen=True)
+class Frame:
+    """One frame of a vehicle: its pose estimate and the detections, in the frame the detections
+    were placed (the run's estimated world frame, or the vehicle's own odometry frame).
+
+    T_est / T_true: (4, 4) body poses; body_T_detections: the detections' raw body-frame
+    positions are not kept, a vehicle only has them through T_est."""
+
+    k: int
+    stamp_s: float
+    T_est: np.ndarray
+    T_true: np.ndarray
+    detections: list[Detection]
+
+
 @dataclass(frozen=True, eq=False)
 class Track:
     """Read-only snapshot of one tracked object.
@@ -564,6 +579,7 @@ class ObjectTracker:
 __all__ = [
     "CHI2_3DOF_99",
     "Detection",
+    "Frame",
     "ObjectTracker",
     "PositionKalman",
     "SemanticKalman",

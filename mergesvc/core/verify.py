@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from mergesvc.core.affinity import pairwise_lengths
+from mergesvc.core.geometry import pairwise_lengths
 from mergesvc.core.model import RejectReason
 from mergesvc.core.vertical import rotation_between
 

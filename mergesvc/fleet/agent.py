@@ -13,14 +13,17 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.model import Factor, ObjectNode, Submap
-from mergesvc.core.tracking import ObjectTracker, Track, TrackingConfig
-from mergesvc.sim import Frame
+from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
+from mergesvc.errors import ConfigError, MergeError
+from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
 
@@ -267,4 +270,67 @@ class Agent:
         self.close()
 
 
-__all__ = ["Agent", "AgentConfig", "AgentStats", "LocalMap", "build_submaps"]
+@dataclass(frozen=True)
+class AgentRun:
+    """One vehicle run as `mergesvc agent` starts it: who the vehicle is, where its frames
+    come from (a seeded fleet world, or a recorded observation log), how its submaps are
+    coded and which side of the key space it publishes on."""
+
+    robot: str
+    fleet: str = "fleet0"
+    session: str = "s0"
+    seed: int = 0  # fleet world seed (ignored with log_file)
+    laps: int = 2
+    objects: int = 24
+    log_file: Path | None = None  # replay this observation log instead of the world
+    profile: Profile = Profile.INT8
+    projection: Path | None = None  # fleet projection (.npz); the compact profile needs it
+    time_scale: float = 0.0  # wall s per simulated s; 0: no pacing
+    acoustic: bool = False  # publish on the acoustic vehicle side (through the bridge)
+    linger_s: float = 2.0  # stay up this long after the run, for late factors
+
+
+def _world_frames(run: AgentRun) -> Iterable[Frame]:
+    from mergesvc.sim import fleet_world, read_observation_log
+
+    if run.log_file is not None:
+        return read_observation_log(run.log_file)
+    sid = run.session
+    return fleet_world(run.seed, laps=run.laps, n_objects=run.objects).frames(
+        run.robot, int(sid.lstrip("s") or 0) if sid[1:].isdigit() else 0)
+
+
+def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
+    """Build the vehicle (frames, codec, keys), open a Zenoh session with `zenoh_config`, run
+    the frames through an `Agent`, linger for factors, close. Raises MergeError (ConfigError
+    for the compact profile without a projection), ValueError/OSError for unreadable input."""
+    import zenoh
+
+    proj = Projection.load(run.projection) if run.projection is not None else None
+    if run.profile is Profile.COMPACT and proj is None:
+        raise ConfigError("the compact profile needs a fleet projection")
+    frames = _world_frames(run)
+    acfg = AgentConfig(robot=run.robot, session=run.session, fleet=run.fleet)
+    root = keys.uw_root(run.fleet) if run.acoustic else keys.fleet_root(run.fleet)
+
+    def encode(sub: Submap, seq: int) -> bytes:
+        return encode_message(sub, run.profile, run.robot, seq, projection=proj)
+
+    def decode_factor(data: bytes) -> Factor:
+        _, f = decode_message(data)
+        if not isinstance(f, Factor):
+            raise MergeError("not a factor")
+        return f
+
+    with zenoh.open(zenoh_config) as session, Agent(
+        acfg, session, encode, decode_factor,
+        submap_key=f"{root}/submap/{run.robot}/{run.session}",
+        factor_key=f"{root}/factor/{run.robot}/**", alive_key=f"{root}/alive/{run.robot}",
+    ) as ag:
+        stats = ag.run(frames, time_scale=run.time_scale)
+        time.sleep(run.linger_s)
+    return stats
+
+
+__all__ = ["Agent", "AgentConfig", "AgentRun", "AgentStats", "LocalMap", "build_submaps",
+           "run_agent"]

@@ -346,4 +346,13 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
     return path
 
 
-__all__ = ["DemoPlan", "DemoResult", "run_demo"]
+__all__ = [
+    "DemoPlan",
+    "DemoResult",
+    "fleet_projection",
+    "free_port",
+    "plot_merged",
+    "query_status",
+    "run_demo",
+    "score_demo",
+]

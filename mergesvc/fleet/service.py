@@ -23,7 +23,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.config import MatchConfig
-from mergesvc.core.graph import GraphSolution, PoseGraph, fuse_objects
+from mergesvc.core.fusion import fuse_objects
+from mergesvc.core.graph import GraphSolution, PoseGraph
 from mergesvc.core.model import (
     Correspondence,
     ErrorMessage,

@@ -30,7 +30,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from mergesvc.core.graph import frame_name
+from mergesvc.core.frames import frame_name
 from mergesvc.core.model import FactorStatus
 from mergesvc.errors import InputError, StoreError
 

@@ -12,7 +12,9 @@ import pygmtools as pygm
 
 from mergesvc.errors import SolverError
 
-pygm.set_backend("numpy")
+# pygmtools keeps a process-wide default backend; every call here names its backend instead of
+# changing that default for whoever else imports pygmtools.
+_BACKEND = "numpy"
 
 
 def build_dense_K(
@@ -48,7 +50,8 @@ def build_dense_K(
         n1=np.array([n1]), ne1=np.array([len(conn1)]),
         n2=np.array([n2]), ne2=np.array([len(conn2)]),
         node_aff_fn=node_fn,
-        edge_aff_fn=functools.partial(pygm.utils.gaussian_aff_fn, sigma=sigma),
+        edge_aff_fn=functools.partial(pygm.utils.gaussian_aff_fn, sigma=sigma, backend=_BACKEND),
+        backend=_BACKEND,
     )
 
 
@@ -58,7 +61,7 @@ def solve_dense(name: str, K: np.ndarray, n1: int, n2: int, max_iter: int = 50) 
     if name not in fns:
         raise SolverError(f"no pygmtools solver {name!r} (have {', '.join(fns)})")
     with np.errstate(divide="ignore", invalid="ignore"):  # ipfp divides 0/0 on flat K
-        X = fns[name](K, np.array([n1]), np.array([n2]), max_iter=max_iter)
+        X = fns[name](K, np.array([n1]), np.array([n2]), max_iter=max_iter, backend=_BACKEND)
     X = np.asarray(X).reshape(n1, n2)
     if not np.all(np.isfinite(X)):
         raise SolverError(f"pygmtools {name} returned non-finite values")

@@ -1,0 +1,144 @@
+"""Benchmark harness (`mergesvc bench match`): latency (median and spread over repeats) and
+accuracy of `verified` vs `paper` mode, measured side by side in the same run on seeded
+scenarios.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from mergesvc.bench.scoring import _cpu_count, _spread, score_case
+from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.pipeline import match
+from mergesvc.sim import Family, Scenario, make_scenario
+
+
+def run_case(
+    sc: Scenario, config: MatchConfig, repeats: int
+) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
+    """Run one scenario `repeats` times; (scores of the first run, totals ms, stage ms)."""
+    totals, stages = [], {}
+    scores = None
+    for _ in range(repeats):
+        outcome = match(sc.map, sc.submap, config)
+        if scores is None:
+            scores = score_case(sc, outcome)
+        for k, v in outcome.result.timings_ms.items():
+            stages.setdefault(k, []).append(v)
+        totals.append(outcome.result.timings_ms["total"])
+    assert scores is not None
+    return scores, totals, stages
+
+
+def _modes(paper: bool, affinity: str) -> list[tuple[str, MatchConfig, bool]]:
+    """(label, settings, runs once) of the modes measured for one affinity."""
+    aff = {"affinity": {"kind": affinity}}
+    modes = [("verified", load_config(mode="verified", **aff), False)]
+    if paper:
+        modes.append(("paper", load_config(mode="paper", **aff), True))
+        if affinity != "ucos":  # the authors' code: the distance fed in as the affinity
+            raw = {"affinity": {"kind": affinity, "raw_distances": True}}
+            modes.append(("paper-raw", load_config(mode="paper", **raw), True))
+    return modes
+
+
+def bench_scenario(family: Family, seed: int) -> Scenario:
+    """The benchmark's scenario: underwater submaps cycle through the paper's 2-5 objects."""
+    if family is Family.UNDERWATER:
+        return make_scenario(family, seed, n_sub=2 + seed % 4)
+    return make_scenario(family, seed)
+
+
+def run_match_bench(
+    repeats: int = 5,
+    seeds: int = 5,
+    paper: bool = True,
+    echo: Callable[[str], Any] = print,
+    families: tuple[Family, ...] = (Family.KITTI, Family.UNDERWATER),
+    affinities: tuple[str, ...] = ("ucos",),
+) -> dict[str, Any]:
+    """Both modes on `seeds` scenarios per family and affinity. Paper mode runs once per
+    scenario (it takes seconds); verified mode `repeats` times. Returns a JSON-ready report
+    (results keyed family/mode/affinity) and echoes a table."""
+    report: dict[str, Any] = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "machine": f"{platform.machine()} {platform.processor() or ''} "
+        f"{_cpu_count()} cores, python {platform.python_version()}",
+        "settings": {},
+        "results": {},
+    }
+    start = time.perf_counter()
+    scenarios = {(f, s): bench_scenario(f, s) for f in families for s in range(seeds)}
+    for family in families:
+        for affinity in affinities:
+            for name, cfg, once in _modes(paper, affinity):
+                report["settings"][f"{name}/{affinity}"] = cfg.model_dump(mode="json")
+                rows, totals, stages = [], [], {}
+                for seed in range(seeds):
+                    sc = scenarios[family, seed]
+                    run_cfg = cfg
+                    if name.startswith("paper"):  # the paper's radius for this kind of world
+                        run_cfg = cfg.model_copy(deep=True)
+                        run_cfg.affinity.edge_radius_m = sc.paper_radius_m
+                    scores, t, st = run_case(sc, run_cfg, 1 if once else repeats)
+                    rows.append(scores)
+                    totals += t
+                    for k, v in st.items():
+                        stages.setdefault(k, []).extend(v)
+                    echo(
+                        f"[{time.perf_counter() - start:6.1f}s] {family.value:>10} {name:>9} "
+                        f"{affinity:>13} seed {seed}: {len(sc.submap.objects)} vs "
+                        f"{len(sc.map.objects)} objects, acc {scores['accuracy']:.2f}, "
+                        f"wrong {scores['wrong']}, {np.median(t):.1f} ms"
+                    )
+                report["results"][f"{family.value}/{name}/{affinity}"] = _summary(
+                    rows, totals, stages
+                )
+    echo("")
+    echo(markdown_table(report))
+    return report
+
+
+def _summary(
+    rows: list[dict[str, float]], totals: list[float], stages: dict[str, list[float]]
+) -> dict[str, Any]:
+    return {
+        "node_accuracy": float(np.mean([r["accuracy"] for r in rows])),
+        "wrong_matches": int(sum(r["wrong"] for r in rows)),
+        "returned_matches": int(sum(r["returned"] for r in rows)),
+        "wrong_in_accepted": int(sum(r["wrong"] for r in rows if r["accepted"])),
+        "accepted": int(sum(r["accepted"] for r in rows)),
+        "scenarios": len(rows),
+        "outliers_unmatched": f"{sum(r['outliers_unmatched'] for r in rows)}/"
+        f"{sum(r['outliers'] for r in rows)}",
+        "latency_ms": _spread(totals),
+        "stages_ms": {k: _spread(v)["median"] for k, v in stages.items()},
+        "runs": len(totals),
+    }
+
+
+def markdown_table(report: dict[str, Any]) -> str:
+    lines = [
+        "| scenario / mode / affinity | node accuracy | wrong matches (in accepted) | accepted "
+        "| outliers left unmatched | latency median ms (IQR) [min-max] | runs |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, r in report["results"].items():
+        lat = r["latency_ms"]
+        lines.append(
+            f"| {key} | {r['node_accuracy']:.3f} | {r['wrong_matches']} "
+            f"({r['wrong_in_accepted']}) | {r['accepted']}/{r['scenarios']} | "
+            f"{r['outliers_unmatched']} | "
+            f"{lat['median']:.1f} ({lat['iqr']:.1f}) [{lat['min']:.1f}-{lat['max']:.1f}] | "
+            f"{r['runs']} |"
+        )
+    return "\n".join(lines)
+
+
+__all__ = ["bench_scenario", "markdown_table", "run_case", "run_match_bench"]

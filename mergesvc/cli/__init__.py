@@ -1,0 +1,50 @@
+"""Command line: `mergesvc match`, `example`, `schemas`, `serve`, `agent`, `demo`, `bench`,
+`codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+
+The command tree is assembled here; the commands live in `files` (commands on files),
+`bench` (benchmarks) and `fleet` (the service, vehicles, the demo and the acoustic link).
+Known errors become exit codes in `errors`; shared options (the Zenoh flags) are in `options`.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Annotated
+
+import typer
+
+from mergesvc.cli import bench, files, fleet
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="mergesvc: merge multi-robot object maps by semantic graph matching.",
+)
+
+
+@app.callback()
+def _main(
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="more logs")] = 0,
+) -> None:
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(verbose, 2),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+for _command in (files.match, files.example, files.schemas, fleet.serve, fleet.agent, fleet.demo):
+    app.command()(_command)
+app.add_typer(bench.app, name="bench")
+app.add_typer(files.codec_app, name="codec")
+app.add_typer(files.scenario_app, name="scenario")
+app.add_typer(files.uncertainty_app, name="uncertainty")
+app.add_typer(fleet.link_app, name="link")
+
+
+def main() -> None:
+    app()

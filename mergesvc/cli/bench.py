@@ -1,0 +1,167 @@
+"""`mergesvc bench match|paper|uncertainty|link|generalize` (see docs/benchmarks.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mergesvc.cli.errors import exit_on_error
+from mergesvc.core.config import NodeAffinity
+
+app = typer.Typer(no_args_is_help=True, help="benchmarks")
+
+
+@app.command("match")
+def bench_match(
+    repeats: Annotated[int, typer.Option(help="runs per scenario")] = 5,
+    seeds: Annotated[int, typer.Option(help="scenarios per family")] = 5,
+    paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
+    affinity: Annotated[
+        list[NodeAffinity] | None,
+        typer.Option(help="node affinities to measure (repeat the option); default: all"),
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
+) -> None:
+    """Latency and accuracy of verified vs paper mode on seeded scenarios."""
+    from mergesvc.bench import run_match_bench
+
+    kinds = tuple(a.value for a in (affinity or list(NodeAffinity)))
+    with exit_on_error():
+        report = run_match_bench(
+            repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds
+        )
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1))
+        typer.echo(f"wrote {out}")
+
+
+@app.command("paper")
+def bench_paper(
+    out: Annotated[Path, typer.Option(help="folder for JSON, markdown and figures")] = Path(
+        "results/paper"
+    ),
+    quick: Annotated[bool, typer.Option(help="a small slice (under a minute)")] = False,
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    repeats: Annotated[int | None, typer.Option(help="verified-mode timing repeats")] = None,
+    kitti_paper: Annotated[
+        bool, typer.Option(help="paper mode on the KITTI-like map too (dense K: minutes)")
+    ] = True,
+    trajectory: Annotated[
+        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
+    ] = None,
+) -> None:
+    """The paper's Table I and II for its pipeline and ours, side by side, plus precision,
+    recall, transform errors, stage timings and a scale sweep; figures under --out."""
+    from rich.progress import Progress
+
+    from mergesvc.bench import PaperBenchPlan, run_paper_bench
+
+    plan = PaperBenchPlan.quick() if quick else PaperBenchPlan()
+    changes: dict[str, object] = {"seed": seed, "kitti_paper": kitti_paper and plan.kitti_paper}
+    if repeats is not None:
+        changes["repeats"] = repeats
+    if trajectory is not None:
+        if not trajectory.is_file():
+            typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
+            raise typer.Exit(2)
+        changes["trajectory"] = str(trajectory)
+    plan = dataclasses.replace(plan, **changes)
+    with Progress(transient=True) as bar:
+
+        def factory(total: int):
+            task = bar.add_task("matching", total=total)
+            return lambda msg: bar.update(task, advance=1, description=msg[:60])
+
+        with exit_on_error():
+            run_paper_bench(plan, out, echo=typer.echo, progress_factory=factory)
+    typer.echo(f"wrote {out}/paper_bench.json, paper_bench.md and figures")
+
+
+@app.command("uncertainty")
+def bench_uncertainty(
+    out: Annotated[Path, typer.Option(help="folder for the report")] = Path("results"),
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
+) -> None:
+    """What the learned uncertainty head changes: Table I accuracy with the simulator's true
+    image uncertainty, the head's prediction, and a constant (uncertainty-unaware)."""
+    from mergesvc.bench import run_uncertainty_bench
+
+    with exit_on_error():
+        run_uncertainty_bench(out, seed=seed, samples=samples, echo=typer.echo)
+
+
+@app.command("link")
+def bench_link(
+    out: Annotated[Path | None, typer.Option(help="write the table as JSON here")] = None,
+    seeds: Annotated[int, typer.Option(help="scenarios per profile")] = 5,
+    seed: Annotated[int, typer.Option(help="first seed")] = 0,
+    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 300.0,
+    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 3600.0,
+) -> None:
+    """Codec profile x modem rate x SNR: bytes, airtime, delivery, time to deliver, accuracy."""
+    from mergesvc.bench import run_link_bench
+
+    with exit_on_error():
+        report = run_link_bench(seeds=seeds, period_s=period_s, duration_s=duration_s,
+                                seed=seed, echo=typer.echo)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1, default=float))
+        typer.echo(f"wrote {out}")
+
+
+@app.command("generalize")
+def bench_generalize(
+    quick: Annotated[bool, typer.Option(help="a few small cells for CI (under a minute)")] = False,
+    seed: Annotated[int, typer.Option(min=0, help="first world seed")] = 0,
+    seeds: Annotated[int, typer.Option(min=1, help="seeds per cell (median and spread)")] = 1,
+    out: Annotated[
+        Path | None, typer.Option(help="write the report as JSON here (and .md beside it)")
+    ] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="the shared data folder (default: ../shared/data)")
+    ] = None,
+    cell: Annotated[
+        list[str] | None, typer.Option(help="run only cells whose name contains this (repeat)")
+    ] = None,
+    paper: Annotated[bool, typer.Option(help="also run paper mode (dense K: slow)")] = True,
+) -> None:
+    """Generalization matrix: real KITTI-00 / DINO-based worlds and the project's generators
+    in camera / ENU / NED / random / mixed frames, embedding dims, map sizes, look-alikes,
+    duplicates, range noise, with and without a declared vertical; verified, paper and
+    cosine + Hungarian side by side."""
+    from rich.progress import Progress
+
+    from mergesvc.bench import METHODS, GeneralizePlan, run_generalize
+
+    if data is not None and not data.is_dir():
+        raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
+    plan = (GeneralizePlan.quick if quick else GeneralizePlan.full)(seed, seeds, data)
+    if cell:
+        names = [c.name for c in plan.cells]
+        plan.cells = [c for c in plan.cells if any(k in c.name for k in cell)]
+        if not plan.cells:
+            raise typer.BadParameter(
+                f"no cell matches {', '.join(cell)}; cells: {', '.join(names)}",
+                param_hint="--cell")
+    if not paper:
+        plan.methods = tuple(m for m in METHODS if m != "paper")
+    with Progress(transient=True) as bar:
+        task = bar.add_task("generalize", total=plan.steps())
+        with exit_on_error():
+            report = run_generalize(
+                plan, progress=lambda msg, done: bar.update(task, completed=done,
+                                                            description=msg[:60]))
+    typer.echo(report["markdown"])
+    typer.echo(f"\n{len(plan.cells)} cells x {seeds} seed(s) in {report['elapsed_s']:.0f} s")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1, default=float))
+        out.with_suffix(".md").write_text(report["markdown"] + "\n")
+        typer.echo(f"wrote {out} and {out.with_suffix('.md')}")

@@ -1,0 +1,252 @@
+"""Commands that read and write files: `match`, `example`, `schemas`, `codec encode|decode`,
+`scenario underwater|drive`, `uncertainty train|eval`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mergesvc.cli.errors import exit_on_error
+from mergesvc.core.config import MatchMode, NodeAffinity, SolverName, load_config
+from mergesvc.wire import Profile
+
+codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
+scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")
+uncertainty_app = typer.Typer(no_args_is_help=True, help="the learned image-uncertainty head")
+
+
+def match(
+    map_path: Annotated[Path, typer.Option("--map", help="map JSON file")],
+    submap_path: Annotated[Path, typer.Option("--submap", help="submap JSON file")],
+    mode: Annotated[MatchMode, typer.Option(help="verified (ours) or paper (baseline)")] = (
+        MatchMode.VERIFIED
+    ),
+    solver: Annotated[SolverName, typer.Option(help="graph-matching solver")] = SolverName.RRWM,
+    affinity: Annotated[NodeAffinity, typer.Option(help="node affinity")] = NodeAffinity.UCOS,
+    config: Annotated[
+        Path | None, typer.Option(help="JSON settings file (see mergesvc.core.config)")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+) -> None:
+    """Match a submap against a map; print the correspondences and the transform."""
+    from mergesvc.core.model import ObjectMap, Submap
+    from mergesvc.core.pipeline import match as run_match
+    from mergesvc.wire import load_model
+
+    with exit_on_error():
+        cfg = load_config(
+            config, mode=mode.value, solver={"name": solver.value},
+            affinity={"kind": affinity.value},
+        )
+        map_ = load_model(ObjectMap, map_path)
+        sub = load_model(Submap, submap_path)
+        outcome = run_match(map_, sub, cfg)
+    result = outcome.result
+    if as_json:
+        typer.echo(json.dumps(result.cli_dict()))
+        return
+    state = "accepted" if result.accepted else "rejected"
+    typer.echo(f"{state} ({result.reason.value}): {len(result.matches)} matches")
+    for m in result.matches:
+        typer.echo(f"  {m.submap_object:>12} -> {m.map_object:<12} score {m.score:.3f}")
+    if result.transform is not None:
+        t, q = result.transform.translation, result.transform.quaternion_wxyz
+        typer.echo(f"  T_map_submap: t = [{t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}] m, "
+                   f"q_wxyz = [{q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}]")
+    typer.echo("  timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items()))
+
+
+def example(
+    out_dir: Annotated[Path, typer.Argument(help="folder for map.json, submap.json, truth.json")],
+    family: Annotated[str, typer.Option(help="underwater or kitti")] = "kitti",
+    seed: Annotated[int, typer.Option(help="scenario seed")] = 0,
+) -> None:
+    """Write a seeded example map, submap and their ground truth."""
+    from mergesvc.sim import Family, make_scenario
+
+    with exit_on_error(ValueError):
+        sc = make_scenario(Family(family), seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "map.json").write_text(sc.map.model_dump_json())
+    (out_dir / "submap.json").write_text(sc.submap.model_dump_json())
+    (out_dir / "truth.json").write_text(json.dumps(sc.truth_dict(), indent=1))
+    typer.echo(
+        f"wrote {out_dir}/map.json ({len(sc.map.objects)} objects), submap.json "
+        f"({len(sc.submap.objects)} objects), truth.json"
+    )
+
+
+def schemas(
+    out_dir: Annotated[Path, typer.Argument(help="folder for the JSON Schema files")] = Path(
+        "schemas"
+    ),
+    check: Annotated[bool, typer.Option(help="fail if the files differ from the models")] = False,
+) -> None:
+    """Write (or --check) the JSON Schema files generated from the models."""
+    from mergesvc.core.model import json_schemas
+
+    stale = []
+    for name, schema in json_schemas().items():
+        text = json.dumps(schema, indent=2, sort_keys=True) + "\n"
+        path = out_dir / name
+        if check:
+            if not path.exists() or path.read_text() != text:
+                stale.append(name)
+        else:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+    if stale:
+        typer.echo(f"error: schemas out of date: {', '.join(stale)}", err=True)
+        raise typer.Exit(1)
+    typer.echo(f"schemas {'up to date' if check else 'written'} in {out_dir}")
+
+
+@codec_app.command("encode")
+def codec_encode(
+    in_path: Annotated[Path, typer.Argument(help="map or submap JSON (the match format)")],
+    out_path: Annotated[Path, typer.Argument(help="binary message to write")],
+    profile: Annotated[Profile, typer.Option(help="full, f16, int8 or compact")] = (
+        Profile.COMPACT
+    ),
+    projection: Annotated[
+        Path | None, typer.Option(help="fleet projection (.npz); compact fits one if absent")
+    ] = None,
+) -> None:
+    """Encode a map or submap file as one wire message; print bytes per object."""
+    from mergesvc.wire import encode_file
+
+    with exit_on_error(ValueError):
+        stats = encode_file(in_path, out_path, profile, projection=projection)
+    typer.echo(f"wrote {out_path}: {stats.n_bytes} bytes, {stats.n_objects} objects, "
+               f"{stats.bytes_per_object:.1f} bytes/object ({profile.value})"
+               + (f"; projection {stats.projection_path}" if stats.projection_path else ""))
+
+
+@codec_app.command("decode")
+def codec_decode(
+    in_path: Annotated[Path, typer.Argument(help="binary message")],
+    out_path: Annotated[Path, typer.Argument(help="JSON file to write (the match format)")],
+    projection: Annotated[Path | None, typer.Option(help="fleet projection (.npz)")] = None,
+) -> None:
+    """Decode a wire message back to the JSON file format `mergesvc match` reads."""
+    from mergesvc.wire import decode_file
+
+    with exit_on_error():
+        env, model = decode_file(in_path, out_path, projection=projection)
+    n = len(getattr(model, "objects", []) or [])
+    typer.echo(f"wrote {out_path}: {env.msg_type.value} from {env.sender}, {env.n_bytes} bytes"
+               + (f", {n} objects, {env.n_bytes / n:.1f} bytes/object" if n else ""))
+
+
+def _write_scenarios(out_dir: Path, run, cases) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "map.json").write_text(run.map.model_dump_json())
+    for name, sc in cases:
+        (out_dir / f"{name}.json").write_text(sc.submap.model_dump_json())
+        (out_dir / f"{name}.truth.json").write_text(json.dumps(sc.truth_dict(), indent=1))
+    typer.echo(
+        f"wrote {out_dir}/map.json ({len(run.map.objects)} objects) and {len(cases)} submaps "
+        f"with a .truth.json beside each; try: mergesvc match --map {out_dir}/map.json "
+        f"--submap {out_dir}/{cases[0][0]}.json" if cases else f"wrote {out_dir}/map.json"
+    )
+
+
+@scenario_app.command("underwater")
+def scenario_underwater(
+    out_dir: Annotated[Path, typer.Argument(help="folder for map.json and the submaps")],
+    run: Annotated[int, typer.Option(help="pool run 1, 2 or 3 (the paper's runs)")] = 1,
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    size: Annotated[list[int] | None, typer.Option(help="submap sizes (repeat)")] = None,
+    per_size: Annotated[int, typer.Option(help="submaps per size")] = 5,
+) -> None:
+    """A pool run through the tracker: the first half's map, submaps from the second half."""
+    from mergesvc.sim import underwater_run
+
+    if run not in (1, 2, 3) or per_size < 1 or any(k < 1 for k in size or []):
+        typer.echo("error: --run must be 1, 2 or 3; sizes and --per-size >= 1", err=True)
+        raise typer.Exit(2)
+    with exit_on_error():
+        r = underwater_run(run, seed)
+        cases = [(f"submap_n{k}_{j}", sc) for k in (size or [2, 3, 4, 5])
+                 for j, sc in enumerate(r.windows(k, per_size))]
+    _write_scenarios(out_dir, r, cases)
+
+
+@scenario_app.command("drive")
+def scenario_drive(
+    out_dir: Annotated[Path, typer.Argument(help="folder for map.json and the submaps")],
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    places: Annotated[int, typer.Option(help="loop-closure places")] = 4,
+    size: Annotated[int, typer.Option(help="objects per submap")] = 20,
+    trajectory: Annotated[
+        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
+    ] = None,
+) -> None:
+    """A KITTI-like drive through the tracker: the map, submaps at loop-closure places."""
+    from mergesvc.sim import drive_run
+
+    if trajectory is not None and not trajectory.is_file():
+        typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
+        raise typer.Exit(2)
+    with exit_on_error():
+        try:
+            r = drive_run(seed, trajectory)
+        except ValueError as exc:
+            typer.echo(f"error: cannot read trajectory {trajectory}: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        cases = [(f"place{j + 1}", sc) for j, sc in enumerate(r.places(places, size))]
+    _write_scenarios(out_dir, r, cases)
+
+
+@uncertainty_app.command("train")
+def uncertainty_train(
+    out: Annotated[Path, typer.Argument(help="weights file to write (.npz)")],
+    samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
+    seed: Annotated[int, typer.Option(help="world and optimiser seed")] = 0,
+    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+    config: Annotated[Path | None, typer.Option(help="UncertaintyConfig as JSON")] = None,
+) -> None:
+    """Train the head with the ranking loss on generated observations; report held-out
+    Spearman correlation of predicted and true error."""
+    import numpy as np
+
+    from mergesvc.sim import Family, image_s_dataset
+    from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
+
+    with exit_on_error(OSError, ValueError):
+        cfg = UncertaintyConfig.model_validate_json(config.read_text()) if config else None
+        fam = Family(family)
+    n_test = max(samples // 5, 100)
+    with exit_on_error():
+        y, loss, _ = image_s_dataset(samples + n_test, seed, fam)
+        head, _ = fit(
+            y[:samples], loss[:samples], cfg, np.random.default_rng(seed),
+            on_epoch=lambda e, m: typer.echo(
+                f"epoch {e}: " + ", ".join(f"{k} {v:.4f}" for k, v in m.items()), err=True),
+        )
+        head.save(out)
+    res = evaluate(head, y[samples:], loss[samples:])
+    typer.echo(f"wrote {out}; held-out ({n_test}): Spearman {res['spearman']:.3f}, "
+               f"Kendall {res['kendall']:.3f}, pairwise accuracy {res['accuracy']:.3f}")
+
+
+@uncertainty_app.command("eval")
+def uncertainty_eval(
+    weights: Annotated[Path, typer.Argument(help="weights file (.npz)")],
+    samples: Annotated[int, typer.Option(help="test observations")] = 5000,
+    seed: Annotated[int, typer.Option(help="world seed the head was trained for")] = 0,
+    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+) -> None:
+    """Spearman / Kendall / pairwise accuracy of a trained head on fresh observations."""
+    from mergesvc.sim import Family, image_s_dataset
+    from mergesvc.sim.uncertainty import UncertaintyHead, evaluate
+
+    with exit_on_error(ValueError):
+        head = UncertaintyHead.load(weights)
+        # fresh objects of the same world: a new draw, not the training one
+        y, loss, _ = image_s_dataset(samples, seed, Family(family))
+        res = evaluate(head, y, loss)
+    typer.echo(json.dumps(res))

@@ -1,0 +1,225 @@
+"""Commands that run the fleet: `serve` (the merge service), `agent` (a vehicle), `demo`
+(both, as processes on loopback), `link sim|bridge` (the acoustic link)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mergesvc.cli.errors import exit_on_error
+from mergesvc.cli.options import (
+    DEFAULT_ENDPOINT,
+    Connect,
+    LinkKind,
+    Listen,
+    Mode,
+    ZenohConfigFile,
+    ZenohMode,
+    zenoh_config,
+    zenoh_connect,
+    zenoh_mode,
+)
+from mergesvc.core.config import load_config
+from mergesvc.wire import Profile
+
+link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
+
+# the Zenoh flags with the help texts these commands have always shown
+ConnectTo = zenoh_connect("zenoh endpoint(s) to connect")
+AgentMode = zenoh_mode("zenoh mode")
+BridgeMode = zenoh_mode("zenoh mode: peer or client")
+
+
+def serve(
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    store: Annotated[Path, typer.Option(help="SQLite file (WAL mode)")] = Path("mergesvc.db"),
+    mode: Mode = ZenohMode.ROUTER,
+    listen: Listen = None,
+    connect: ConnectTo = None,
+    config: ZenohConfigFile = None,
+    projection: Annotated[
+        list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
+    ] = None,
+    settings: Annotated[Path | None, typer.Option(help="matching settings JSON")] = None,
+    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+) -> None:
+    """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default."""
+    import signal
+    import threading
+
+    import zenoh
+
+    from mergesvc.fleet.service import MergeService, ServiceConfig
+    from mergesvc.wire import Projection
+
+    if mode is ZenohMode.ROUTER and not listen and not config:
+        listen = [DEFAULT_ENDPOINT]
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with exit_on_error(ValueError, OSError):
+        cfg = ServiceConfig(fleet=fleet, store=str(store))
+        if settings is not None:
+            cfg = cfg.model_copy(update={"match": load_config(settings)})
+        zconf = zenoh_config(mode, connect, listen, config)
+        projections = [Projection.load(p) for p in projection or []]
+        with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc:
+            typer.echo(f"merge service for fleet {fleet} on {listen or connect}, store {store}")
+            start = time.monotonic()
+            while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
+                stop.wait(0.2)
+            typer.echo(json.dumps(svc.status()["submaps"]))
+
+
+def agent(
+    robot: Annotated[str, typer.Option(help="this vehicle's name")],
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    session_id: Annotated[str, typer.Option("--session", help="this session's name")] = "s0",
+    seed: Annotated[int, typer.Option(help="fleet world seed (scenario input)")] = 0,
+    laps: Annotated[int, typer.Option(help="laps of the robot's pattern")] = 2,
+    objects: Annotated[int, typer.Option(help="objects in the pool")] = 24,
+    log_file: Annotated[
+        Path | None, typer.Option("--log", help="replay a recorded observation log instead")
+    ] = None,
+    profile: Annotated[Profile, typer.Option(help="codec: full, f16, int8 or compact")] = (
+        Profile.INT8
+    ),
+    projection: Annotated[Path | None, typer.Option(help="fleet projection (compact)")] = None,
+    time_scale: Annotated[float, typer.Option(help="wall s per simulated s; 0: no pacing")] = 0.0,
+    acoustic: Annotated[bool, typer.Option(help="publish on the acoustic vehicle side")] = False,
+    mode: AgentMode = ZenohMode.CLIENT,
+    connect: Connect = None,
+    config: ZenohConfigFile = None,
+    linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
+) -> None:
+    """A vehicle: local map (tracker + ISAM2), submaps out, factors in."""
+    from mergesvc.fleet.agent import AgentRun, run_agent
+
+    if profile is Profile.COMPACT and projection is None:
+        raise typer.BadParameter("--profile compact needs --projection")
+    run = AgentRun(
+        robot=robot, fleet=fleet, session=session_id, seed=seed, laps=laps, objects=objects,
+        log_file=log_file, profile=profile, projection=projection, time_scale=time_scale,
+        acoustic=acoustic, linger_s=linger,
+    )
+    with exit_on_error(ValueError, OSError):
+        zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,))
+        stats = run_agent(run, zconf)
+    typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
+                           "submaps_sent": stats.submaps_sent,
+                           "bytes_sent": stats.bytes_sent,
+                           "factors_received": stats.factors_received}))
+
+
+def demo(
+    out: Annotated[Path, typer.Option(help="folder for logs, summary and the figure")] = Path(
+        "results/demo"
+    ),
+    quick: Annotated[bool, typer.Option(help="a smaller mission (under 30 s)")] = False,
+    link: Annotated[LinkKind, typer.Option(help="zenoh, or acoustic (simulated modem)")] = (
+        LinkKind.ZENOH
+    ),
+    seed: Annotated[int, typer.Option(help="mission seed")] = 0,
+    profile: Annotated[Profile, typer.Option(help="codec profile of the submaps")] = (
+        Profile.COMPACT
+    ),
+) -> None:
+    """Service + 3 vehicles as processes on loopback; summary against the ground truth."""
+    from mergesvc.fleet.demo import DemoPlan, run_demo
+
+    plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile)
+    with exit_on_error():
+        res = run_demo(plan, out, echo=typer.echo)
+    s = res.summary
+    if s:
+        typer.echo(f"submaps sent {s['submaps_sent']} ({s['bytes_on_wire']} bytes, "
+                   f"{s['bytes_per_submap']:.0f} per submap); processed {s['submaps_processed']}")
+        typer.echo(f"factors accepted {s['factors_accepted']}, retracted "
+                   f"{s['factors_retracted']}; correspondences right {s['correspondences_right']},"
+                   f" wrong {s['correspondences_wrong']} (precision "
+                   f"{s['precision'] if s['precision'] is None else round(s['precision'], 3)})")
+        for r, a in s["alignment"].items():
+            after = ("not aligned" if a["after_m"] is None else
+                     f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
+            typer.echo(f"  {r} frame in {s['anchor']}: before {a['before_m']:.2f} m / "
+                       f"{a['before_deg']:.1f} deg, after {after}")
+        typer.echo(f"service latency per submap ms: {s['latency_ms']}; figure {s['figure']}; "
+                   f"{s['elapsed_s']} s")
+    for f in res.failures:
+        typer.echo(f"FAILED: {f}", err=True)
+    if not res.ok:
+        raise typer.Exit(1)
+
+
+@link_app.command("sim")
+def link_sim(
+    rate: Annotated[list[int] | None, typer.Option(help="modem rate 1, 3 or 5 (repeat)")] = None,
+    snr_db: Annotated[list[float] | None, typer.Option(help="SNR in dB (repeat)")] = None,
+    bytes_per_submap: Annotated[int, typer.Option(help="uplink message size")] = 1024,
+    period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
+    duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
+    seed: Annotated[int, typer.Option(help="channel seed")] = 0,
+) -> None:
+    """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting)."""
+    from mergesvc.link import ModemRate, Workload, format_sweep_table, sweep_link
+
+    with exit_on_error(ValueError):
+        rates = tuple(ModemRate(r) for r in (rate or [1, 3, 5]))
+    wl = Workload(uplink_bytes=bytes_per_submap, period_s=period_s, duration_s=duration_s)
+    with exit_on_error():
+        rows = sweep_link(rates, snr_db or None, workload=wl, seed=seed)
+    typer.echo(format_sweep_table(rows))
+
+
+@link_app.command("bridge")
+def link_bridge(
+    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    rate: Annotated[int, typer.Option(help="modem rate 1, 3 or 5")] = 5,
+    snr_db: Annotated[float, typer.Option(help="mean SNR in dB")] = 6.0,
+    time_scale: Annotated[float, typer.Option(help="simulated s per wall s, inverted")] = 1.0,
+    vehicles: Annotated[list[str] | None, typer.Option(help="vehicle names (repeat)")] = None,
+    mode: BridgeMode = ZenohMode.CLIENT,
+    connect: Connect = None,
+    listen: Listen = None,
+    config: ZenohConfigFile = None,
+    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+) -> None:
+    """Bridge the vehicle side of the key space to the topside through the simulated modem."""
+    from mergesvc.link import (
+        AcousticBridge,
+        ArqConfig,
+        ChannelConfig,
+        LinkConfig,
+        ModemRate,
+        SnrModel,
+        TdmaConfig,
+    )
+    from mergesvc.wire.keys import fleet_root, uw_root
+
+    names = vehicles or ["auv1", "auv2", "auv3"]
+    with exit_on_error(ValueError):
+        cfg = LinkConfig(
+            channel=ChannelConfig(rate=ModemRate(rate), snr=SnrModel(mean_db=snr_db)),
+            tdma=TdmaConfig(slot_order=["topside", *names]),
+            # the topside sends every factor to both robots: room for a burst of them
+            arq=ArqConfig(max_queue_messages=64),
+        )
+        # scouting stays on here even with a --config file (unlike serve and agent)
+        zconf = zenoh_config(mode, connect, listen, config,
+                             default_connect=(DEFAULT_ENDPOINT,), scouting=True)
+        with AcousticBridge(cfg, uw_prefix=uw_root(fleet), top_prefix=fleet_root(fleet),
+                            zenoh_config=zconf, time_scale=time_scale) as bridge:
+            typer.echo(f"bridging {uw_root(fleet)}/** <-> {fleet_root(fleet)}/** "
+                       f"(rate {rate}, {snr_db} dB, time scale {time_scale})")
+            start = time.monotonic()
+            try:
+                while seconds is None or time.monotonic() - start < seconds:
+                    time.sleep(0.2)
+            except KeyboardInterrupt:
+                pass
+            typer.echo(json.dumps(dataclasses.asdict(bridge.stats()), default=str))

@@ -1,0 +1,94 @@
+"""Recorded observation logs: a vehicle's perception output as JSON Lines (the format below),
+written from simulated frames and read back, validated, as `Frame`s for `mergesvc agent --log`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mergesvc.core.tracking import Detection, Frame
+
+# ------------------------------------------------------------------- recorded observation logs
+#
+# A real vehicle's perception output, replayed by `mergesvc agent --log FILE`. JSON Lines, one
+# frame per line:
+#   {"stamp_s": 12.0,
+#    "pose": {"translation": [x, y, z], "quaternion_wxyz": [w, x, y, z]},   odometry estimate
+#    "detections": [{"embedding": [d floats], "uncertainty": s,             image uncertainty
+#                    "position_body_m": [x, y, z], "position_sigma_m": 0.3}, ...]}
+# The pose is the vehicle's own estimate in its odometry frame; detection positions are relative
+# to the vehicle (body frame) with an isotropic standard deviation.
+
+
+def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path | str) -> int:
+    """Write frames as an observation log (the format above); returns the frame count."""
+    n = 0
+    with open(path, "w") as fh:
+        for fr in frames:
+            T = fr.T_est
+            q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
+            T_inv = np.linalg.inv(T)
+            dets = []
+            for d in fr.detections:
+                body = T_inv[:3, :3] @ d.position_xyz_m + T_inv[:3, 3]
+                dets.append({
+                    "embedding": d.embedding_d.tolist(),
+                    "uncertainty": float(np.mean(d.uncertainty_s)),
+                    "position_body_m": body.tolist(),
+                    "position_sigma_m": float(np.sqrt(np.trace(d.position_cov_33) / 3.0)),
+                })
+            fh.write(json.dumps({
+                "stamp_s": fr.stamp_s,
+                "pose": {"translation": T[:3, 3].tolist(),
+                         "quaternion_wxyz": [q[3], q[0], q[1], q[2]]},
+                "detections": dets,
+            }) + "\n")
+            n += 1
+    return n
+
+
+def read_observation_log(path: Path | str) -> Iterator[Frame]:
+    """Frames of an observation log, validated line by line (InputError names the line)."""
+    from mergesvc.errors import DecodeError, SchemaError
+
+    with open(path) as fh:
+        for k, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+                t = np.asarray(rec["pose"]["translation"], dtype=np.float64)
+                w, x, y, z = rec["pose"]["quaternion_wxyz"]
+                if t.shape != (3,) or not np.all(np.isfinite(t)):
+                    raise ValueError("pose.translation must be 3 finite numbers")
+                T = np.eye(4)
+                T[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
+                T[:3, 3] = t
+                stamp = float(rec["stamp_s"])
+                dets = []
+                for d in rec.get("detections", []):
+                    body = np.asarray(d["position_body_m"], dtype=np.float64)
+                    if body.shape != (3,):
+                        raise ValueError("position_body_m must be 3 numbers")
+                    sigma = float(d["position_sigma_m"])
+                    if not sigma > 0:
+                        raise ValueError("position_sigma_m must be > 0")
+                    p = T[:3, :3] @ body + T[:3, 3]
+                    cov = T[:3, :3] @ np.eye(3) * sigma**2 @ T[:3, :3].T
+                    dets.append(Detection(np.asarray(d["embedding"], dtype=np.float64),
+                                          float(d["uncertainty"]), p, cov, stamp))
+            except json.JSONDecodeError as exc:
+                raise DecodeError(f"{path}:{k}: not JSON: {exc.msg}") from exc
+            except (KeyError, TypeError, ValueError) as exc:
+                raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
+            except Exception as exc:  # tracking.py's InputError for bad values
+                raise SchemaError(f"{path}:{k}: {exc}") from exc
+            yield Frame(k - 1, stamp, T, T, dets)
+
+
+__all__ = ["read_observation_log", "write_observation_log"]

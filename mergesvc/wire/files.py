@@ -1,0 +1,196 @@
+"""Message files: encode_file (a model JSON file -> one message file) and decode_file.
+
+A compact map encoded without a projection gets one fitted on its own embeddings, saved
+beside the output as `projection-<id>.npz` (PROJECTION_FILE), where decode_file finds it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from pydantic import BaseModel
+
+from mergesvc.core.model import (
+    MAX_FILE_BYTES,
+    ErrorMessage,
+    Factor,
+    ObjectMap,
+    Submap,
+    parse_model,
+)
+from mergesvc.errors import DecodeError, InputError, SchemaError
+from mergesvc.wire.envelope import (
+    AnyMessage,
+    decode_message,
+    encode_message,
+    message_type_of,
+    parse_profile,
+    peek_projection_id,
+)
+from mergesvc.wire.fields import one_line, validate_model
+from mergesvc.wire.profiles import (
+    DEFAULT_LIMITS,
+    CodecLimits,
+    CodecSettings,
+    Envelope,
+    MessageType,
+    Profile,
+)
+from mergesvc.wire.projection import Projection
+
+log = logging.getLogger(__name__)
+
+PROJECTION_FILE = "projection-{id}.npz"  # name of a fitted projection saved by encode_file
+
+
+@dataclass(frozen=True)
+class EncodeStats:
+    msg_type: MessageType
+    profile: Profile
+    n_bytes: int
+    n_objects: int
+    bytes_per_object: float
+    projection_id: str | None = None
+    projection_path: Path | None = None  # a projection fitted and saved by encode_file
+
+
+def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
+    """Read a map or submap JSON file (the `match` command's inputs)."""
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SchemaError(f"{p}: {size} bytes is larger than the limit {MAX_FILE_BYTES}")
+        data = p.read_bytes()
+    except OSError as exc:
+        raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    return parse_model(model, data, what=str(p))
+
+
+def _read_json_model(path: Path) -> AnyMessage:
+    try:
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise SchemaError(f"{path}: larger than {MAX_FILE_BYTES} bytes")
+        raw = json.loads(path.read_bytes())
+    except OSError as exc:
+        raise DecodeError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DecodeError(f"{path} is not valid JSON: {one_line(exc)}") from exc
+    if not isinstance(raw, dict):
+        raise SchemaError(f"invalid {path}: expected a JSON object")
+    if "objects" in raw:
+        model: type[BaseModel] = Submap if ("seq" in raw or "stamp" in raw) else ObjectMap
+    elif "factor_id" in raw:
+        model = Factor
+    elif "code" in raw:
+        model = ErrorMessage
+    else:
+        raise SchemaError(f"invalid {path}: not a map, submap, factor or error message")
+    return validate_model(model, raw, str(path))
+
+
+def _projection_arg(projection: Projection | Path | str | None) -> Projection | None:
+    if projection is None or isinstance(projection, Projection):
+        return projection
+    return Projection.load(projection)
+
+
+def encode_file(
+    in_json_path: Path | str,
+    out_bin_path: Path | str,
+    profile: Profile | str,
+    projection: Projection | Path | str | None = None,
+    *,
+    sender: str | None = None,
+    seq: int | None = None,
+    settings: CodecSettings | None = None,
+) -> EncodeStats:
+    """Encode a map / submap / factor JSON file into one message file.
+
+    A JSON object with `objects` is a submap if it has `seq` or `stamp`, else a map. sender
+    defaults to the robot id (robot_a for factors), seq to the submap's seq (else 0).
+    For `compact` maps without a projection, one is fitted on the file's own embeddings and
+    saved beside the output as `projection-<id>.npz`, where decode_file finds it.
+    """
+    out = Path(out_bin_path)
+    profile = parse_profile(profile)
+    model = _read_json_model(Path(in_json_path))
+    proj = _projection_arg(projection)
+    saved = None
+    if isinstance(model, ObjectMap) and profile is Profile.COMPACT and proj is None:
+        proj = Projection.fit(model.arrays().embeddings_nd)
+        saved = proj.save(out.parent / PROJECTION_FILE.format(id=proj.id))
+        log.info("fitted projection %s (k=%d) saved to %s", proj.id, proj.k, saved)
+    if sender is None:
+        sender = model.robot_a if isinstance(model, Factor) else getattr(model, "robot_id", "")
+        sender = sender or "unknown"
+    if seq is None:
+        seq = getattr(model, "seq", None) or 0
+    data = encode_message(model, profile, sender, seq, projection=proj, settings=settings)
+    try:
+        out.write_bytes(data)
+    except OSError as exc:
+        raise InputError(f"cannot write {out}: {exc.strerror or exc}") from exc
+    is_map = isinstance(model, ObjectMap)
+    n = len(model.objects) if is_map else 0
+    used_proj = proj if is_map and profile is Profile.COMPACT else None
+    exact = not is_map and not (isinstance(model, Factor) and profile is Profile.COMPACT)
+    return EncodeStats(
+        msg_type=message_type_of(model),
+        profile=Profile.FULL if exact else profile,
+        n_bytes=len(data),
+        n_objects=n,
+        bytes_per_object=len(data) / n if n else float(len(data)),
+        projection_id=used_proj.id if used_proj else None,
+        projection_path=saved,
+    )
+
+
+def decode_file(
+    in_bin_path: Path | str,
+    out_json_path: Path | str,
+    projection: Projection | Path | str | None = None,
+    *,
+    limits: CodecLimits = DEFAULT_LIMITS,
+) -> tuple[Envelope, AnyMessage]:
+    """Decode one message file and write the model as JSON (loadable with load_model).
+
+    A compact map needs its projection: the one given, else `projection-<id>.npz` beside
+    the input."""
+    src = Path(in_bin_path)
+    try:
+        if src.stat().st_size > limits.max_message_bytes:
+            raise DecodeError(f"{src}: larger than {limits.max_message_bytes} bytes")
+        data = src.read_bytes()
+    except OSError as exc:
+        raise DecodeError(f"cannot read {src}: {exc.strerror or exc}") from exc
+    proj = _projection_arg(projection)
+    if proj is None:
+        pid = peek_projection_id(data, limits)
+        if pid is not None:
+            beside = src.parent / PROJECTION_FILE.format(id=pid)
+            if not beside.exists():
+                raise DecodeError(
+                    f"{src} was coded with projection {pid}: {beside} not found; "
+                    "pass --projection FILE"
+                )
+            proj = Projection.load(beside)
+    envelope, model = decode_message(data, proj, limits)
+    out = Path(out_json_path)
+    try:
+        out.write_text(model.model_dump_json())
+    except OSError as exc:
+        raise InputError(f"cannot write {out}: {exc.strerror or exc}") from exc
+    return envelope, model
+
+
+__all__ = [
+    "PROJECTION_FILE",
+    "EncodeStats",
+    "decode_file",
+    "encode_file",
+    "load_model",
+]
