@@ -11,11 +11,14 @@ The package is layered along the data flow; each layer imports only the ones bel
     sim       seeded worlds with ground truth, vehicle runs, fleets, logs          (core)
     fleet     the processes: merge service, vehicle agent, store, demo      (all of the above)
     bench     `mergesvc bench ...`                                  (core, wire, link, sim)
+    settings  one settings tree over every layer's config: file, MERGESVC_* environment, flags
     cli       `mergesvc ...`, on top of everything; nothing imports it
 
 The names below are the public API for Python users: `mergesvc.match(map, submap)`, the file
 and message models, and the codec's entry points.
 """
+
+import logging
 
 from mergesvc.core.config import MatchConfig, MatchMode, NodeAffinity, SolverName
 from mergesvc.core.model import (
@@ -57,6 +60,10 @@ from mergesvc.wire import (
 )
 
 __version__ = "0.1.0"
+
+# A library does not configure logging: its records go nowhere until the application (the CLI
+# here, or a user's program) adds a handler.
+logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 __all__ = [
     "CODEC_VERSION",

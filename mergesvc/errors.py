@@ -11,9 +11,21 @@
      └── StoreError        persistence failed (database unreadable, disk full)
 
 "No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
+Error text meant for one line (a log line, a wrapped error, stderr) goes through `one_line`
+(every layer's one copy).
 """
 
 from __future__ import annotations
+
+
+def one_line(exc: BaseException | str) -> str:
+    """An error's text on one line: the first line of its text once blank space around the
+    whole text is removed. An exception without text gives its type's name ("KeyError"); an
+    empty string gives ""."""
+    text = str(exc).strip()
+    if not text:
+        return "" if isinstance(exc, str) else type(exc).__name__
+    return text.splitlines()[0]
 
 
 class MergeError(Exception):
@@ -62,4 +74,5 @@ __all__ = [
     "SchemaError",
     "SolverError",
     "StoreError",
+    "one_line",
 ]

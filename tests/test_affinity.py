@@ -9,16 +9,21 @@ from scipy.stats import multivariate_normal, multivariate_t
 import mergesvc.core.affinity as affinity_mod
 from mergesvc.core.affinity import (
     SameObjectModel,
+    candidate_K,
     distance_to_similarity,
     edge_affinity,
+    edge_pair_weight,
+    edge_scales,
     fit_same_object_model,
     log_likelihood_ratio,
     log_likelihood_ratio_pairs,
     node_affinity,
     node_distance,
+    paper_K,
+    paper_node_affinity,
     weighted_cosine,
 )
-from mergesvc.core.config import NodeAffinity
+from mergesvc.core.config import AffinityConfig, NodeAffinity
 from mergesvc.core.geometry import median_spacing, pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
 
@@ -339,3 +344,112 @@ def test_likelihood_ratio_of_pairs_equals_the_dense_matrix(
         log_likelihood_ratio_pairs(a, b, model, rows, cols), dense[rows, cols], rtol=1e-9,
         atol=1e-9,
     )
+
+
+# --------------------------------------------------------------------------- K
+
+
+def _tiny_candidates(rng: np.random.Generator, n1: int, n2: int, per_row: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate pairs of a tiny example: per_row distinct map nodes per submap node (map
+    nodes shared between rows), a score in (0, 1) each."""
+    rows = np.repeat(np.arange(n1), per_row)
+    map_nodes = np.concatenate([rng.choice(n2, size=per_row, replace=False) for _ in range(n1)])
+    return rows, map_nodes, rng.uniform(0.05, 1.0, size=len(rows))
+
+
+@pytest.mark.parametrize("conflict_sigmas", [None, 1.5])
+def test_candidate_K_matches_double_loop_reference(conflict_sigmas: float | None) -> None:
+    rng = np.random.default_rng(21)
+    n1, n2 = 4, 7
+    sub, map_ = _objs(rng, n1, 3), _objs(rng, n2, 3)
+    rows, map_nodes, score = _tiny_candidates(rng, n1, n2, per_row=3)
+    aff = AffinityConfig(edge_rel_tol=0.1, edge_weight=0.7, edge_threshold=0.25,
+                         node_threshold=0.4)
+    sigma_m = 1.3
+    signed, positive, local = candidate_K(
+        sub, map_, rows, map_nodes, score, aff, sigma_m, conflict_sigmas
+    )
+
+    # reference: one entry at a time, straight from the formulas
+    m = len(rows)
+    w = aff.edge_weight / (n1 - 1) / 2.0
+    K_pos, K_signed = np.zeros((m, m)), np.zeros((m, m))
+    conflict = np.zeros((m, m), dtype=bool)
+    for p in range(m):
+        for q in range(m):
+            i, a, j, b = rows[p], map_nodes[p], rows[q], map_nodes[q]
+            if p == q:
+                K_pos[p, p] = score[p]
+                K_signed[p, p] = score[p] - aff.node_threshold
+                continue
+            if i == j or a == b:
+                continue  # never both chosen: no entry
+            e_ij = np.linalg.norm(sub.position_xyz_m[i] - sub.position_xyz_m[j])
+            e_ab = np.linalg.norm(map_.position_xyz_m[a] - map_.position_xyz_m[b])
+            tol2 = sigma_m**2 + (aff.edge_rel_tol * e_ij) ** 2
+            a_e = np.exp(-((e_ij - e_ab) ** 2) / (2.0 * tol2))
+            K_pos[p, q] = w * a_e
+            K_signed[p, q] = w * (a_e - aff.edge_threshold)
+            if conflict_sigmas is not None:
+                conflict[p, q] = abs(e_ij - e_ab) > conflict_sigmas * np.sqrt(tol2)
+
+    np.testing.assert_array_equal(local, np.unique(map_nodes))
+    for problem in (signed, positive):
+        assert (problem.n1, problem.n2) == (n1, len(local))
+        np.testing.assert_array_equal(problem.rows, rows)
+        np.testing.assert_array_equal(local[problem.cols], map_nodes)
+    np.testing.assert_allclose(positive.K, K_pos, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(signed.K, K_signed, rtol=1e-12, atol=1e-15)
+    assert positive.conflict is None
+    if conflict_sigmas is None:
+        assert signed.conflict is None
+    else:
+        assert conflict.any() and not conflict.all()  # the example exercises both outcomes
+        np.testing.assert_array_equal(signed.conflict, conflict)
+    assert w == edge_pair_weight(n1, aff)
+
+
+def test_edge_scales_from_spacing_unless_set() -> None:
+    rng = np.random.default_rng(22)
+    map_ = _objs(rng, 9, 3)
+    spacing = median_spacing(map_.position_xyz_m)
+    assert edge_scales(map_, AffinityConfig(spacing_sigma=0.2)) == pytest.approx(
+        (0.2 * spacing, 3.0 * spacing), rel=1e-12
+    )
+    assert edge_scales(map_, AffinityConfig(edge_sigma_m=0.5, edge_radius_m=4.0)) == (0.5, 4.0)
+
+
+def test_paper_K_matches_double_loop_reference() -> None:
+    rng = np.random.default_rng(23)
+    n1, n2, sigma_m = 3, 4, 0.9
+    sub, map_ = _objs(rng, n1, 3), _objs(rng, n2, 3)
+    A = rng.random((n1, n2))
+    K = paper_K(A, sub, map_, sigma_m, radius_m=1e6)  # every pair within the radius
+    ref = np.zeros((n1 * n2, n1 * n2))  # pygmtools' column-major index a * n1 + i
+    for i in range(n1):
+        for a in range(n2):
+            for j in range(n1):
+                for b in range(n2):
+                    if (i, a) == (j, b):
+                        ref[a * n1 + i, a * n1 + i] = A[i, a]
+                    elif i != j and a != b:
+                        e_ij = np.linalg.norm(sub.position_xyz_m[i] - sub.position_xyz_m[j])
+                        e_ab = np.linalg.norm(map_.position_xyz_m[a] - map_.position_xyz_m[b])
+                        ref[a * n1 + i, b * n1 + j] = np.exp(-((e_ij - e_ab) ** 2)
+                                                             / (2.0 * sigma_m**2))
+    np.testing.assert_allclose(K, ref, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("kind", list(NodeAffinity))
+def test_paper_node_affinity(kind: NodeAffinity) -> None:
+    rng = np.random.default_rng(24)
+    sub, map_ = _objs(rng, 3, 5), _objs(rng, 6, 5)
+    A = paper_node_affinity(sub, map_, AffinityConfig(kind=kind))
+    if kind is NodeAffinity.UCOS:
+        np.testing.assert_array_equal(A, node_affinity(kind, sub, map_))
+        return
+    D = node_distance(kind, sub, map_)
+    np.testing.assert_array_equal(A, distance_to_similarity(D, float(np.median(D))))
+    raw = paper_node_affinity(sub, map_, AffinityConfig(kind=kind, raw_distances=True))
+    np.testing.assert_array_equal(raw, D)  # the authors' code: the distance as the affinity

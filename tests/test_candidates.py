@@ -15,7 +15,7 @@ from mergesvc.bench import (
 )
 from mergesvc.core.affinity import fit_same_object_model, unit_rows
 from mergesvc.core.candidates import pair_scores, retrieve
-from mergesvc.core.config import NodeAffinity, load_config
+from mergesvc.core.config import NodeAffinity, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, Scenario, make_scenario
 
@@ -32,7 +32,7 @@ def test_retrieve_ranks_true_matches_and_pair_scores_agree(
     kind: NodeAffinity, kitti_scenario: Scenario
 ) -> None:
     sc = kitti_scenario
-    cfg = load_config(affinity={"kind": kind.value})
+    cfg = match_config(affinity={"kind": kind.value})
     m, s = sc.map.arrays(), sc.submap.arrays()
     cands, calib = retrieve(s, m, cfg.candidates, cfg.affinity, np.random.default_rng(0))
     assert np.all(cands.score > 0) and np.all(cands.score <= 1.0)
@@ -55,7 +55,7 @@ def test_likelihood_ratio_per_dimension_variances(kitti_scenario: Scenario) -> N
     m, s = sc.map.arrays(), sc.submap.arrays()
     m = replace(m, variances_nd=m.variances_nd * rng.uniform(0.3, 3.0, m.variances_nd.shape))
     s = replace(s, variances_nd=s.variances_nd * rng.uniform(0.3, 3.0, s.variances_nd.shape))
-    cfg = load_config(affinity={"kind": "likelihood_ratio"}, candidates={"prefilter": 64})
+    cfg = match_config(affinity={"kind": "likelihood_ratio"}, candidates={"prefilter": 64})
     cands, calib = retrieve(s, m, cfg.candidates, cfg.affinity, np.random.default_rng(0))
     aff, score = pair_scores(s, m, cands.rows, cands.map_nodes, calib)
     np.testing.assert_allclose(aff, cands.affinity, rtol=1e-9, atol=1e-9)
@@ -74,7 +74,7 @@ def test_likelihood_ratio_model_from_the_cosine_shortlist_equals_its_own_search(
     sample = np.sort(np.random.default_rng(0).choice(m.n, 128, replace=False))
     assert fit_same_object_model(s, m, True, sample, nearest) == fit_same_object_model(
         s, m, True, sample)
-    cfg = load_config(affinity={"kind": "likelihood_ratio"}, candidates={"prefilter": 64})
+    cfg = match_config(affinity={"kind": "likelihood_ratio"}, candidates={"prefilter": 64})
     cands, calib = retrieve(s, m, cfg.candidates, cfg.affinity, np.random.default_rng(0))
     assert calib.same_object is not None and cands.m > 0
 
@@ -82,7 +82,7 @@ def test_likelihood_ratio_model_from_the_cosine_shortlist_equals_its_own_search(
 @pytest.mark.parametrize("mode", ["verified", "paper"])
 def test_likelihood_ratio_end_to_end(mode: str, small_kitti_scenario: Scenario) -> None:
     sc = small_kitti_scenario
-    cfg = load_config(mode=mode, affinity={"kind": "likelihood_ratio"})
+    cfg = match_config(mode=mode, affinity={"kind": "likelihood_ratio"})
     out = match(sc.map, sc.submap, cfg)
     accuracy = score_case(sc, out)["accuracy"]
     if mode == "verified":

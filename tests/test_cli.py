@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,8 +15,12 @@ from mergesvc.sim import Family, make_scenario
 CLI = [sys.executable, "-m", "mergesvc.cli"]
 
 
-def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=300)
+def run(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """The command in a process of its own; a developer's MERGESVC_* settings left out (`env`
+    adds variables)."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=300,
+                          env=clean | (env or {}))
 
 
 @pytest.fixture(scope="module")
@@ -229,3 +234,63 @@ def test_codec_encode_decode_feeds_match(files: Path, tmp_path: Path) -> None:
     (tmp_path / "bad.bin").write_bytes(b"\x93garbage")
     bad = run("codec", "decode", str(tmp_path / "bad.bin"), str(tmp_path / "x.json"))
     assert bad.returncode == 2 and bad.stderr.startswith("error:") and "Traceback" not in bad.stderr
+
+
+def test_settings_file_env_and_flags_on_match(files: Path, tmp_path: Path) -> None:
+    """--settings, MERGESVC_* and the flags, last one winning; the old `--config` still works,
+    with a one-line warning."""
+    args = ["match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
+            "--json"]
+    bare = tmp_path / "bare.json"  # a MatchConfig object, as `--config` always read
+    bare.write_text(json.dumps({"mode": "paper"}))
+    tree = tmp_path / "tree.json"
+    tree.write_text(json.dumps({"match": {"mode": "paper"}}))
+    plain = json.loads(run(*args).stdout)
+    assert plain["reason"] == "verified"
+    for f in (bare, tree):
+        r = run(*args, "--settings", str(f))
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+        assert json.loads(r.stdout)["reason"] == "not_verified"  # paper mode
+        assert json.loads(run(*args, "--settings", str(f), "--mode", "verified").stdout)[
+            "reason"] == "verified"
+        r = run(*args, "--settings", str(f), env={"MERGESVC_MATCH__MODE": "verified"})
+        assert json.loads(r.stdout)["reason"] == "verified"
+    old = run(*args, "--config", str(bare))
+    assert old.returncode == 0 and json.loads(old.stdout)["reason"] == "not_verified"
+    assert len(old.stderr.strip().splitlines()) == 1 and "deprecated" in old.stderr
+    assert run(*args, "--config", str(bare), "--settings", str(tree)).returncode == 2
+    r = run(*args, env={"MERGESVC_CANDIDATES__TOPK": "3"})  # a typo is an error, not ignored
+    assert r.returncode == 1 and "MERGESVC_CANDIDATES__TOPK" in r.stderr and r.stdout == ""
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"candidates": {"top_k": 0}}))
+    r = run(*args, "--settings", str(bad))
+    assert r.returncode == 1 and r.stderr.startswith("error: invalid config: candidates.top_k")
+
+
+def test_config_dump_prints_the_resolved_tree(tmp_path: Path) -> None:
+    r = run("config", "--dump")
+    assert r.returncode == 0, r.stderr
+    tree = json.loads(r.stdout)
+    assert {"match", "service", "agent", "codec", "link", "workload", "uncertainty"} == set(tree)
+    assert tree["service"]["match"]["verify"]["min_matches"] == 4
+    r = run("config", "--dump", "--section", "match.solver",
+            env={"MERGESVC_MATCH__SOLVER__NAME": "sm"})
+    assert json.loads(r.stdout)["name"] == "sm"
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"service": {"fleet": "f9"}}))
+    assert json.loads(run("config", "--dump", "--settings", str(f), "--section",
+                          "service.fleet").stdout) == "f9"
+    assert run("config", "--dump", "--section", "nope").returncode == 2
+    assert run("config").returncode == 2
+
+
+def test_zenoh_config_and_settings_are_two_flags() -> None:
+    """--config is the Zenoh file wherever a session is opened; --settings the settings tree."""
+    wide = {"COLUMNS": "240"}  # one option per line in the help
+    for cmd in (["serve"], ["agent"], ["link", "bridge"]):
+        text = run(*cmd, "--help", env=wide).stdout
+        assert "--config" in text and "zenoh JSON5 config file" in text
+    for cmd in (["serve"], ["agent"], ["demo"], ["match"], ["bench", "match"], ["config"],
+                ["link", "sim"], ["codec", "encode"], ["uncertainty", "train"]):
+        assert "--settings" in run(*cmd, "--help", env=wide).stdout, cmd
+    assert "--config" not in run("match", "--help", env=wide).stdout  # the alias is hidden

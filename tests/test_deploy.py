@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
-import socket
 import subprocess
-import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -20,6 +18,7 @@ from typing import Any
 import pytest
 import zenoh
 import zenoh.ext as zext
+from helpers import Inbox, free_port, quiet, set_json, wait_for, zenoh_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -29,11 +28,15 @@ COMPOSE_ACOUSTIC = DEPLOY / "compose.acoustic.yml"
 CONFIGS = sorted(DEPLOY.glob("*.json5"))
 ACL_NAMES = {"auv1": "auv1", "auv2": "auv2", "service": "mergesvc", "bridge": "bridge"}
 
-# Bounded waits: a sample that should arrive gets up to ARRIVE_S; one that must not arrive is
-# given QUIET_S after a later sample of the same session has arrived (same link, FIFO).
+# Bounded waits: a sample that should arrive gets up to ARRIVE_S. That one must not arrive is
+# never shown by a pause: a permitted sentinel put after it on the same path arrives, and it did
+# not arrive before (see `_stopped`).
 ARRIVE_S = 10.0
-QUIET_S = 0.5
+# Test puts block rather than being dropped when a queue is full (zenoh's default for puts is
+# to drop): a forged sample lost to congestion would pass for one the ACL stopped.
+BLOCK = zenoh.CongestionControl.BLOCK
 _fleet_ids = count()
+_sentinel_ids = count()
 
 
 def _fleet() -> str:
@@ -41,39 +44,21 @@ def _fleet() -> str:
     return f"t{next(_fleet_ids)}"
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def _set(config: zenoh.Config, key: str, value: Any) -> zenoh.Config:
-    config.insert_json5(key, json.dumps(value))
-    return config
-
-
-def _quiet(config: zenoh.Config) -> zenoh.Config:
-    """Test sessions: no multicast or gossip scouting, no scouting delay."""
-    _set(config, "scouting/multicast/enabled", False)
-    _set(config, "scouting/gossip/enabled", False)
-    return _set(config, "scouting/delay", 0)
-
-
 def _router_config(port: int) -> zenoh.Config:
     """deploy/zenohd.json5 on 127.0.0.1:<port> with the credentials file of deploy/."""
     config = zenoh.Config.from_file(str(DEPLOY / "zenohd.json5"))
-    _set(config, "listen/endpoints", [f"tcp/127.0.0.1:{port}"])
-    _set(config, "transport/auth/usrpwd/dictionary_file", str(DEPLOY / "credentials.txt"))
-    return _quiet(config)
+    set_json(config, "listen/endpoints", [f"tcp/127.0.0.1:{port}"])
+    set_json(config, "transport/auth/usrpwd/dictionary_file", str(DEPLOY / "credentials.txt"))
+    return quiet(config)
 
 
 def _client_config(name: str, port: int, *, timeout_ms: int = 5000) -> zenoh.Config:
     """deploy/client-<name>.json5 (its user and password unchanged), connecting to the test
     router."""
     config = zenoh.Config.from_file(str(DEPLOY / f"client-{name}.json5"))
-    _set(config, "connect/endpoints", [f"tcp/127.0.0.1:{port}"])
-    _set(config, "connect/timeout_ms", timeout_ms)
-    return _quiet(config)
+    set_json(config, "connect/endpoints", [f"tcp/127.0.0.1:{port}"])
+    set_json(config, "connect/timeout_ms", timeout_ms)
+    return quiet(config)
 
 
 def _credentials() -> dict[str, str]:
@@ -81,39 +66,18 @@ def _credentials() -> dict[str, str]:
     return dict(line.strip().split(":", 1) for line in lines if line.strip())
 
 
-class Inbox:
-    """Keys of the samples a callback subscriber got, with a bounded wait."""
-
-    def __init__(self) -> None:
-        self.keys: list[str] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            self.keys.append(str(sample.key_expr))
-            self._cond.notify_all()
-
-    def wait_for(self, key: str, timeout_s: float) -> bool:
-        with self._cond:
-            return self._cond.wait_for(lambda: key in self.keys, timeout_s)
-
-
-def _until(attempt: Callable[[], bool], timeout_s: float = ARRIVE_S) -> bool:
-    """Repeat `attempt` (which waits a little itself) until it succeeds or time is up: a
-    declaration takes a moment to reach the router, so the first put may find no route."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if attempt():
-            return True
-    return False
-
-
 Put = Callable[[str, bytes], None]
 
 
+def _session_put(session: zenoh.Session) -> Put:
+    """Undeclared puts of `session`. Unlike a declared publisher's, they go to the router
+    whether or not the session knows of a subscriber."""
+    return lambda key, payload: session.put(key, payload, congestion_control=BLOCK)
+
+
 def _deliver(put: Put, inbox: Inbox, allowed: str, forged: str | None = None) -> bool:
-    """Put `forged` then `allowed` through `put` (one session) until `allowed` arrives. Same
-    link, in order: if the router let `forged` through, it arrives first."""
+    """Put `forged` then `allowed` through `put` (one session) until `allowed` arrives: a
+    declaration takes a moment to reach the router, so the first put may find no route."""
 
     def attempt() -> bool:
         if forged is not None:
@@ -121,20 +85,69 @@ def _deliver(put: Put, inbox: Inbox, allowed: str, forged: str | None = None) ->
         put(allowed, b"ok")
         return inbox.wait_for(allowed, 0.3)
 
-    return _until(attempt)
+    return wait_for(attempt, ARRIVE_S, step_s=0)
+
+
+def _sentinel(put: Put, inbox: Inbox, key: str) -> None:
+    """Put a payload of its own on the permitted `key` and wait (bounded) until it arrives."""
+    token = f"sentinel-{next(_sentinel_ids)}".encode()
+    put(key, token)
+    assert inbox.wait_for(key, ARRIVE_S, token), f"the sentinel on {key} never arrived"
+
+
+def _stopped(
+    put: Put, inbox: Inbox, forged: str, sentinel: str, *, session: zenoh.Session | None = None
+) -> bool:
+    """Whether `forged` never reached `inbox`, shown by a sentinel, not by a pause.
+
+    Puts `forged`, then a payload of its own on the permitted key `sentinel`, through `put`,
+    and waits for that sentinel. Both go from one session over its one link to the router, with
+    the same priority and reliability, and zenoh keeps them in order on each link (hop by hop)
+    and through the router, which handles one link's messages in turn, the ACL check included
+    (it is applied there, at ingress or egress, to each message as the router routes it). So a
+    forged put that got through would be in `inbox` before the sentinel: once the sentinel is
+    in, absence is final, on a slow machine too. `inbox` must be fed through `Inbox.handler`
+    when it listens with more than one subscriber (one receiving thread, so one order).
+    With `session`, the forged key is also put by the session itself: a declared publisher sends
+    nothing while it knows of no subscriber, the session's own put always reaches the router."""
+    put(forged, b"forged")
+    if session is not None:
+        _session_put(session)(forged, b"forged")
+    _sentinel(put, inbox, sentinel)
+    return forged not in inbox.keys
+
+
+class Publishers:
+    """Declared publishers on one session, as the service and agents publish: a declared
+    publisher sends nothing until the router has told it of a matching subscriber, which the
+    ACL must let through (egress `declare_subscriber`)."""
+
+    def __init__(self, session: zenoh.Session, keys: tuple[str, ...]) -> None:
+        # declared in the order given: a forged key first, so that if the router ever told the
+        # session of a subscriber for it, the session would know before it learnt of the one
+        # for the permitted key
+        self._publishers = {
+            key: session.declare_publisher(key, congestion_control=BLOCK) for key in keys
+        }
+
+    def __call__(self, key: str, payload: bytes) -> None:
+        self._publishers[key].put(payload)
+
+    def matching(self, key: str) -> bool:
+        return self._publishers[key].matching_status.matching
+
+    def undeclare(self) -> None:
+        for publisher in self._publishers.values():
+            publisher.undeclare()
 
 
 @contextmanager
-def _publishers(session: zenoh.Session, *keys: str) -> Iterator[Put]:
-    """A put through declared publishers, as the service and agents publish: a declared
-    publisher sends nothing until the router has told it of a matching subscriber, which the ACL
-    must let through (egress `declare_subscriber`)."""
-    publishers = {key: session.declare_publisher(key) for key in keys}
+def _publishers(session: zenoh.Session, *keys: str) -> Iterator[Publishers]:
+    publishers = Publishers(session, keys)
     try:
-        yield lambda key, payload: publishers[key].put(payload)
+        yield publishers
     finally:
-        for publisher in publishers.values():
-            publisher.undeclare()
+        publishers.undeclare()
 
 
 # --- every config loads ----------------------------------------------------------------------
@@ -212,7 +225,7 @@ class Fleet:
 
 @pytest.fixture(scope="module")
 def fleet() -> Iterator[Fleet]:
-    port = _free_port()
+    port = free_port()
     sessions: list[zenoh.Session] = []
     try:
         router = zenoh.open(_router_config(port))
@@ -228,52 +241,65 @@ def fleet() -> Iterator[Fleet]:
 
 
 def test_robot_puts_only_its_own_submaps(fleet: Fleet) -> None:
+    """auv1's submap forged under auv2's key never reaches the service. Shown by a sentinel
+    (`_stopped`): auv1 puts the forged submap, then one of its own on the same session, to the
+    same subscriber; the router would have passed the forged one first. auv1 does send it (its
+    publisher knows of the service's subscriber), so it is the router's ACL that stops it."""
     root = f"mergesvc/v1/{_fleet()}"
     inbox = Inbox()
-    sub = fleet["service"].declare_subscriber(f"{root}/submap/**", inbox)
+    sub = fleet["service"].declare_subscriber(f"{root}/submap/**", inbox.handler)
     try:
         own, forged = f"{root}/submap/auv1/s0/1", f"{root}/submap/auv2/s0/1"
-        with _publishers(fleet["auv1"], own, forged) as put:
+        with _publishers(fleet["auv1"], forged, own) as put:
             assert _deliver(put, inbox, own, forged), "auv1's own submap never arrived"
-        time.sleep(QUIET_S)
-        assert forged not in inbox.keys
+            assert wait_for(lambda: put.matching(forged), ARRIVE_S)
+            assert _stopped(put, inbox, forged, own, session=fleet["auv1"])
         # the same key from its owner does arrive: the ACL, not the key, stopped auv1
-        assert _deliver(fleet["auv2"].put, inbox, forged)
+        assert _deliver(_session_put(fleet["auv2"]), inbox, forged)
     finally:
         sub.undeclare()
 
 
 def test_robot_cannot_publish_factors_and_gets_only_its_own(fleet: Fleet) -> None:
+    """What a robot must not get is shown absent by sentinels (`_stopped`), not by pauses:
+
+    - auv2's factor and error report: the service puts them (declared publisher and plain put)
+      and then auv1's own, from one session to auv1's one session; auv1's refused wider
+      subscription is declared before its own one, and both feed one inbox through one thread;
+    - the factor auv1 forges for auv2: no key goes from auv1 to auv2, so the sentinel takes two
+      hops, each over one link in order: auv1's own submap after the forged factor reaching the
+      service shows that the router has handled (and, if let through, already queued for auv2)
+      the forged factor; a factor the service puts for auv2 after that reaches auv2 behind it."""
     root = f"mergesvc/v1/{_fleet()}"
     auv1_inbox, service_inbox = Inbox(), Inbox()
     subs = [
-        fleet["auv1"].declare_subscriber(f"{root}/factor/auv1/**", auv1_inbox),
         # declaring a wider subscription is refused by the router: nothing of auv2 comes through
-        fleet["auv1"].declare_subscriber(f"{root}/factor/**", auv1_inbox),
-        fleet["service"].declare_subscriber(f"{root}/submap/**", service_inbox),
+        fleet["auv1"].declare_subscriber(f"{root}/factor/**", auv1_inbox.handler),
+        fleet["auv1"].declare_subscriber(f"{root}/factor/auv1/**", auv1_inbox.handler),
+        fleet["service"].declare_subscriber(f"{root}/submap/**", service_inbox.handler),
     ]
     try:
         own, other = f"{root}/factor/auv1/f1", f"{root}/factor/auv2/f1"
-        with _publishers(fleet["service"], own, other) as put:
+        with _publishers(fleet["service"], other, own) as put:
             assert _deliver(put, auv1_inbox, own, other)
-        time.sleep(QUIET_S)
-        assert other not in auv1_inbox.keys
+            assert _stopped(put, auv1_inbox, other, own, session=fleet["service"])
         # a factor forged by a robot does not reach the vehicle it names
         auv2_inbox = Inbox()
-        subs.append(fleet["auv2"].declare_subscriber(f"{root}/factor/auv2/**", auv2_inbox))
-        assert _deliver(fleet["service"].put, auv2_inbox, f"{root}/factor/auv2/f2")
-        fleet["auv1"].put(f"{root}/factor/auv2/forged", b"forged")
-        assert _deliver(fleet["auv1"].put, service_inbox, f"{root}/submap/auv1/s0/2")
-        time.sleep(QUIET_S)
-        assert f"{root}/factor/auv2/forged" not in auv2_inbox.keys
+        subs.append(fleet["auv2"].declare_subscriber(f"{root}/factor/auv2/**", auv2_inbox.handler))
+        assert _deliver(_session_put(fleet["service"]), auv2_inbox, f"{root}/factor/auv2/f2")
+        forged = f"{root}/factor/auv2/forged"
+        _session_put(fleet["auv1"])(forged, b"forged")
+        assert _deliver(_session_put(fleet["auv1"]), service_inbox, f"{root}/submap/auv1/s0/2")
+        assert _deliver(_session_put(fleet["service"]), auv2_inbox, f"{root}/factor/auv2/f3")
+        assert forged not in auv2_inbox.keys
         # the service's error reports reach the robot they are about, and only it
-        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/auv1", auv1_inbox))
-        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox))  # refused
+        # refused, and declared before the permitted one, like factor/** above
+        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox.handler))
+        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/auv1", auv1_inbox.handler))
         errors = (f"{root}/error/auv1", f"{root}/error/auv2")
-        with _publishers(fleet["service"], *errors) as put:
+        with _publishers(fleet["service"], errors[1], errors[0]) as put:
             assert _deliver(put, auv1_inbox, errors[0], errors[1])
-        time.sleep(QUIET_S)
-        assert errors[1] not in auv1_inbox.keys
+            assert _stopped(put, auv1_inbox, errors[1], errors[0], session=fleet["service"])
     finally:
         for sub in subs:
             sub.undeclare()
@@ -301,8 +327,14 @@ def test_only_the_service_answers_relocalize_and_status(fleet: Fleet) -> None:
         fleet["auv1"].declare_queryable(f"{root}/submap/auv1/cache", answer("cache")),
     ]
     try:
-        assert _until(lambda: _replies(fleet["auv2"], f"{root}/status") == ["service"])
-        assert _until(lambda: _replies(fleet["service"], f"{root}/submap/auv1/cache") == ["cache"])
+        assert wait_for(
+            lambda: _replies(fleet["auv2"], f"{root}/status") == ["service"], ARRIVE_S, step_s=0
+        )
+        assert wait_for(
+            lambda: _replies(fleet["service"], f"{root}/submap/auv1/cache") == ["cache"],
+            ARRIVE_S,
+            step_s=0,
+        )
         assert _replies(fleet["service"], f"{root}/relocalize") == []
         assert _replies(fleet["auv2"], f"{root}/relocalize") == []
     finally:
@@ -322,7 +354,7 @@ def test_robot_declares_only_its_own_liveliness_token(fleet: Fleet) -> None:
         return {str(r.ok.key_expr) for r in replies if r.ok is not None}
 
     try:
-        assert _until(lambda: f"{root}/alive/auv1" in alive())
+        assert wait_for(lambda: f"{root}/alive/auv1" in alive(), ARRIVE_S, step_s=0)
         assert alive() == {f"{root}/alive/auv1"}
     finally:
         for token in tokens:
@@ -332,22 +364,26 @@ def test_robot_declares_only_its_own_liveliness_token(fleet: Fleet) -> None:
 def test_advanced_publisher_history_passes_the_acl(fleet: Fleet) -> None:
     """zenoh.ext advanced publisher/subscriber (cache, miss detection, late-publisher
     detection) work through the ACL: the service recovers submaps put before it subscribed,
-    and none that auv1 forged for auv2."""
+    and none that auv1 forged for auv2.
+
+    Absence is shown without a pause. Live: auv1 puts a forged sample, then a sentinel of its
+    own (one session, one link, in order, `_stopped`); the advanced subscriber hands a sample on
+    as it comes once its initial history query is done (which the early samples show), and its
+    callback runs in one thread, so a forged sample let through would be there before the
+    sentinel. History: a query of every cache the service can reach is complete when it
+    returns (the router answers it once every queryable it routed it to has), and holds auv1's
+    own cache only."""
     root = f"mergesvc/v1/{_fleet()}"
     options: dict[str, Any] = {
         "cache": zext.CacheConfig(10),
         "sample_miss_detection": zext.MissDetectionConfig(heartbeat=0.5),
         "publisher_detection": True,
+        "congestion_control": BLOCK,
     }
-    own = zext.declare_advanced_publisher(fleet["auv1"], f"{root}/submap/auv1/s0", **options)
+    own_key = f"{root}/submap/auv1/s0"
+    own = zext.declare_advanced_publisher(fleet["auv1"], own_key, **options)
     forged = zext.declare_advanced_publisher(fleet["auv1"], f"{root}/submap/auv2/s0", **options)
-    received: list[tuple[str, str]] = []
-    lock = threading.Lock()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        with lock:
-            received.append((str(sample.key_expr), sample.payload.to_string()))
-
+    inbox = Inbox()
     sub = None
     try:
         for i in range(3):
@@ -356,29 +392,28 @@ def test_advanced_publisher_history_passes_the_acl(fleet: Fleet) -> None:
         sub = zext.declare_advanced_subscriber(
             fleet["service"],
             f"{root}/submap/**",
-            on_sample,
+            inbox,
             history=zext.HistoryConfig(detect_late_publishers=True),
             recovery=zext.RecoveryConfig(heartbeat=True),
         )
-        expected = [(f"{root}/submap/auv1/s0", f"early{i}") for i in range(3)]
+        expected = [(own_key, f"early{i}".encode()) for i in range(3)]
 
         def history_done() -> bool:
-            time.sleep(0.1)
-            with lock:
-                return [r for r in received if r[0].endswith("auv1/s0")] == expected
+            return [item for item in inbox.snapshot() if item[0] == own_key] == expected
 
-        assert _until(history_done), received
+        assert wait_for(history_done, ARRIVE_S), inbox.snapshot()
         own.put("live")
-
-        def live_done() -> bool:
-            time.sleep(0.1)
-            with lock:
-                return (f"{root}/submap/auv1/s0", "live") in received
-
-        assert _until(live_done), received
-        time.sleep(QUIET_S)
-        with lock:
-            assert not [r for r in received if "auv2" in r[0]]
+        assert inbox.wait_for(own_key, ARRIVE_S, b"live"), inbox.snapshot()
+        forged.put("forged-live")
+        _sentinel(lambda _key, payload: own.put(payload), inbox, own_key)
+        assert {key for key, _ in inbox.snapshot()} == {own_key}
+        replies = fleet["service"].get(
+            f"{root}/submap/**/@adv/**",
+            accept_replies=zenoh.ReplyKeyExpr.ANY,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=ARRIVE_S,
+        )
+        assert {str(reply.ok.key_expr) for reply in replies if reply.ok is not None} == {own_key}
     finally:
         if sub is not None:
             sub.undeclare()
@@ -387,19 +422,21 @@ def test_advanced_publisher_history_passes_the_acl(fleet: Fleet) -> None:
 
 
 def test_bridge_carries_the_vehicle_side(fleet: Fleet) -> None:
+    """auv1's vehicle-side submap forged for auv2 never reaches the bridge: shown by auv1's own
+    submap put after it on the same session (`_stopped`), not by a pause."""
     fleet_name = _fleet()
     top, uw = f"mergesvc/v1/{fleet_name}", f"mergesvc/v1/uw/{fleet_name}"
     bridge_inbox, service_inbox = Inbox(), Inbox()
     subs = [
-        fleet["bridge"].declare_subscriber(f"{uw}/**", bridge_inbox),
-        fleet["service"].declare_subscriber(f"{top}/submap/**", service_inbox),
+        fleet["bridge"].declare_subscriber(f"{uw}/**", bridge_inbox.handler),
+        fleet["service"].declare_subscriber(f"{top}/submap/**", service_inbox.handler),
     ]
     try:
         own, forged = f"{uw}/submap/auv1/s0/1", f"{uw}/submap/auv2/s0/1"
-        with _publishers(fleet["auv1"], own, forged) as put:
+        with _publishers(fleet["auv1"], forged, own) as put:
             assert _deliver(put, bridge_inbox, own, forged)
-        time.sleep(QUIET_S)
-        assert forged not in bridge_inbox.keys
+            assert wait_for(lambda: put.matching(forged), ARRIVE_S)
+            assert _stopped(put, bridge_inbox, forged, own, session=fleet["auv1"])
         # the bridge republishes topside, where the service gets it
         republished = f"{top}/submap/auv1/s0/1"
         with _publishers(fleet["bridge"], republished) as put:
@@ -422,15 +459,13 @@ def _refused(config: zenoh.Config) -> bool:
 
 def test_wrong_password_unknown_user_and_no_credentials_are_refused(fleet: Fleet) -> None:
     wrong = _client_config("auv1", fleet.port, timeout_ms=0)
-    _set(wrong, "transport/auth/usrpwd/password", "not-the-password")
+    set_json(wrong, "transport/auth/usrpwd/password", "not-the-password")
     assert _refused(wrong)
     unknown = _client_config("auv1", fleet.port, timeout_ms=0)
-    _set(unknown, "transport/auth/usrpwd/user", "auv9")
+    set_json(unknown, "transport/auth/usrpwd/user", "auv9")
     assert _refused(unknown)
-    anonymous = _quiet(zenoh.Config())
-    _set(anonymous, "mode", "client")
-    _set(anonymous, "connect/endpoints", [f"tcp/127.0.0.1:{fleet.port}"])
-    _set(anonymous, "connect/timeout_ms", 0)
+    anonymous = zenoh_config("client", connect=f"tcp/127.0.0.1:{fleet.port}")
+    set_json(anonymous, "connect/timeout_ms", 0)
     assert _refused(anonymous)
     # the right password does connect (same config, nothing else changed)
     assert not _refused(_client_config("auv1", fleet.port, timeout_ms=0))
@@ -438,8 +473,9 @@ def test_wrong_password_unknown_user_and_no_credentials_are_refused(fleet: Fleet
 
 def test_embedded_router_applies_the_acl_to_robots() -> None:
     """`mergesvc serve --mode router --config deploy/zenohd.json5`: the service's own session
-    is the router; its local subscriber gets only what the ACL lets the robots put."""
-    port = _free_port()
+    is the router; its local subscriber gets only what the ACL lets the robots put. The forged
+    submap's absence is shown by auv1's own put after it on the same session (`_stopped`)."""
+    port = free_port()
     sessions: list[zenoh.Session] = []
     try:
         service = zenoh.open(_router_config(port))
@@ -447,14 +483,14 @@ def test_embedded_router_applies_the_acl_to_robots() -> None:
         auv1 = zenoh.open(_client_config("auv1", port))
         sessions.append(auv1)
         inbox = Inbox()
-        sub = service.declare_subscriber("mergesvc/v1/embedded/submap/**", inbox)
+        sub = service.declare_subscriber("mergesvc/v1/embedded/submap/**", inbox.handler)
         try:
             own = "mergesvc/v1/embedded/submap/auv1/s0/1"
             forged = "mergesvc/v1/embedded/submap/auv2/s0/1"
-            with _publishers(auv1, own, forged) as put:
+            with _publishers(auv1, forged, own) as put:
                 assert _deliver(put, inbox, own, forged)
-            time.sleep(QUIET_S)
-            assert forged not in inbox.keys
+                assert wait_for(lambda: put.matching(forged), ARRIVE_S)
+                assert _stopped(put, inbox, forged, own, session=auv1)
         finally:
             sub.undeclare()
     finally:
@@ -479,46 +515,48 @@ def _make_certs(out: Path) -> Path:
 
 def _tls_client_config(port: int, certs: Path, name: str | None, ca: Path) -> zenoh.Config:
     config = zenoh.Config.from_file(str(DEPLOY / "client-tls.json5"))
-    _set(config, "connect/endpoints", [f"tls/127.0.0.1:{port}"])
-    _set(config, "connect/timeout_ms", 0)
-    _set(config, "transport/link/tls/root_ca_certificate", str(ca / "ca.pem"))
+    set_json(config, "connect/endpoints", [f"tls/127.0.0.1:{port}"])
+    set_json(config, "connect/timeout_ms", 0)
+    set_json(config, "transport/link/tls/root_ca_certificate", str(ca / "ca.pem"))
     if name is None:
         config.insert_json5("transport/link/tls/connect_certificate", "null")
         config.insert_json5("transport/link/tls/connect_private_key", "null")
     else:
-        _set(config, "transport/link/tls/connect_certificate", str(certs / f"{name}.pem"))
-        _set(config, "transport/link/tls/connect_private_key", str(certs / f"{name}-key.pem"))
-    return _quiet(config)
+        set_json(config, "transport/link/tls/connect_certificate", str(certs / f"{name}.pem"))
+        set_json(config, "transport/link/tls/connect_private_key", str(certs / f"{name}-key.pem"))
+    return quiet(config)
 
 
 def test_mtls_router_acl_by_certificate_name(tmp_path: Path) -> None:
+    """Over mTLS the ACL names clients by certificate: auv1's submap forged for auv2 never
+    reaches the service, shown by auv1's own put after it on the same session (`_stopped`)."""
     certs = _make_certs(tmp_path / "certs")
     foreign = _make_certs(tmp_path / "foreign")  # another CA, same names
     assert (certs / ".gitignore").read_text().strip() == "*"
-    port = _free_port()
+    port = free_port()
     router_config = zenoh.Config.from_file(str(DEPLOY / "zenohd-tls.json5"))
-    _set(router_config, "listen/endpoints", [f"tls/127.0.0.1:{port}"])
+    set_json(router_config, "listen/endpoints", [f"tls/127.0.0.1:{port}"])
     for key, file in (
         ("root_ca_certificate", "ca.pem"),
         ("listen_certificate", "zenohd.pem"),
         ("listen_private_key", "zenohd-key.pem"),
     ):
-        _set(router_config, f"transport/link/tls/{key}", str(certs / file))
+        set_json(router_config, f"transport/link/tls/{key}", str(certs / file))
     sessions: list[zenoh.Session] = []
     try:
-        sessions.append(zenoh.open(_quiet(router_config)))
+        sessions.append(zenoh.open(quiet(router_config)))
         service = zenoh.open(_tls_client_config(port, certs, "mergesvc", certs))
         sessions.append(service)
         auv1 = zenoh.open(_tls_client_config(port, certs, "auv1", certs))
         sessions.append(auv1)
         inbox = Inbox()
-        sub = service.declare_subscriber("mergesvc/v1/tls/submap/**", inbox)
+        sub = service.declare_subscriber("mergesvc/v1/tls/submap/**", inbox.handler)
         try:
             own, forged = "mergesvc/v1/tls/submap/auv1/s0/1", "mergesvc/v1/tls/submap/auv2/s0/1"
-            with _publishers(auv1, own, forged) as put:
+            with _publishers(auv1, forged, own) as put:
                 assert _deliver(put, inbox, own, forged)
-            time.sleep(QUIET_S)
-            assert forged not in inbox.keys
+                assert wait_for(lambda: put.matching(forged), ARRIVE_S)
+                assert _stopped(put, inbox, forged, own, session=auv1)
         finally:
             sub.undeclare()
         # no client certificate, or one from another CA: no connection

@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import json
-import socket
-import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
+from helpers import Inbox, free_port, wait_for
 from pydantic import ValidationError
 
 from mergesvc.errors import ConfigError, DecodeError, LinkError
@@ -456,27 +454,12 @@ def test_key_mapping() -> None:
 UW, TOP = "mergesvc/v1/test/uw", "mergesvc/v1/test"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait_for(predicate: Callable[[], bool], timeout_s: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
-
-
 @contextmanager
 def _bridge_network(
     config: LinkConfig, **bridge_kwargs: object
 ) -> Iterator[tuple[AcousticBridge, zenoh.Session, zenoh.Session]]:
     """A bridge listening on a free loopback port, plus a vehicle-side and a topside session."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     with ExitStack() as stack:
         bridge = stack.enter_context(
             AcousticBridge(
@@ -497,22 +480,8 @@ def _bridge_network(
 
 def _matched_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
     pub = session.declare_publisher(key)
-    assert _wait_for(lambda: pub.matching_status.matching, 10.0), f"no subscriber for {key}"
+    assert wait_for(lambda: pub.matching_status.matching, 10.0), f"no subscriber for {key}"
     return pub
-
-
-class _Inbox:
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.items: list[tuple[str, bytes]] = []
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self.lock:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
-
-    def snapshot(self) -> list[tuple[str, bytes]]:
-        with self.lock:
-            return list(self.items)
 
 
 def test_bridge_carries_both_directions() -> None:
@@ -522,7 +491,7 @@ def test_bridge_carries_both_directions() -> None:
             "tdma": {"slot_order": ["topside", "v1", "v2"]},
         }
     )
-    up_inbox, down_inbox = _Inbox(), _Inbox()
+    up_inbox, down_inbox = Inbox(), Inbox()
     with _bridge_network(config) as (bridge, vehicle, topside):
         up_sub = topside.declare_subscriber(f"{TOP}/submap/**", up_inbox)
         down_sub = vehicle.declare_subscriber(f"{UW}/factor/**", down_inbox)
@@ -530,12 +499,12 @@ def test_bridge_carries_both_directions() -> None:
             submap = np.random.default_rng(0).bytes(700)  # two rate-3 frames
             pub = _matched_publisher(vehicle, f"{UW}/submap/v1/s0/1")
             pub.put(submap)
-            assert _wait_for(lambda: len(up_inbox.snapshot()) == 1)
+            assert wait_for(lambda: len(up_inbox.snapshot()) == 1)
             assert up_inbox.snapshot() == [(f"{TOP}/submap/v1/s0/1", submap)]
 
             factor_pub = _matched_publisher(topside, f"{TOP}/factor/v2/7")
             factor_pub.put(b"factor-for-v2")
-            assert _wait_for(lambda: len(down_inbox.snapshot()) == 1)
+            assert wait_for(lambda: len(down_inbox.snapshot()) == 1)
             assert down_inbox.snapshot() == [(f"{UW}/factor/v2/7", b"factor-for-v2")]
             pub.undeclare()
             factor_pub.undeclare()
@@ -565,7 +534,7 @@ def test_bridge_loses_but_never_corrupts() -> None:
             "arq": {"max_tx_per_fragment": 3, "max_queue_messages": 32},
         }
     )
-    inbox = _Inbox()
+    inbox = Inbox()
     losses: list[tuple[Direction, str, LossEvent]] = []
     with _bridge_network(config, on_lost=lambda *a: losses.append(a)) as (bridge, vehicle, topside):
         sub = topside.declare_subscriber(f"{TOP}/submap/**", inbox)
@@ -584,7 +553,7 @@ def test_bridge_loses_but_never_corrupts() -> None:
                 done = link["messages_delivered"] + link["messages_lost"] == len(sent)
                 return done and len(inbox.snapshot()) == link["messages_delivered"]
 
-            assert _wait_for(resolved, 30.0)
+            assert wait_for(resolved, 30.0)
             pub.undeclare()
         finally:
             sub.undeclare()
@@ -628,6 +597,6 @@ def test_public_names_are_exported() -> None:
         for name, obj in vars(link).items()
         if not name.startswith("_")
         and getattr(obj, "__module__", None) == link.__name__
-        and name != "logger"
+        and name != "log"
     }
     assert public <= set(link.__all__)

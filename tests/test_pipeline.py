@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
-from mergesvc.core.config import load_config
+from mergesvc.core.config import match_config
 from mergesvc.core.model import ObjectArrays, RejectReason
 from mergesvc.core.pipeline import match
 from mergesvc.errors import SchemaError
@@ -63,7 +63,7 @@ def test_outliers_come_out_unmatched(underwater_scenario) -> None:
 @pytest.mark.parametrize("affinity", ["ucos", "bhattacharyya", "mahalanobis"])
 def test_every_solver_and_affinity_in_verified_mode(solver, affinity, kitti_scenario) -> None:
     sc = kitti_scenario
-    cfg = load_config(solver={"name": solver}, affinity={"kind": affinity})
+    cfg = match_config(solver={"name": solver}, affinity={"kind": affinity})
     s = score_case(sc, match(sc.map, sc.submap, cfg))
     assert s["accuracy"] >= 0.9
 
@@ -71,7 +71,7 @@ def test_every_solver_and_affinity_in_verified_mode(solver, affinity, kitti_scen
 @pytest.mark.parametrize("solver", ["rrwm", "sm", "ipfp"])
 def test_paper_mode_matches_every_node(solver, small_kitti_scenario) -> None:
     sc = small_kitti_scenario
-    cfg = load_config(mode="paper", solver={"name": solver})
+    cfg = match_config(mode="paper", solver={"name": solver})
     out = match(sc.map, sc.submap, cfg)
     assert out.result.reason is RejectReason.NOT_VERIFIED
     assert len(out.result.matches) == len(sc.submap.objects)
@@ -81,10 +81,10 @@ def test_paper_mode_matches_every_node(solver, small_kitti_scenario) -> None:
 
 def test_paper_mode_exact_and_raw_distances(small_kitti_scenario) -> None:
     sc = make_scenario(Family.KITTI, seed=2, n_map=12, n_sub=4, n_outliers=0)
-    out = match(sc.map, sc.submap, load_config(mode="paper", solver={"name": "exact"}))
+    out = match(sc.map, sc.submap, match_config(mode="paper", solver={"name": "exact"}))
     assert out.exact is not None and out.exact.optimal
     assert len(out.result.matches) == 4
-    raw = load_config(mode="paper", affinity={"kind": "mahalanobis", "raw_distances": True})
+    raw = match_config(mode="paper", affinity={"kind": "mahalanobis", "raw_distances": True})
     assert len(match(sc.map, sc.submap, raw).result.matches) == 4
 
 

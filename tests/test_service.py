@@ -5,23 +5,22 @@ service killed mid-run loses nothing; garbage is answered; a new session relocal
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
 import zenoh
+from helpers import free_port, wait_for, zenoh_config
 
 from mergesvc.core.model import ErrorMessage, Factor
 from mergesvc.fleet.agent import Agent, AgentConfig, build_submaps
-from mergesvc.fleet.demo import free_port, query_status
+from mergesvc.fleet.demo import query_status
 from mergesvc.fleet.service import MergeService, RelocalizeReply, ServiceConfig
 from mergesvc.sim import fleet_world
 from mergesvc.wire import Profile, decode_message, encode_message, keys
@@ -29,19 +28,6 @@ from mergesvc.wire import Profile, decode_message, encode_message, keys
 ROBOTS = ("auv1", "auv2", "auv3")
 FLEET = "t"
 ROOT = keys.fleet_root(FLEET)
-
-
-def conf(mode: str, listen: str | None = None, connect: str | None = None) -> zenoh.Config:
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(mode))
-    if listen:
-        c.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/gossip/enabled", "false")
-    c.insert_json5("scouting/delay", "0")
-    return c
 
 
 @pytest.fixture(scope="module")
@@ -59,21 +45,12 @@ def truth(world):
     return out
 
 
-def wait_for(pred, timeout_s: float = 20.0, step_s: float = 0.1) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(step_s)
-    return pred()
-
-
 def run_agents(world, endpoint: str, robots=ROBOTS, stop_after: int | None = None) -> list:
     """Agents in threads, each with its own client session. Returns (agent, session) pairs,
     still open (the caller closes them), after every agent has processed its frames."""
     out, threads = [], []
     for r in robots:
-        s = zenoh.open(conf("client", connect=endpoint))
+        s = zenoh.open(zenoh_config("client", connect=endpoint))
         ag = Agent(
             AgentConfig(robot=r), s,
             lambda sub, seq, r=r: encode_message(sub, Profile.INT8, r, seq),
@@ -115,7 +92,7 @@ def pose_err(T_est: np.ndarray, T_true: np.ndarray) -> float:
 
 def test_agents_and_service_exchange_correct_factors(world, truth) -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(conf("router", listen=ep)) as rs, MergeService(
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, MergeService(
         ServiceConfig(fleet=FLEET, store=":memory:"), rs
     ) as svc:
         pairs = run_agents(world, ep)
@@ -145,9 +122,9 @@ def test_agents_and_service_exchange_correct_factors(world, truth) -> None:
 def test_garbage_is_answered_and_the_service_survives(world) -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
     errors: list[ErrorMessage] = []
-    with zenoh.open(conf("router", listen=ep)) as rs, MergeService(
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, MergeService(
         ServiceConfig(fleet=FLEET, store=":memory:", max_payload_bytes=200_000), rs
-    ) as svc, zenoh.open(conf("client", connect=ep)) as cs:
+    ) as svc, zenoh.open(zenoh_config("client", connect=ep)) as cs:
         sub = cs.declare_subscriber(f"{ROOT}/error/**",
                                     lambda s: errors.append(decode_message(
                                         s.payload.to_bytes())[1]))
@@ -202,8 +179,8 @@ def test_service_killed_mid_run_loses_nothing_and_duplicates_nothing(world, tmp_
     ids stay unique."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     store = tmp_path / "svc.db"
-    with zenoh.open(conf("router", listen=ep)) as _router, zenoh.open(
-        conf("client", connect=ep)
+    with zenoh.open(zenoh_config("router", listen=ep)) as _router, zenoh.open(
+        zenoh_config("client", connect=ep)
     ) as cs:
         svc = _serve(ep, store)
         try:
@@ -246,9 +223,9 @@ def test_service_killed_mid_run_loses_nothing_and_duplicates_nothing(world, tmp_
 
 def test_relocalization_of_a_new_session(world) -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(conf("router", listen=ep)) as rs, MergeService(
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, MergeService(
         ServiceConfig(fleet=FLEET, store=":memory:"), rs
-    ) as svc, zenoh.open(conf("client", connect=ep)) as cs:
+    ) as svc, zenoh.open(zenoh_config("client", connect=ep)) as cs:
         pairs = run_agents(world, ep)
         try:
             assert wait_for(lambda: svc.status()["submaps"]["queued"] == 0 and
@@ -286,9 +263,9 @@ def test_factor_messages_decode_for_the_vehicles(world) -> None:
     """What goes to a vehicle on factor/{robot}/** is a compact Factor it can decode."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     got: list[Factor] = []
-    with zenoh.open(conf("router", listen=ep)) as rs, MergeService(
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, MergeService(
         ServiceConfig(fleet=FLEET, store=":memory:"), rs
-    ) as svc, zenoh.open(conf("client", connect=ep)) as cs:
+    ) as svc, zenoh.open(zenoh_config("client", connect=ep)) as cs:
         sub = cs.declare_subscriber(f"{ROOT}/factor/auv3/**",
                                     lambda s: got.append(decode_message(s.payload.to_bytes())[1]))
         pairs = run_agents(world, ep)

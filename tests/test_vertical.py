@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
-from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import RejectReason, Submap
 from mergesvc.core.pipeline import match, vertical_relation
 from mergesvc.core.verify import align_about_vertical, fit_about_vertical, transform_points
@@ -234,7 +234,7 @@ def test_two_object_submaps_are_matched_with_the_vertical(pool_pairs: list[Scena
 
 def test_two_object_submaps_need_a_vertical(pool_pairs: list[Scenario]) -> None:
     """Without a vertical (inference and sharing off) two matches cannot fix a transform."""
-    cfg = load_config(environ={}, verify={"infer_vertical": False})
+    cfg = match_config(verify={"infer_vertical": False})
     for sc in pool_pairs[:6]:
         out = match(sc.map, sc.submap, cfg)
         assert not out.result.accepted

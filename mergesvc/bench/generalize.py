@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mergesvc.bench.scoring import score_case
-from mergesvc.core.config import MatchConfig
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import Match, MatchResult, ObjectArrays, ObjectMap, RejectReason
 from mergesvc.core.pipeline import MatchOutcome, match
 from mergesvc.sim import (
@@ -404,12 +404,15 @@ class GeneralizePlan:
 def run_generalize(
     plan: GeneralizePlan,
     progress: Callable[[str, int], Any] | None = None,
+    base: MatchConfig | None = None,
 ) -> dict[str, Any]:
-    """Run the matrix. progress(message, cases done) after each case. Returns a JSON-ready
-    report: per cell its settings, skip note (missing data, no `up` field), and per method the
-    rates over seeds (median, min, max) and per seed; plus every case's record."""
+    """Run the matrix. progress(message, cases done) after each case. Verified and paper mode
+    are `base` (default: the defaults) with the mode set. Returns a JSON-ready report: per
+    cell its settings, skip note (missing data, no `up` field), and per method the rates over
+    seeds (median, min, max) and per seed; plus every case's record."""
     t_start = time.perf_counter()
-    configs = {"verified": MatchConfig(), "paper": MatchConfig(mode="paper")}
+    configs = {"verified": match_config(base, mode="verified"),
+               "paper": match_config(base, mode="paper")}
     data = _Data(Path(plan.data_dir))
     has_up = supports_up()
     report: dict[str, Any] = {

@@ -5,13 +5,17 @@ delivery over the acoustic link and node accuracy after decoding.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mergesvc.bench.scoring import _fmt, score_case
+from mergesvc.core.config import MatchConfig
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, make_scenario
+
+if TYPE_CHECKING:
+    from mergesvc.link import LinkConfig
 
 
 def run_link_bench(
@@ -21,10 +25,14 @@ def run_link_bench(
     duration_s: float = 3600.0,
     seed: int = 0,
     echo: Callable[[str], Any] = print,
+    base: MatchConfig | None = None,
+    link_config: LinkConfig | None = None,
 ) -> dict[str, Any]:
     """Profile x modem rate x SNR: bytes per object, bytes and airtime of one 20-object submap,
     delivery ratio and mean time to deliver (3 vehicles sharing the TDMA cycle, one submap each
-    every period_s), and node accuracy after decoding (the submap decoded, the map as is)."""
+    every period_s), and node accuracy after decoding (the submap decoded, the map as is).
+    Matching uses `base` (default: the defaults); the sweep starts from `link_config` (default:
+    LinkConfig()) with each rate and SNR set."""
     from mergesvc.link import (
         DEFAULT_SWEEP_SNR_DB,
         RATE_SPECS,
@@ -47,7 +55,7 @@ def run_link_bench(
             _, decoded = decode_message(data, proj)
             nbytes += len(data)
             nobj += len(sc.submap.objects)
-            acc.append(score_case(sc, match(sc.map, decoded))["accuracy"])
+            acc.append(score_case(sc, match(sc.map, decoded, base))["accuracy"])
         profiles[prof.value] = {"bytes_per_object": nbytes / nobj,
                                 "bytes_per_submap": nbytes / seeds,
                                 "node_accuracy": float(np.mean(acc))}
@@ -59,7 +67,8 @@ def run_link_bench(
             spec = RATE_SPECS[rate]
             fragments = -(-(size + 4) // spec.fragment_payload_bytes)
             airtime = -(-fragments // spec.frames) * spec.airtime_s
-            for r in sweep_link((rate,), DEFAULT_SWEEP_SNR_DB[rate], workload=wl, seed=seed):
+            for r in sweep_link((rate,), DEFAULT_SWEEP_SNR_DB[rate], workload=wl,
+                                base_config=link_config, seed=seed):
                 row = {
                     "profile": prof, "rate": rate.value, "snr_db": r.snr_db,
                     "frame_error": frame_error_prob(rate, r.snr_db),

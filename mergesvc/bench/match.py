@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from mergesvc.bench.scoring import _cpu_count, _spread, score_case
-from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, Scenario, make_scenario
 
@@ -36,15 +36,18 @@ def run_case(
     return scores, totals, stages
 
 
-def _modes(paper: bool, affinity: str) -> list[tuple[str, MatchConfig, bool]]:
-    """(label, settings, runs once) of the modes measured for one affinity."""
+def _modes(
+    paper: bool, affinity: str, base: MatchConfig | None = None
+) -> list[tuple[str, MatchConfig, bool]]:
+    """(label, settings, runs once) of the modes measured for one affinity, each `base`
+    (default: the defaults) with the mode and affinity set."""
     aff = {"affinity": {"kind": affinity}}
-    modes = [("verified", load_config(mode="verified", **aff), False)]
+    modes = [("verified", match_config(base, mode="verified", **aff), False)]
     if paper:
-        modes.append(("paper", load_config(mode="paper", **aff), True))
+        modes.append(("paper", match_config(base, mode="paper", **aff), True))
         if affinity != "ucos":  # the authors' code: the distance fed in as the affinity
             raw = {"affinity": {"kind": affinity, "raw_distances": True}}
-            modes.append(("paper-raw", load_config(mode="paper", **raw), True))
+            modes.append(("paper-raw", match_config(base, mode="paper", **raw), True))
     return modes
 
 
@@ -62,9 +65,11 @@ def run_match_bench(
     echo: Callable[[str], Any] = print,
     families: tuple[Family, ...] = (Family.KITTI, Family.UNDERWATER),
     affinities: tuple[str, ...] = ("ucos",),
+    base: MatchConfig | None = None,
 ) -> dict[str, Any]:
     """Both modes on `seeds` scenarios per family and affinity. Paper mode runs once per
-    scenario (it takes seconds); verified mode `repeats` times. Returns a JSON-ready report
+    scenario (it takes seconds); verified mode `repeats` times. Every configuration is `base`
+    (default: the defaults) with its mode and affinity set. Returns a JSON-ready report
     (results keyed family/mode/affinity) and echoes a table."""
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -77,7 +82,7 @@ def run_match_bench(
     scenarios = {(f, s): bench_scenario(f, s) for f in families for s in range(seeds)}
     for family in families:
         for affinity in affinities:
-            for name, cfg, once in _modes(paper, affinity):
+            for name, cfg, once in _modes(paper, affinity, base):
                 report["settings"][f"{name}/{affinity}"] = cfg.model_dump(mode="json")
                 rows, totals, stages = [], [], {}
                 for seed in range(seeds):

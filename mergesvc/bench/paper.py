@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench.scoring import _aggregate, _config, _cpu_count, _fmt, _spread, score_case
-from mergesvc.core.config import load_config
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import ObjectArrays, ObjectMap
 from mergesvc.core.pipeline import MatchOutcome, match
 from mergesvc.sim import Scenario
@@ -66,11 +66,12 @@ def _run_cases(
     plan: PaperBenchPlan,
     modes: tuple[str, ...],
     progress: Callable[[str], None],
+    base: MatchConfig | None = None,
 ) -> tuple[dict[str, list[dict[str, float]]], dict[str, dict[str, list[float]]],
            dict[str, MatchOutcome]]:
-    """Every case x mode x solver x affinity. Returns per-combination case scores (key
-    mode/solver/affinity/case), stage timings per mode, and the outcomes of the first case
-    (for the figures)."""
+    """Every case x mode x solver x affinity, each `base` (default: the defaults) with those
+    set. Returns per-combination case scores (key mode/solver/affinity/case), stage timings
+    per mode, and the outcomes of the first case (for the figures)."""
     scores: dict[str, list[dict[str, float]]] = {}
     stages: dict[str, dict[str, list[float]]] = {}
     first: dict[str, MatchOutcome] = {}
@@ -78,7 +79,7 @@ def _run_cases(
         for mode in modes:
             for solver in plan.solvers:
                 for affinity in plan.affinities:
-                    cfg = _config(mode, solver, affinity, sc.paper_radius_m)
+                    cfg = _config(mode, solver, affinity, sc.paper_radius_m, base)
                     reps = plan.repeats if mode == "verified" else 1
                     outcome = None
                     for _ in range(reps):
@@ -98,10 +99,12 @@ def run_paper_bench(
     out_dir: Path,
     echo: Callable[[str], Any] = print,
     progress_factory: Callable[[int], Callable[[str], None]] | None = None,
+    base: MatchConfig | None = None,
 ) -> dict[str, Any]:
     """Table I (underwater runs x submap sizes) and Table II (KITTI-like places), for the
     paper's pipeline and ours, each solver and affinity; a scale sweep; JSON, markdown and
-    figures under out_dir. Returns the report."""
+    figures under out_dir. `base` (default: the defaults) is the matching settings every
+    combination starts from. Returns the report."""
     from mergesvc.bench.figures import plot_accuracy_vs_size, plot_correspondences
     from mergesvc.sim import drive_run, underwater_run
 
@@ -128,16 +131,16 @@ def run_paper_bench(
     total = (len(uw_cases) * len(plan.modes)
              + len(kitti_cases) * (len(plan.modes) if plan.kitti_paper else 1)) * combos
     progress = progress_factory(total) if progress_factory else (lambda _msg: None)
-    uw_scores, uw_stages, uw_first = _run_cases(uw_cases, plan, plan.modes, progress)
+    uw_scores, uw_stages, uw_first = _run_cases(uw_cases, plan, plan.modes, progress, base)
     k_modes = plan.modes if plan.kitti_paper else tuple(m for m in plan.modes if m != "paper")
-    k_scores, k_stages, k_first = _run_cases(kitti_cases, plan, k_modes, progress)
+    k_scores, k_stages, k_first = _run_cases(kitti_cases, plan, k_modes, progress, base)
 
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": f"{platform.machine()} {_cpu_count()} cores, python "
         f"{platform.python_version()}",
         "plan": {k: list(v) if isinstance(v, tuple) else v for k, v in plan.__dict__.items()},
-        "settings": load_config().model_dump(mode="json"),
+        "settings": match_config(base).model_dump(mode="json"),
         "table1": _table1(uw_scores, plan, plan.modes),
         "table2": _table2(k_scores, plan, k_modes, [c[0] for c in kitti_cases]),
         "stages_ms": {
@@ -159,7 +162,7 @@ def run_paper_bench(
     }
     if plan.scale_sizes and drive is not None and kitti_cases:
         report["scale"] = run_scale_sweep(kitti_cases[0][1], plan.scale_sizes, plan.repeats,
-                                          plan.seed, echo)
+                                          plan.seed, echo, base)
     # figures: accuracy vs size per mode (first solver, each affinity), a correspondence view
     figs = {}
     series = {}
@@ -319,12 +322,13 @@ def grow_map(sc: Scenario, n_total: int, rng: np.random.Generator) -> Scenario:
 
 
 def run_scale_sweep(
-    sc: Scenario, sizes: tuple[int, ...], repeats: int, seed: int, echo: Callable[[str], Any]
+    sc: Scenario, sizes: tuple[int, ...], repeats: int, seed: int, echo: Callable[[str], Any],
+    base: MatchConfig | None = None,
 ) -> list[dict[str, Any]]:
-    """Latency (median and spread), peak traced memory and accuracy of verified mode for one
-    submap against maps grown to each size."""
+    """Latency (median and spread), peak traced memory and accuracy of `base` (default: the
+    defaults, verified mode) for one submap against maps grown to each size."""
     rng = np.random.default_rng(seed)
-    cfg = load_config()
+    cfg = match_config(base)
     out = []
     for n in sizes:
         big = grow_map(sc, n, rng)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import MatchOutcome
 from mergesvc.sim import Scenario
 
@@ -74,8 +74,12 @@ def _aggregate(rows: list[dict[str, float]]) -> dict[str, float]:
     }
 
 
-def _config(mode: str, solver: str, affinity: str, radius_m: float) -> MatchConfig:
-    cfg = load_config(mode=mode, solver={"name": solver}, affinity={"kind": affinity})
+def _config(
+    mode: str, solver: str, affinity: str, radius_m: float, base: MatchConfig | None = None
+) -> MatchConfig:
+    """`base` (default: the defaults) with the benchmark's axes set: mode, solver, affinity,
+    and in paper mode the paper's edge radius for this kind of world."""
+    cfg = match_config(base, mode=mode, solver={"name": solver}, affinity={"kind": affinity})
     if mode == "paper":
         cfg.affinity.edge_radius_m = radius_m  # the paper's radius for this kind of world
     return cfg

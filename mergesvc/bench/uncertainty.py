@@ -16,7 +16,7 @@ import numpy as np
 
 from mergesvc.bench.paper import AFFINITIES
 from mergesvc.bench.scoring import _aggregate, _config, _fmt, _spread, score_case
-from mergesvc.core.config import MatchConfig, load_config
+from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import ObjectArrays
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Scenario
@@ -26,12 +26,14 @@ def run_uncertainty_bench(
     out_dir: Path, seed: int = 0, samples: int = 20_000, echo: Callable[[str], Any] = print,
     runs: tuple[int, ...] = (1, 2, 3), sizes: tuple[int, ...] = (2, 3, 4, 5), per_size: int = 5,
     affinity_seeds: int = 5,
+    base: MatchConfig | None = None,
 ) -> dict[str, Any]:
     """Train the uncertainty head on the world's observations, then run the underwater runs
     three times, the vehicle reporting as each image's s: the simulator's true s, the head's
     prediction, or one constant (no uncertainty at all). Node accuracy of both modes.
     Then each node affinity with tracked and with constant variances on `affinity_seeds`
-    worlds (run_affinity_uncertainty_bench; 0 skips it)."""
+    worlds (run_affinity_uncertainty_bench; 0 skips it). Matching: `base` (default: the
+    defaults) with the mode and affinity set; the head's own settings are fixed."""
     from mergesvc.sim import image_s_dataset, underwater_run
     from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
 
@@ -58,7 +60,7 @@ def run_uncertainty_bench(
                 run = underwater_run(r, seed, image_s=source)
                 for size in sizes:
                     for sc in run.windows(size, per_size):
-                        cfg = _config(mode, "rrwm", "ucos", sc.paper_radius_m)
+                        cfg = _config(mode, "rrwm", "ucos", sc.paper_radius_m, base)
                         rows.append(score_case(sc, match(sc.map, sc.submap, cfg)))
             agg = _aggregate(rows)
             report["rows"][f"{name}/{mode}"] = agg
@@ -69,7 +71,7 @@ def run_uncertainty_bench(
         echo("")
         plan = AffinityUncertaintyPlan(seeds=tuple(range(seed, seed + affinity_seeds)),
                                        runs=runs, sizes=sizes, per_size=per_size)
-        report["affinities"] = run_affinity_uncertainty_bench(plan, echo)
+        report["affinities"] = run_affinity_uncertainty_bench(plan, echo, base)
         (out_dir / "uncertainty_affinities.md").write_text(report["affinities"]["markdown"] + "\n")
     (out_dir / "uncertainty_bench.json").write_text(json.dumps(report, indent=1, default=float))
     return report
@@ -156,7 +158,8 @@ def _affinity_worlds(seed: int, plan: AffinityUncertaintyPlan) -> dict[str, list
 
 
 def run_affinity_uncertainty_bench(
-    plan: AffinityUncertaintyPlan | None = None, echo: Callable[[str], Any] = print
+    plan: AffinityUncertaintyPlan | None = None, echo: Callable[[str], Any] = print,
+    base: MatchConfig | None = None,
 ) -> dict[str, Any]:
     """Verified mode, each affinity with tracked and with constant variances, on the underwater
     runs' windows and the drive's loop-closure places of every seed; and the candidate stage
@@ -173,7 +176,7 @@ def run_affinity_uncertainty_bench(
             inputs = {"tracked": [(sc.map.arrays(), sc.submap.arrays()) for sc in cases]}
             inputs["constant"] = [constant_variance(m, s) for m, s in inputs["tracked"]]
             for affinity in plan.affinities:
-                cfg = load_config(affinity={"kind": affinity})
+                cfg = match_config(base, affinity={"kind": affinity})
                 for var in plan.variances:
                     rows = [score_case(sc, match(m, s, cfg))
                             for sc, (m, s) in zip(cases, inputs[var])]

@@ -1,9 +1,10 @@
-"""Command line: `mergesvc match`, `example`, `schemas`, `serve`, `agent`, `demo`, `bench`,
-`codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+"""Command line: `mergesvc match`, `example`, `schemas`, `config`, `serve`, `agent`, `demo`,
+`bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
 
-The command tree is assembled here; the commands live in `files` (commands on files),
-`bench` (benchmarks) and `fleet` (the service, vehicles, the demo and the acoustic link).
-Known errors become exit codes in `errors`; shared options (the Zenoh flags) are in `options`.
+The command tree is assembled here; the commands live in `files` (commands on files, and
+`config --dump`), `bench` (benchmarks) and `fleet` (the service, vehicles, the demo and the
+acoustic link). Known errors become exit codes in `errors`; shared options (the Zenoh flags,
+`--settings` and how the settings tree is resolved) are in `options`.
 """
 
 from __future__ import annotations
@@ -37,7 +38,9 @@ def _main(
     )
 
 
-for _command in (files.match, files.example, files.schemas, fleet.serve, fleet.agent, fleet.demo):
+for _command in (
+    files.match, files.example, files.schemas, files.config, fleet.serve, fleet.agent, fleet.demo
+):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")
 app.add_typer(files.codec_app, name="codec")

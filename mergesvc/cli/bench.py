@@ -1,4 +1,9 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize` (see docs/benchmarks.md)."""
+"""`mergesvc bench match|paper|uncertainty|link|generalize` (see docs/benchmarks.md).
+
+Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
+benchmarked configuration starts from (the benchmark sets its own axes on top), `bench link`
+also starts its sweep from the `link` section. The resolved tree is written with the results:
+settings.json in an output folder, NAME.settings.json beside an output file NAME.json."""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from typing import Annotated
 import typer
 
 from mergesvc.cli.errors import exit_on_error
+from mergesvc.cli.options import SettingsFile, resolve_settings, write_settings_beside
 from mergesvc.core.config import NodeAffinity
 
 app = typer.Typer(no_args_is_help=True, help="benchmarks")
@@ -25,18 +31,22 @@ def bench_match(
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
+    settings: SettingsFile = None,
 ) -> None:
     """Latency and accuracy of verified vs paper mode on seeded scenarios."""
     from mergesvc.bench import run_match_bench
 
     kinds = tuple(a.value for a in (affinity or list(NodeAffinity)))
     with exit_on_error():
+        tree = resolve_settings(settings)
         report = run_match_bench(
-            repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds
+            repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
+            base=tree.match,
         )
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(report, indent=1))
+        write_settings_beside(tree, out, folder=False)
         typer.echo(f"wrote {out}")
 
 
@@ -54,6 +64,7 @@ def bench_paper(
     trajectory: Annotated[
         Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
     ] = None,
+    settings: SettingsFile = None,
 ) -> None:
     """The paper's Table I and II for its pipeline and ours, side by side, plus precision,
     recall, transform errors, stage timings and a scale sweep; figures under --out."""
@@ -71,6 +82,8 @@ def bench_paper(
             raise typer.Exit(2)
         changes["trajectory"] = str(trajectory)
     plan = dataclasses.replace(plan, **changes)
+    with exit_on_error():
+        tree = resolve_settings(settings)
     with Progress(transient=True) as bar:
 
         def factory(total: int):
@@ -78,7 +91,9 @@ def bench_paper(
             return lambda msg: bar.update(task, advance=1, description=msg[:60])
 
         with exit_on_error():
-            run_paper_bench(plan, out, echo=typer.echo, progress_factory=factory)
+            run_paper_bench(plan, out, echo=typer.echo, progress_factory=factory,
+                            base=tree.match)
+    write_settings_beside(tree, out, folder=True)
     typer.echo(f"wrote {out}/paper_bench.json, paper_bench.md and figures")
 
 
@@ -87,13 +102,17 @@ def bench_uncertainty(
     out: Annotated[Path, typer.Option(help="folder for the report")] = Path("results"),
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
     samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
+    settings: SettingsFile = None,
 ) -> None:
     """What the learned uncertainty head changes: Table I accuracy with the simulator's true
     image uncertainty, the head's prediction, and a constant (uncertainty-unaware)."""
     from mergesvc.bench import run_uncertainty_bench
 
     with exit_on_error():
-        run_uncertainty_bench(out, seed=seed, samples=samples, echo=typer.echo)
+        tree = resolve_settings(settings)
+        run_uncertainty_bench(out, seed=seed, samples=samples, echo=typer.echo,
+                              base=tree.match)
+    write_settings_beside(tree, out, folder=True)
 
 
 @app.command("link")
@@ -103,16 +122,20 @@ def bench_link(
     seed: Annotated[int, typer.Option(help="first seed")] = 0,
     period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 300.0,
     duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 3600.0,
+    settings: SettingsFile = None,
 ) -> None:
     """Codec profile x modem rate x SNR: bytes, airtime, delivery, time to deliver, accuracy."""
     from mergesvc.bench import run_link_bench
 
     with exit_on_error():
+        tree = resolve_settings(settings)
         report = run_link_bench(seeds=seeds, period_s=period_s, duration_s=duration_s,
-                                seed=seed, echo=typer.echo)
+                                seed=seed, echo=typer.echo, base=tree.match,
+                                link_config=tree.link)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(report, indent=1, default=float))
+        write_settings_beside(tree, out, folder=False)
         typer.echo(f"wrote {out}")
 
 
@@ -131,6 +154,7 @@ def bench_generalize(
         list[str] | None, typer.Option(help="run only cells whose name contains this (repeat)")
     ] = None,
     paper: Annotated[bool, typer.Option(help="also run paper mode (dense K: slow)")] = True,
+    settings: SettingsFile = None,
 ) -> None:
     """Generalization matrix: real KITTI-00 / DINO-based worlds and the project's generators
     in camera / ENU / NED / random / mixed frames, embedding dims, map sizes, look-alikes,
@@ -152,16 +176,20 @@ def bench_generalize(
                 param_hint="--cell")
     if not paper:
         plan.methods = tuple(m for m in METHODS if m != "paper")
+    with exit_on_error():
+        tree = resolve_settings(settings)
     with Progress(transient=True) as bar:
         task = bar.add_task("generalize", total=plan.steps())
         with exit_on_error():
             report = run_generalize(
                 plan, progress=lambda msg, done: bar.update(task, completed=done,
-                                                            description=msg[:60]))
+                                                            description=msg[:60]),
+                base=tree.match)
     typer.echo(report["markdown"])
     typer.echo(f"\n{len(plan.cells)} cells x {seeds} seed(s) in {report['elapsed_s']:.0f} s")
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(report, indent=1, default=float))
         out.with_suffix(".md").write_text(report["markdown"] + "\n")
+        write_settings_beside(tree, out, folder=False)
         typer.echo(f"wrote {out} and {out.with_suffix('.md')}")

@@ -15,7 +15,7 @@ from typing import NoReturn
 
 import typer
 
-from mergesvc.errors import InputError, MergeError
+from mergesvc.errors import InputError, MergeError, one_line
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
@@ -23,7 +23,7 @@ EXIT_FAILED = 1
 
 def fail(exc: BaseException, code: int) -> NoReturn:
     """One line on stderr (the message's first line, or the error's type) and exit `code`."""
-    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    msg = one_line(exc)
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code) from exc
 

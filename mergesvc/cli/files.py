@@ -1,5 +1,5 @@
-"""Commands that read and write files: `match`, `example`, `schemas`, `codec encode|decode`,
-`scenario underwater|drive`, `uncertainty train|eval`."""
+"""Commands that read and write files: `match`, `example`, `schemas`, `config --dump`,
+`codec encode|decode`, `scenario underwater|drive`, `uncertainty train|eval`."""
 
 from __future__ import annotations
 
@@ -9,8 +9,15 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli.errors import exit_on_error
-from mergesvc.core.config import MatchMode, NodeAffinity, SolverName, load_config
+from mergesvc.cli.errors import EXIT_BAD_INPUT, exit_on_error
+from mergesvc.cli.options import (
+    DeprecatedConfig,
+    SettingsFile,
+    deprecated_config,
+    given,
+    resolve_settings,
+)
+from mergesvc.core.config import MatchMode, NodeAffinity, SolverName
 from mergesvc.wire import Profile
 
 codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
@@ -19,6 +26,7 @@ uncertainty_app = typer.Typer(no_args_is_help=True, help="the learned image-unce
 
 
 def match(
+    ctx: typer.Context,
     map_path: Annotated[Path, typer.Option("--map", help="map JSON file")],
     submap_path: Annotated[Path, typer.Option("--submap", help="submap JSON file")],
     mode: Annotated[MatchMode, typer.Option(help="verified (ours) or paper (baseline)")] = (
@@ -26,21 +34,25 @@ def match(
     ),
     solver: Annotated[SolverName, typer.Option(help="graph-matching solver")] = SolverName.RRWM,
     affinity: Annotated[NodeAffinity, typer.Option(help="node affinity")] = NodeAffinity.UCOS,
-    config: Annotated[
-        Path | None, typer.Option(help="JSON settings file (see mergesvc.core.config)")
-    ] = None,
+    settings: SettingsFile = None,
+    config: DeprecatedConfig = None,
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
 ) -> None:
-    """Match a submap against a map; print the correspondences and the transform."""
+    """Match a submap against a map; print the correspondences and the transform.
+
+    Settings: the `match` section (mergesvc config --dump --section match)."""
     from mergesvc.core.model import ObjectMap, Submap
     from mergesvc.core.pipeline import match as run_match
     from mergesvc.wire import load_model
 
+    settings = deprecated_config(settings, config, "match")
+    flags = given(ctx, mode=mode)
+    if given(ctx, solver=solver):
+        flags["solver"] = {"name": solver.value}
+    if given(ctx, affinity=affinity):
+        flags["affinity"] = {"kind": affinity.value}
     with exit_on_error():
-        cfg = load_config(
-            config, mode=mode.value, solver={"name": solver.value},
-            affinity={"kind": affinity.value},
-        )
+        cfg = resolve_settings(settings, {"match": flags}).match
         map_ = load_model(ObjectMap, map_path)
         sub = load_model(Submap, submap_path)
         outcome = run_match(map_, sub, cfg)
@@ -104,6 +116,34 @@ def schemas(
     typer.echo(f"schemas {'up to date' if check else 'written'} in {out_dir}")
 
 
+def config(
+    dump: Annotated[
+        bool, typer.Option("--dump", help="print the resolved settings tree as JSON")
+    ] = False,
+    settings: SettingsFile = None,
+    section: Annotated[
+        str | None,
+        typer.Option(help="print only this section or field, e.g. service or service.match"),
+    ] = None,
+) -> None:
+    """Print the resolved settings tree (--dump): what a run with these settings uses.
+
+    Defaults <- --settings FILE (else $MERGESVC_SETTINGS) <- MERGESVC_* variables; a command's
+    own flags override them for that command. Sections: see mergesvc/settings.py."""
+    if not dump:
+        typer.echo("error: nothing to do: mergesvc config --dump [--settings FILE] "
+                   "[--section NAME]", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    with exit_on_error():
+        tree = resolve_settings(settings)
+    data = tree.model_dump(mode="json")
+    for part in section.split(".") if section else []:
+        if not isinstance(data, dict) or part not in data:
+            raise typer.BadParameter(f"no settings under {section}", param_hint="--section")
+        data = data[part]
+    typer.echo(json.dumps(data, indent=2))
+
+
 @codec_app.command("encode")
 def codec_encode(
     in_path: Annotated[Path, typer.Argument(help="map or submap JSON (the match format)")],
@@ -114,12 +154,17 @@ def codec_encode(
     projection: Annotated[
         Path | None, typer.Option(help="fleet projection (.npz); compact fits one if absent")
     ] = None,
+    settings: SettingsFile = None,
 ) -> None:
-    """Encode a map or submap file as one wire message; print bytes per object."""
+    """Encode a map or submap file as one wire message; print bytes per object.
+
+    Settings: the `codec` section."""
     from mergesvc.wire import encode_file
 
+    with exit_on_error():
+        codec = resolve_settings(settings).codec
     with exit_on_error(ValueError):
-        stats = encode_file(in_path, out_path, profile, projection=projection)
+        stats = encode_file(in_path, out_path, profile, projection=projection, settings=codec)
     typer.echo(f"wrote {out_path}: {stats.n_bytes} bytes, {stats.n_objects} objects, "
                f"{stats.bytes_per_object:.1f} bytes/object ({profile.value})"
                + (f"; projection {stats.projection_path}" if stats.projection_path else ""))
@@ -207,17 +252,22 @@ def uncertainty_train(
     samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
     seed: Annotated[int, typer.Option(help="world and optimiser seed")] = 0,
     family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
-    config: Annotated[Path | None, typer.Option(help="UncertaintyConfig as JSON")] = None,
+    settings: SettingsFile = None,
+    config: DeprecatedConfig = None,
 ) -> None:
     """Train the head with the ranking loss on generated observations; report held-out
-    Spearman correlation of predicted and true error."""
+    Spearman correlation of predicted and true error.
+
+    Settings: the `uncertainty` section (a bare UncertaintyConfig file works too)."""
     import numpy as np
 
     from mergesvc.sim import Family, image_s_dataset
-    from mergesvc.sim.uncertainty import UncertaintyConfig, evaluate, fit
+    from mergesvc.sim.uncertainty import evaluate, fit
 
-    with exit_on_error(OSError, ValueError):
-        cfg = UncertaintyConfig.model_validate_json(config.read_text()) if config else None
+    settings = deprecated_config(settings, config, "uncertainty train")
+    with exit_on_error():
+        cfg = resolve_settings(settings).uncertainty
+    with exit_on_error(ValueError):
         fam = Family(family)
     n_test = max(samples // 5, 100)
     with exit_on_error():

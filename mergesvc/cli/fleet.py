@@ -1,5 +1,9 @@
 """Commands that run the fleet: `serve` (the merge service), `agent` (a vehicle), `demo`
-(both, as processes on loopback), `link sim|bridge` (the acoustic link)."""
+(both, as processes on loopback), `link sim|bridge` (the acoustic link).
+
+Settings (mergesvc/settings.py): `serve` reads the `service` section, `agent` the `agent`
+section, `demo` hands its resolved tree to the processes it starts, `link sim` reads `link`
+and `workload`; `link bridge` builds its link from its flags."""
 
 from __future__ import annotations
 
@@ -7,25 +11,33 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from mergesvc.cli.errors import exit_on_error
+from mergesvc.cli.errors import EXIT_BAD_INPUT, exit_on_error, fail
 from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
     LinkKind,
     Listen,
     Mode,
+    SettingsFile,
     ZenohConfigFile,
     ZenohMode,
+    given,
+    resolve_settings,
+    settings_env,
+    write_settings_beside,
     zenoh_config,
     zenoh_connect,
     zenoh_mode,
 )
-from mergesvc.core.config import load_config
+from mergesvc.errors import ConfigError
 from mergesvc.wire import Profile
+
+if TYPE_CHECKING:
+    pass
 
 link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
 
@@ -36,6 +48,7 @@ BridgeMode = zenoh_mode("zenoh mode: peer or client")
 
 
 def serve(
+    ctx: typer.Context,
     fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
     store: Annotated[Path, typer.Option(help="SQLite file (WAL mode)")] = Path("mergesvc.db"),
     mode: Mode = ZenohMode.ROUTER,
@@ -45,16 +58,18 @@ def serve(
     projection: Annotated[
         list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
     ] = None,
-    settings: Annotated[Path | None, typer.Option(help="matching settings JSON")] = None,
+    settings: SettingsFile = None,
     seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
 ) -> None:
-    """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default."""
+    """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
+
+    Settings: the `service` section (a bare MatchConfig file is its `service.match`)."""
     import signal
     import threading
 
     import zenoh
 
-    from mergesvc.fleet.service import MergeService, ServiceConfig
+    from mergesvc.fleet.service import MergeService
     from mergesvc.wire import Projection
 
     if mode is ZenohMode.ROUTER and not listen and not config:
@@ -63,13 +78,14 @@ def serve(
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with exit_on_error(ValueError, OSError):
-        cfg = ServiceConfig(fleet=fleet, store=str(store))
-        if settings is not None:
-            cfg = cfg.model_copy(update={"match": load_config(settings)})
+        flags = given(ctx, fleet=fleet, store=str(store))
+        cfg = resolve_settings(settings, {"service": flags}, bare_match=("service", "match"))
+        cfg = cfg.service
         zconf = zenoh_config(mode, connect, listen, config)
         projections = [Projection.load(p) for p in projection or []]
         with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc:
-            typer.echo(f"merge service for fleet {fleet} on {listen or connect}, store {store}")
+            typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
+                       f"store {cfg.store}")
             start = time.monotonic()
             while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
                 stop.wait(0.2)
@@ -77,6 +93,7 @@ def serve(
 
 
 def agent(
+    ctx: typer.Context,
     robot: Annotated[str, typer.Option(help="this vehicle's name")],
     fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
     session_id: Annotated[str, typer.Option("--session", help="this session's name")] = "s0",
@@ -96,16 +113,28 @@ def agent(
     connect: Connect = None,
     config: ZenohConfigFile = None,
     linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
+    settings: SettingsFile = None,
 ) -> None:
-    """A vehicle: local map (tracker + ISAM2), submaps out, factors in."""
+    """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
+
+    Settings: the `agent` section."""
     from mergesvc.fleet.agent import AgentRun, run_agent
 
     if profile is Profile.COMPACT and projection is None:
         raise typer.BadParameter("--profile compact needs --projection")
+    with exit_on_error():
+        flags = given(ctx, fleet=fleet, session_id=session_id)
+        if "session_id" in flags:
+            flags["session"] = flags.pop("session_id")
+        tree = resolve_settings(settings, {"agent": flags})
+    try:
+        acfg = tree.agent_config(robot)
+    except ConfigError as exc:  # --robot is a flag: bad input
+        fail(exc, EXIT_BAD_INPUT)
     run = AgentRun(
-        robot=robot, fleet=fleet, session=session_id, seed=seed, laps=laps, objects=objects,
-        log_file=log_file, profile=profile, projection=projection, time_scale=time_scale,
-        acoustic=acoustic, linger_s=linger,
+        robot=robot, fleet=acfg.fleet, session=acfg.session, seed=seed, laps=laps,
+        objects=objects, log_file=log_file, profile=profile, projection=projection,
+        time_scale=time_scale, acoustic=acoustic, linger_s=linger, config=acfg,
     )
     with exit_on_error(ValueError, OSError):
         zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,))
@@ -128,12 +157,20 @@ def demo(
     profile: Annotated[Profile, typer.Option(help="codec profile of the submaps")] = (
         Profile.COMPACT
     ),
+    settings: SettingsFile = None,
 ) -> None:
-    """Service + 3 vehicles as processes on loopback; summary against the ground truth."""
+    """Service + 3 vehicles as processes on loopback; summary against the ground truth.
+
+    Settings: the `service` and `agent` sections, written to OUT/settings.json, which every
+    process the demo starts reads."""
     from mergesvc.fleet.demo import DemoPlan, run_demo
 
     plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile)
     with exit_on_error():
+        tree = resolve_settings(settings)
+    with exit_on_error(OSError):
+        written = write_settings_beside(tree, out, folder=True)
+    with exit_on_error(), settings_env(written):
         res = run_demo(plan, out, echo=typer.echo)
     s = res.summary
     if s:
@@ -158,21 +195,30 @@ def demo(
 
 @link_app.command("sim")
 def link_sim(
+    ctx: typer.Context,
     rate: Annotated[list[int] | None, typer.Option(help="modem rate 1, 3 or 5 (repeat)")] = None,
     snr_db: Annotated[list[float] | None, typer.Option(help="SNR in dB (repeat)")] = None,
     bytes_per_submap: Annotated[int, typer.Option(help="uplink message size")] = 1024,
     period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
     duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
     seed: Annotated[int, typer.Option(help="channel seed")] = 0,
+    settings: SettingsFile = None,
 ) -> None:
-    """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting)."""
-    from mergesvc.link import ModemRate, Workload, format_sweep_table, sweep_link
+    """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting).
+
+    Settings: the `link` section (each rate and SNR set on it) and the `workload` section."""
+    from mergesvc.link import ModemRate, format_sweep_table, sweep_link
 
     with exit_on_error(ValueError):
         rates = tuple(ModemRate(r) for r in (rate or [1, 3, 5]))
-    wl = Workload(uplink_bytes=bytes_per_submap, period_s=period_s, duration_s=duration_s)
+    flags = given(ctx, bytes_per_submap=bytes_per_submap, period_s=period_s,
+                  duration_s=duration_s)
+    if "bytes_per_submap" in flags:
+        flags["uplink_bytes"] = flags.pop("bytes_per_submap")
     with exit_on_error():
-        rows = sweep_link(rates, snr_db or None, workload=wl, seed=seed)
+        tree = resolve_settings(settings, {"workload": flags})
+        rows = sweep_link(rates, snr_db or None, workload=tree.workload,
+                          base_config=tree.link, seed=seed)
     typer.echo(format_sweep_table(rows))
 
 

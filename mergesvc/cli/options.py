@@ -4,27 +4,47 @@ The Zenoh flags follow the zenoh-python examples: every program that opens a ses
 `--mode/--connect/--listen/--config`, and `zenoh_config` turns them into a `zenoh.Config`.
 `serve`, `agent` and `link bridge` take them. The factories keep the help text each command
 has always shown; the plain aliases carry the usual one.
+
+The settings tree (mergesvc/settings.py): every command that has settings takes
+`--settings FILE` (`SettingsFile`) and resolves them with `resolve_settings`, the one place the
+command line hands `os.environ` to the loader. `--config` is the Zenoh file and nothing else;
+`match --config` and `uncertainty train --config` survive as hidden, deprecated aliases of
+`--settings` (`deprecated_config`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from mergesvc.cli.errors import EXIT_BAD_INPUT, fail
+from mergesvc.errors import ConfigError
+
 if TYPE_CHECKING:
     import zenoh
 
+    from mergesvc.settings import Settings
+
 __all__ = [
     "Connect",
+    "DeprecatedConfig",
     "LinkKind",
     "Listen",
     "Mode",
+    "SettingsFile",
     "ZenohConfigFile",
     "ZenohMode",
+    "deprecated_config",
+    "given",
+    "resolve_settings",
+    "settings_env",
+    "write_settings_beside",
     "zenoh_config",
     "zenoh_connect",
     "zenoh_mode",
@@ -62,6 +82,17 @@ Mode = zenoh_mode()
 Connect = zenoh_connect()
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="zenoh listen endpoint(s)")]
 ZenohConfigFile = Annotated[Path | None, typer.Option("--config", help="zenoh JSON5 config file")]
+SettingsFile = Annotated[
+    Path | None,
+    typer.Option(
+        "--settings",
+        help="settings file (JSON): the tree `mergesvc config --dump` prints, any part of it, "
+        "or a bare MatchConfig; MERGESVC_* variables override it, flags override both",
+    ),
+]
+DeprecatedConfig = Annotated[
+    Path | None, typer.Option("--config", hidden=True, help="deprecated: use --settings")
+]
 
 
 def zenoh_config(
@@ -85,3 +116,74 @@ def zenoh_config(
         listen=tuple(listen or ()),
         scouting=config is None if scouting is None else scouting,
     )
+
+
+def deprecated_config(settings: Path | None, config: Path | None, command: str) -> Path | None:
+    """The settings file of a command that used to call it `--config`: a one-line warning on
+    stderr when the old name is used, exit 2 when both are."""
+    if config is None:
+        return settings
+    if settings is not None:
+        typer.echo("error: --config is the deprecated name of --settings: give one", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    typer.echo(f"warning: `mergesvc {command} --config` is deprecated, use --settings "
+               "(--config names a Zenoh config file)", err=True)
+    return config
+
+
+def given(ctx: typer.Context, **flags: Any) -> dict[str, Any]:
+    """The flags typed on the command line (named by their parameter), enums as their values:
+    the flags' layer of the settings. A flag left at its default is left out, so the value
+    from the file or the environment stands (a flag's default is the setting's default)."""
+    out = {}
+    for name, value in flags.items():
+        source = ctx.get_parameter_source(name)
+        if source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP"):
+            out[name] = value.value if isinstance(value, Enum) else value
+    return out
+
+
+def resolve_settings(
+    path: Path | None,
+    flags: Mapping[str, Any] | None = None,
+    *,
+    bare_match: tuple[str, ...] = ("match",),
+) -> Settings:
+    """Defaults <- `path` (else $MERGESVC_SETTINGS) <- MERGESVC_* <- `flags` (nested by section).
+    A bad file or variable is a ConfigError (exit 1 under exit_on_error); a flag the settings
+    refuse is bad input (exit 2), as when the command checked it itself."""
+    from mergesvc.settings import load_settings
+
+    settings = load_settings(path, environ=os.environ, bare_match=bare_match)
+    if not flags:
+        return settings
+    try:
+        return settings.merged(flags)
+    except ConfigError as exc:
+        fail(exc, EXIT_BAD_INPUT)
+
+
+def write_settings_beside(settings: Settings, out: Path, *, folder: bool) -> Path:
+    """Write the resolved settings with a command's results, as kiss-icp does: `settings.json`
+    in an output folder, `NAME.settings.json` beside an output file `NAME.json`."""
+    path = out / "settings.json" if folder else out.with_suffix(".settings.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(settings.to_json())
+    return path
+
+
+@contextmanager
+def settings_env(path: Path) -> Iterator[None]:
+    """$MERGESVC_SETTINGS set to `path` inside the block (and restored after), so processes
+    started inside it read these settings."""
+    from mergesvc.settings import SETTINGS_ENV
+
+    old = os.environ.get(SETTINGS_ENV)
+    os.environ[SETTINGS_ENV] = str(path.resolve())
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(SETTINGS_ENV, None)
+        else:
+            os.environ[SETTINGS_ENV] = old

@@ -4,16 +4,26 @@ Node affinities follow the paper (uncertainty-weighted cosine, Bhattacharyya and
 diagonal Gaussians), plus a same-object likelihood ratio (eqs. LR-1..LR-6 below) that weighs the
 tracked posterior variances against the spread of unrelated objects; edge affinity
 exp(-(e_ij - e_ab)^2 / sigma) on centre distances.
+
+K is built here (the last section), for both modes of pipeline.py: candidate_K over the
+candidate pairs (verified mode: calibrated node scores on the diagonal, weighted edge affinities
+off it, as the signed and the non-negative AssignmentProblem), and paper_node_affinity +
+paper_K over all n1 x n2 pairs (paper mode; pygmtools assembles the dense K, solvers/dense.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from mergesvc.core.config import NodeAffinity
+from mergesvc.core.config import AffinityConfig, NodeAffinity
+from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
+from mergesvc.core.solvers import dense
+from mergesvc.core.solvers.consistency import pairwise_conflicts
+from mergesvc.core.solvers.problem import AssignmentProblem
 
 # Chunk of map nodes per vectorised step of the per-dimension Gaussian distances; bounds the
 # (n1, chunk, d) temporaries to a few tens of MB.
@@ -375,3 +385,108 @@ def log_likelihood_ratio_pairs(
 def edge_affinity(e1: np.ndarray, e2: np.ndarray, sigma: np.ndarray | float) -> np.ndarray:
     """Paper's edge affinity exp(-(e_ij - e_ab)^2 / sigma); arrays broadcast."""
     return np.exp(-((e1 - e2) ** 2) / sigma)
+
+
+def edge_scales(map_: ObjectArrays, aff: AffinityConfig) -> tuple[float, float]:
+    """(edge length tolerance sigma_m, paper-mode edge radius_m), derived from data if unset."""
+    need = aff.edge_sigma_m is None or aff.edge_radius_m is None
+    spacing = map_.median_spacing_m if need else 1.0
+    sigma = aff.edge_sigma_m or aff.spacing_sigma * spacing
+    radius = aff.edge_radius_m or 3.0 * spacing
+    return sigma, radius
+
+
+# --------------------------------------------------------------------------- K
+
+
+def edge_pair_weight(n1: int, aff: AffinityConfig) -> float:
+    """Weight of one K entry of a submap edge: w_e / (n1 - 1), half on (p, q), half on (q, p)."""
+    return aff.edge_weight / max(n1 - 1, 1) / 2.0
+
+
+class CandidateK(NamedTuple):
+    """K over one candidate set, as the two problems the solvers take (see candidate_K)."""
+
+    signed: AssignmentProblem  # node and edge terms less their thresholds; conflicts
+    positive: AssignmentProblem  # thresholds 0, every entry >= 0 (RRWM / SM)
+    local: np.ndarray  # (n2_local,) local col -> map index
+
+
+def candidate_K(
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    rows: np.ndarray,
+    map_nodes: np.ndarray,
+    node_score: np.ndarray,
+    aff: AffinityConfig,
+    sigma_m: float,
+    conflict_sigmas: float | None = None,
+) -> CandidateK:
+    """K over the m candidate pairs (rows[p], map_nodes[p]), node_score[p] on its diagonal.
+
+    Signed objective: sum of calibrated node scores less node_threshold + for every pair of
+    matched submap nodes w_e / (n1 - 1) * (a_e - edge_threshold), a_e = exp(-(e_ij - e_ab)^2 /
+    (2 tol_ij^2)), tol_ij^2 = sigma_m^2 + (edge_rel_tol * e_ij)^2, half of it on K[p, q] and
+    half on K[q, p] (edge_pair_weight). A pair inconsistent with the others costs, so a false
+    detection is better left unmatched. The non-negative one (thresholds 0) feeds RRWM / SM.
+    Entries of two candidates sharing a row or a map node are 0. The signed problem also
+    forbids pairs whose lengths disagree by more than conflict_sigmas tolerances (no rigid fit
+    keeps both; None: no conflicts): the exact search prunes on that. The problems' columns
+    are local (indices into `local`, the sorted distinct map_nodes).
+    """
+    local, cols = np.unique(map_nodes, return_inverse=True)
+    R = rows
+    e_sub = pairwise_lengths(sub.position_xyz_m)
+    e_map = pairwise_lengths(map_.position_xyz_m[local])
+    E1 = e_sub[np.ix_(R, R)]
+    E2 = e_map[np.ix_(cols, cols)]
+    tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
+    w = edge_pair_weight(sub.n, aff)
+    K_pos = edge_affinity(E1, E2, 2.0 * tol2)
+    K_pos *= w
+    invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
+    K_pos[invalid] = 0.0
+    K_signed = K_pos - w * aff.edge_threshold
+    K_signed[invalid] = 0.0
+    np.fill_diagonal(K_pos, node_score)
+    np.fill_diagonal(K_signed, node_score - aff.node_threshold)
+    n2 = len(local)
+    conflict = None
+    if conflict_sigmas is not None:
+        conflict = pairwise_conflicts(E1, E2, np.sqrt(tol2), conflict_sigmas, R, cols)
+    return CandidateK(
+        AssignmentProblem(sub.n, n2, R, cols, K_signed, conflict),
+        AssignmentProblem(sub.n, n2, R, cols, K_pos),
+        local,
+    )
+
+
+def paper_node_affinity(sub: ObjectArrays, map_: ObjectArrays, aff: AffinityConfig
+                        ) -> np.ndarray:
+    """Paper mode's node affinity of every submap x map node, the diagonal of its K. (n1, n2).
+
+    ucos as it is; a Gaussian distance mapped to a similarity (distance_to_similarity at the
+    median), or with raw_distances the distance itself (the authors' code)."""
+    kind = NodeAffinity(aff.kind)
+    if kind is not NodeAffinity.UCOS and aff.raw_distances:
+        # the authors' code: the distance itself used as the affinity
+        return node_distance(kind, sub, map_, None, aff.normalize_embeddings)
+    if kind is NodeAffinity.UCOS:
+        return node_affinity(kind, sub, map_)
+    D = node_distance(kind, sub, map_, None, aff.normalize_embeddings)
+    return distance_to_similarity(D, float(np.median(D)))
+
+
+def paper_K(
+    A: np.ndarray, sub: ObjectArrays, map_: ObjectArrays, sigma_m: float, radius_m: float
+) -> np.ndarray:
+    """Paper mode's dense K over all n1 x n2 pairs, column-major (pygmtools' order).
+
+    Diagonal: the node affinity A (n1, n2); off it: the edge affinity exp(-(e_ij - e_ab)^2 /
+    (2 sigma_m^2)) between the edges of each graph within radius_m (relaxed until connected,
+    geometry.radius_edges). pygmtools assembles it (solvers/dense.build_dense_K)."""
+    e1, _ = radius_edges(sub.position_xyz_m, radius_m)
+    e2, _ = radius_edges(map_.position_xyz_m, radius_m)
+    len1 = np.linalg.norm(sub.position_xyz_m[e1[:, 0]] - sub.position_xyz_m[e1[:, 1]], axis=1)
+    len2 = np.linalg.norm(map_.position_xyz_m[e2[:, 0]] - map_.position_xyz_m[e2[:, 1]], axis=1)
+    return dense.build_dense_K(A, e1, len1, e2, len2, sigma=2.0 * sigma_m**2)

@@ -1,4 +1,9 @@
-"""Settings: one pydantic model with a section per stage; defaults, a JSON file, MERGESVC_* env.
+"""Matching settings: one pydantic model with a section per stage, and `match_config`, which
+builds one from nested override dicts.
+
+Pure: nothing here reads a file or the environment. The settings file and the `MERGESVC_*`
+environment are read by `mergesvc.settings` (the whole settings tree, of which `MatchConfig` is
+the `match` section), on the command line's behalf.
 
 Distances left as None are derived from the data (the median spacing of the objects), so one
 default works for a 10 m pool and a 2 km drive alike.
@@ -6,10 +11,9 @@ default works for a 10 m pool and a 2 km drive alike.
 
 from __future__ import annotations
 
-import json
-import os
+import copy
+from collections.abc import Mapping
 from enum import Enum
-from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -150,43 +154,26 @@ class MatchConfig(_Section):
     verify: VerifyConfig = VerifyConfig()
 
 
-ENV_PREFIX = "MERGESVC_"
-
-
-def _env_overrides(environ: dict[str, str]) -> dict[str, Any]:
-    """MERGESVC_SOLVER__NAME=sm -> {"solver": {"name": "sm"}}."""
-    out: dict[str, Any] = {}
-    for key, value in environ.items():
-        if not key.startswith(ENV_PREFIX):
-            continue
-        path = key[len(ENV_PREFIX) :].lower().split("__")
-        node = out
-        for part in path[:-1]:
-            node = node.setdefault(part, {})
-        try:
-            node[path[-1]] = json.loads(value)
-        except json.JSONDecodeError:
-            node[path[-1]] = value
-    return out
-
-
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Merge `over` into `base` (nested dicts merged, anything else replaced); returns base."""
     for k, v in over.items():
-        base[k] = _merge(base.get(k, {}), v) if isinstance(v, dict) else v
+        old = base.get(k)
+        base[k] = _merge(old if isinstance(old, dict) else {}, v) if isinstance(v, Mapping) else v
     return base
 
 
-def load_config(
-    path: Path | str | None = None, environ: dict[str, str] | None = None, **overrides: Any
+def match_config(
+    base: MatchConfig | Mapping[str, Any] | None = None, /, **overrides: Any
 ) -> MatchConfig:
-    """Defaults <- JSON file <- MERGESVC_* environment <- explicit overrides (nested dicts)."""
-    data: dict[str, Any] = {}
-    if path is not None:
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"cannot read config {path}: {exc}") from exc
-    _merge(data, _env_overrides(dict(os.environ if environ is None else environ)))
+    """A MatchConfig: `base` (default: the defaults) with `overrides` merged in, nested dicts
+    by section, e.g. `match_config(mode="paper", solver={"name": "sm"})`. No file, no
+    environment. Raises ConfigError on an invalid or unknown value."""
+    if base is None:
+        data: dict[str, Any] = {}
+    elif isinstance(base, MatchConfig):
+        data = base.model_dump()
+    else:
+        data = copy.deepcopy(dict(base))
     _merge(data, overrides)
     try:
         return MatchConfig.model_validate(data)

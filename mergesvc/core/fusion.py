@@ -18,7 +18,7 @@ from mergesvc.core.model import MAX_ID_LENGTH, Factor, ObjectArrays, ObjectMap, 
 from mergesvc.core.tracking import fuse_gaussians
 from mergesvc.errors import InputError
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 
 class ObjectLink(NamedTuple):
@@ -82,7 +82,7 @@ def fuse_objects(
     frame_labels: dict[str, list[str | None]] = {}
     for f, objs in frame_objects.items():
         if f not in T_anchor_frame:
-            logger.debug("fuse_objects: frame %s has no pose, skipped", f)
+            log.debug("fuse_objects: frame %s has no pose, skipped", f)
             continue
         if isinstance(objs, ObjectMap):
             arrays[f] = objs.arrays()
@@ -171,7 +171,7 @@ def fuse_objects(
         for r in member_refs:
             member_of[r] = gid
     if conflicts:
-        logger.warning(
+        log.warning(
             "fuse_objects: %d global objects join two objects of one frame", len(conflicts)
         )
     return FusedObjects(objects=objects, members=members, member_of=member_of, conflicts=conflicts)

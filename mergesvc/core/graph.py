@@ -30,9 +30,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.frames import frame_name
 from mergesvc.core.model import Factor, FactorStatus
-from mergesvc.errors import InputError, SolverError
+from mergesvc.errors import InputError, SolverError, one_line
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 # Tolerance of the rotation check on (4, 4) inputs: |R^T R - I| and |det R - 1|.
 _ROTATION_TOL = 1e-6
@@ -403,7 +403,7 @@ class PoseGraph:
         outliers = [i for i in flagged if twice[edges[i][0]] == twice[edges[i][1]]]
         ambiguous = [i for i in flagged if i not in set(outliers)]
         if flagged:
-            logger.info(
+            log.info(
                 "GNC flagged %d factor(s): outliers %s, ambiguous %s",
                 len(flagged),
                 [facs[i].factor_id for i in outliers],
@@ -510,8 +510,8 @@ class PoseGraph:
                 out[f] = 0.5 * (C + C.T)
             return out, None
         except RuntimeError as exc:  # e.g. an indeterminant linear system
-            logger.warning("pose-graph marginals failed: %s", exc)
-            return {}, " ".join(str(exc).split())
+            log.warning("pose-graph marginals failed: %s", exc)
+            return {}, one_line(exc)
 
 
 def pose_error(T_est: gtsam.Pose3, T_true: gtsam.Pose3) -> tuple[float, float]:

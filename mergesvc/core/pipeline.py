@@ -4,6 +4,9 @@ verified: candidates -> affinity K over candidate pairs -> solver -> hard assign
           no-match -> exact search on the candidate set -> rigid fit -> accept / reject
 paper:    node affinity (all pairs) -> dense K (pygmtools) -> solver -> Hungarian, every node
           matched (Singh & Leonard's pipeline, the baseline)
+
+Each stage lives in its own module; K of either mode is built in affinity.py (candidate_K;
+paper_node_affinity + paper_K), the candidates in candidates.py, the rigid fit in verify.py.
 """
 
 from __future__ import annotations
@@ -16,14 +19,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mergesvc.core.affinity import (
-    distance_to_similarity,
-    edge_affinity,
-    node_affinity,
-    node_distance,
+    candidate_K,
+    edge_pair_weight,
+    edge_scales,
+    paper_K,
+    paper_node_affinity,
 )
 from mergesvc.core.candidates import Candidates, expand_near, retrieve
-from mergesvc.core.config import MatchConfig, MatchMode, NodeAffinity, SolverName
-from mergesvc.core.geometry import pairwise_lengths, radius_edges
+from mergesvc.core.config import MatchConfig, MatchMode, SolverName
 from mergesvc.core.model import (
     Match,
     MatchResult,
@@ -33,7 +36,6 @@ from mergesvc.core.model import (
     Transform,
 )
 from mergesvc.core.solvers import dense, heuristic
-from mergesvc.core.solvers.consistency import pairwise_conflicts
 from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
@@ -91,15 +93,6 @@ def _as_arrays(objs: ObjectMap | ObjectArrays) -> ObjectArrays:
     return objs if isinstance(objs, ObjectArrays) else objs.arrays()
 
 
-def edge_scales(map_: ObjectArrays, config: MatchConfig) -> tuple[float, float]:
-    """(edge length tolerance sigma_m, paper-mode edge radius_m), derived from data if unset."""
-    need = config.affinity.edge_sigma_m is None or config.affinity.edge_radius_m is None
-    spacing = map_.median_spacing_m if need else 1.0
-    sigma = config.affinity.edge_sigma_m or config.affinity.spacing_sigma * spacing
-    radius = config.affinity.edge_radius_m or 3.0 * spacing
-    return sigma, radius
-
-
 def match(
     map_: ObjectMap | ObjectArrays,
     submap: ObjectMap | ObjectArrays,
@@ -121,55 +114,6 @@ def match(
 
 
 # ------------------------------------------------------------------ verified mode
-
-
-def edge_pair_weight(n1: int, config: MatchConfig) -> float:
-    """Weight of one K entry of a submap edge: w_e / (n1 - 1), half on (p, q), half on (q, p)."""
-    return config.affinity.edge_weight / max(n1 - 1, 1) / 2.0
-
-
-def candidate_problem(
-    sub: ObjectArrays,
-    map_: ObjectArrays,
-    cands: Candidates,
-    config: MatchConfig,
-    sigma_m: float,
-) -> tuple[AssignmentProblem, AssignmentProblem, np.ndarray]:
-    """K over candidate pairs: (signed problem, non-negative problem, local->map index).
-
-    Signed objective: sum of calibrated node scores + for every pair of matched submap nodes
-    w_e / (n1 - 1) * (a_e - threshold), a_e = exp(-(e_ij - e_ab)^2 / (2 tol_ij^2)),
-    tol_ij^2 = sigma^2 + (rel * e_ij)^2. A pair inconsistent with the others costs, so a false
-    detection is better left unmatched. The non-negative one (threshold 0) feeds RRWM / SM.
-    The signed one also forbids pairs whose lengths disagree by more than conflict_sigmas
-    tolerances (no rigid fit keeps both): the exact search prunes on that.
-    """
-    local, cols = np.unique(cands.map_nodes, return_inverse=True)
-    R = cands.rows
-    e_sub = pairwise_lengths(sub.position_xyz_m)
-    e_map = pairwise_lengths(map_.position_xyz_m[local])
-    E1 = e_sub[np.ix_(R, R)]
-    E2 = e_map[np.ix_(cols, cols)]
-    aff = config.affinity
-    tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
-    w = edge_pair_weight(sub.n, config)
-    K_pos = edge_affinity(E1, E2, 2.0 * tol2)
-    K_pos *= w
-    invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
-    K_pos[invalid] = 0.0
-    K_signed = K_pos - w * aff.edge_threshold
-    K_signed[invalid] = 0.0
-    np.fill_diagonal(K_pos, cands.score)
-    np.fill_diagonal(K_signed, cands.score - aff.node_threshold)
-    n2 = len(local)
-    conflict = None
-    if config.verify.conflict_sigmas is not None:
-        conflict = pairwise_conflicts(E1, E2, np.sqrt(tol2), config.verify.conflict_sigmas, R, cols)
-    return (
-        AssignmentProblem(sub.n, n2, R, cols, K_signed, conflict),
-        AssignmentProblem(sub.n, n2, R, cols, K_pos),
-        local,
-    )
 
 
 def _solve_candidates(
@@ -253,7 +197,10 @@ def _propose(
     """Affinity K over the candidates -> solver -> hard assignment with no-match.
 
     start: (n1,) map indices of an earlier answer, kept when it scores better here."""
-    signed, positive, local = candidate_problem(sub, map_, cands, config, sigma_m)
+    signed, positive, local = candidate_K(
+        sub, map_, cands.rows, cands.map_nodes, cands.score, config.affinity, sigma_m,
+        config.verify.conflict_sigmas,
+    )
     timer.lap("affinity")
     assignment = _solve_candidates(signed, positive, config)
     if start is not None:
@@ -461,7 +408,7 @@ def _verify(
         if exact.score >= prop.signed.score(assignment) - 1e-9:
             assignment = exact.assignment
         timer.lap("exact")
-    scores = _match_scores(prop.positive, assignment, edge_pair_weight(sub.n, config))
+    scores = _match_scores(prop.positive, assignment, edge_pair_weight(sub.n, config.affinity))
     proposed = prop.to_map(assignment)
     n_proposed = int(np.sum(proposed != UNMATCHED))
     if 0 < n_proposed <= config.verify.margin_max_matches and config.verify.margin > 0:
@@ -507,7 +454,7 @@ def _match_verified(
     timer.lap("candidates")
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
-    sigma_m, _ = edge_scales(map_, config)
+    sigma_m, _ = edge_scales(map_, config.affinity)
     rel = vertical_relation(sub, map_, config)
     prop = _propose(sub, map_, cands, config, sigma_m, timer)
     if config.candidates.guided:
@@ -542,23 +489,11 @@ def _match_verified(
 def _match_paper(
     map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
 ) -> MatchOutcome:
-    kind = NodeAffinity(config.affinity.kind)
     n1, n2 = sub.n, map_.n
-    if kind is not NodeAffinity.UCOS and config.affinity.raw_distances:
-        # the authors' code: the distance itself used as the affinity
-        A = node_distance(kind, sub, map_, None, config.affinity.normalize_embeddings)
-    elif kind is NodeAffinity.UCOS:
-        A = node_affinity(kind, sub, map_)
-    else:
-        D = node_distance(kind, sub, map_, None, config.affinity.normalize_embeddings)
-        A = distance_to_similarity(D, float(np.median(D)))
+    A = paper_node_affinity(sub, map_, config.affinity)
     timer.lap("node_affinity")
-    sigma_m, radius_m = edge_scales(map_, config)
-    e1, _ = radius_edges(sub.position_xyz_m, radius_m)
-    e2, _ = radius_edges(map_.position_xyz_m, radius_m)
-    len1 = np.linalg.norm(sub.position_xyz_m[e1[:, 0]] - sub.position_xyz_m[e1[:, 1]], axis=1)
-    len2 = np.linalg.norm(map_.position_xyz_m[e2[:, 0]] - map_.position_xyz_m[e2[:, 1]], axis=1)
-    K = dense.build_dense_K(A, e1, len1, e2, len2, sigma=2.0 * sigma_m**2)
+    sigma_m, radius_m = edge_scales(map_, config.affinity)
+    K = paper_K(A, sub, map_, sigma_m, radius_m)
     timer.lap("affinity")
     exact = None
     if config.solver.name is SolverName.EXACT:

@@ -16,7 +16,7 @@ from scipy.optimize import linear_sum_assignment
 
 from mergesvc.errors import ConfigError, InputError
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 #: Default squared-Mahalanobis gate: chi-square, 3 degrees of freedom, 99 %.
 CHI2_3DOF_99 = 11.34
@@ -572,7 +572,7 @@ class ObjectTracker:
             state.truth_counts[det.truth_id] += 1
         self._index[track_id] = len(self._tracks)
         self._tracks.append(state)
-        logger.debug("new track %s at t=%.3f", track_id, det.stamp_s)
+        log.debug("new track %s at t=%.3f", track_id, det.stamp_s)
         return track_id
 
 

@@ -20,6 +20,7 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, ObjectNode, Submap
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import ConfigError, MergeError
@@ -147,7 +148,7 @@ class LocalMap:
         T = _pose_of(factor)
         T_me_other = T if me else T.inverse()
         cov = np.asarray(factor.covariance, dtype=np.float64)
-        name = f"{other[0]}/{other[1]}"
+        name = str(FrameId(*other))
         key = F(self.frame_keys.setdefault(name, len(self.frame_keys)))
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.BetweenFactorPose3(
@@ -160,7 +161,7 @@ class LocalMap:
         after = self.isam.calculateEstimate().atPose3(key)
         moved = 0.0 if before is None else float(
             np.linalg.norm(after.translation() - before.translation()))
-        return (f"factor {factor.factor_id}: frame {other[0]}/{other[1]} at "
+        return (f"factor {factor.factor_id}: frame {name} at "
                 f"{np.round(after.translation(), 2).tolist()} in my frame"
                 + (f" (moved {moved:.2f} m)" if before is not None else " (first estimate)"))
 
@@ -230,9 +231,15 @@ class Agent:
                 line = self.local.add_inter_robot(factor)
                 self.stats.factors_received += 1
             log.info("%s: %s", self.config.robot, line)
-        except Exception as exc:  # a bad message must never kill the vehicle
+        except MergeError as exc:  # not a factor, or not one this map can use
             self.stats.bad_messages += 1
             log.warning("%s: ignoring a bad factor message: %s", self.config.robot, exc)
+        # Last resort of the factor callback on a running vehicle: a factor the local graph
+        # cannot take (GTSAM refuses it), or a bug, is logged with its traceback and skipped;
+        # the vehicle goes on mapping.
+        except Exception:
+            self.stats.bad_messages += 1
+            log.exception("%s: ignoring a factor the local map could not take", self.config.robot)
 
     def run(self, frames: Iterable[Frame], time_scale: float = 0.0,
             stop: threading.Event | None = None) -> AgentStats:
@@ -259,8 +266,10 @@ class Agent:
         return self.stats
 
     def close(self) -> None:
+        import zenoh
+
         for ent in (self._sub, self._pub, self._token):
-            with contextlib.suppress(Exception):  # already gone with the session
+            with contextlib.suppress(zenoh.ZError):  # already gone with the session
                 ent.undeclare()
 
     def __enter__(self) -> Agent:
@@ -288,6 +297,7 @@ class AgentRun:
     time_scale: float = 0.0  # wall s per simulated s; 0: no pacing
     acoustic: bool = False  # publish on the acoustic vehicle side (through the bridge)
     linger_s: float = 2.0  # stay up this long after the run, for late factors
+    config: AgentConfig | None = None  # the agent settings; None: defaults for this robot
 
 
 def _world_frames(run: AgentRun) -> Iterable[Frame]:
@@ -309,8 +319,13 @@ def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
     proj = Projection.load(run.projection) if run.projection is not None else None
     if run.profile is Profile.COMPACT and proj is None:
         raise ConfigError("the compact profile needs a fleet projection")
+    acfg = run.config or AgentConfig(robot=run.robot, session=run.session, fleet=run.fleet)
+    if (acfg.robot, acfg.session, acfg.fleet) != (run.robot, run.session, run.fleet):
+        raise ConfigError(
+            f"agent settings are for {acfg.robot}/{acfg.session} in fleet {acfg.fleet}, the run "
+            f"is {run.robot}/{run.session} in fleet {run.fleet}"
+        )
     frames = _world_frames(run)
-    acfg = AgentConfig(robot=run.robot, session=run.session, fleet=run.fleet)
     root = keys.uw_root(run.fleet) if run.acoustic else keys.fleet_root(run.fleet)
 
     def encode(sub: Submap, seq: int) -> bytes:
@@ -324,8 +339,8 @@ def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
 
     with zenoh.open(zenoh_config) as session, Agent(
         acfg, session, encode, decode_factor,
-        submap_key=f"{root}/submap/{run.robot}/{run.session}",
-        factor_key=f"{root}/factor/{run.robot}/**", alive_key=f"{root}/alive/{run.robot}",
+        submap_key=keys.submap_key(root, run.robot, run.session),
+        factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),
     ) as ag:
         stats = ag.run(frames, time_scale=run.time_scale)
         time.sleep(run.linger_s)

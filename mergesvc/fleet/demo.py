@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from mergesvc.core.model import Factor
+from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, build_submaps
 from mergesvc.sim import fleet_world, image_s_dataset
 from mergesvc.wire import Profile, Projection, decode_message, keys
@@ -30,6 +31,10 @@ from mergesvc.wire import Profile, Projection, decode_message, keys
 log = logging.getLogger(__name__)
 
 ROBOTS = ("auv1", "auv2", "auv3")
+
+
+class DemoError(RuntimeError):
+    """The demo could not run: the service exited at start or did not come up."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +86,7 @@ def _zenoh_client(endpoint: str) -> Any:
 
 
 def query_status(session: Any, fleet: str, timeout_s: float = 3.0) -> dict[str, Any] | None:
-    for reply in session.get(f"{keys.fleet_root(fleet)}/status", timeout=timeout_s):
+    for reply in session.get(keys.status_key(keys.fleet_root(fleet)), timeout=timeout_s):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
     return None
@@ -89,6 +94,8 @@ def query_status(session: Any, fleet: str, timeout_s: float = 3.0) -> dict[str, 
 
 def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) -> DemoResult:
     """Start everything, run the mission, score it, stop everything (always)."""
+    import zenoh
+
     out_dir.mkdir(parents=True, exist_ok=True)
     fleet = f"demo{plan.seed}"
     port = free_port()
@@ -123,10 +130,10 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
                 _, f = decode_message(sample.payload.to_bytes())
                 if isinstance(f, Factor):
                     factors[f.factor_id] = f
-            except Exception as exc:  # counted by the summary as missing factors
+            except MergeError as exc:  # counted by the summary as missing factors
                 log.warning("demo: undecodable factor: %s", exc)
 
-        sub = session.declare_subscriber(f"{keys.fleet_root(fleet)}/factor/**", on_factor)
+        sub = session.declare_subscriber(keys.all_factors(keys.fleet_root(fleet)), on_factor)
         if plan.link == "acoustic":
             spawn("bridge", ["link", "bridge", "--fleet", fleet, "--rate", "5", "--snr-db", "5.0",
                              "--time-scale", str(plan.time_scale), "--connect", endpoint,
@@ -156,11 +163,14 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
             result.failures.append("no factor was accepted")
     except subprocess.TimeoutExpired as exc:
         result.failures.append(f"timed out: {exc}")
-    except Exception as exc:
+    # what a run can meet and still report: the service not coming up (DemoError), Zenoh
+    # (ZError), files and processes (OSError), our own errors; anything else is a bug and
+    # keeps its traceback (the processes are stopped below either way)
+    except (DemoError, zenoh.ZError, OSError, MergeError) as exc:
         result.failures.append(f"{type(exc).__name__}: {exc}")
     finally:
         if session is not None:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(zenoh.ZError):
                 session.close()
         for name, p in procs.items():
             _stop(p)
@@ -187,20 +197,22 @@ def _stop(p: subprocess.Popen) -> None:
 
 def _wait_for_service(endpoint: str, fleet: str, proc: subprocess.Popen,
                       deadline_s: float) -> Any:
+    import zenoh
+
     end = time.monotonic() + deadline_s
     while time.monotonic() < end:
         if proc.poll() is not None:
-            raise RuntimeError(f"the service exited with {proc.returncode} at start")
+            raise DemoError(f"the service exited with {proc.returncode} at start")
         try:
             session = _zenoh_client(endpoint)
-        except Exception:
+        except zenoh.ZError:  # its router is not listening yet
             time.sleep(0.3)
             continue
         if query_status(session, fleet, 1.0) is not None:
             return session
         session.close()
         time.sleep(0.3)
-    raise RuntimeError("the service did not come up")
+    raise DemoError("the service did not come up")
 
 
 def _wait_until_idle(session: Any, fleet: str, deadline: float,
@@ -234,7 +246,7 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
     def truth(robot: str, oid: str) -> str | None:
         try:
             return local[robot].tracker.track(oid).truth_id
-        except Exception:
+        except (KeyError, InputError):  # a robot or an object the replay does not know
             return None
 
     active = [f for f in factors.values() if f.status is None or f.status.value == "accepted"]
@@ -347,6 +359,7 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
 
 
 __all__ = [
+    "DemoError",
     "DemoPlan",
     "DemoResult",
     "fleet_projection",

@@ -23,10 +23,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.config import MatchConfig
+from mergesvc.core.factors import factor_frames, factor_from_match, match_factor_id, yields_factor
+from mergesvc.core.frames import FrameId
 from mergesvc.core.fusion import fuse_objects
-from mergesvc.core.graph import GraphSolution, PoseGraph
+from mergesvc.core.graph import GraphConfig, GraphSolution, PoseGraph
 from mergesvc.core.model import (
-    Correspondence,
     ErrorMessage,
     Factor,
     FactorStatus,
@@ -36,7 +37,7 @@ from mergesvc.core.model import (
     Transform,
 )
 from mergesvc.core.pipeline import match
-from mergesvc.errors import InputError, MergeError, SchemaError
+from mergesvc.errors import MergeError, SchemaError
 from mergesvc.fleet.store import Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
@@ -68,10 +69,9 @@ class ServiceConfig(BaseModel):
         "default, with or without a known vertical (3 points admit coincidental fits in a "
         "small pool, and a wrong factor costs more than a late one)",
     )
-
-
-def frame_name(robot: str, session: str) -> str:
-    return f"{robot}/{session}"
+    graph: GraphConfig = Field(
+        GraphConfig(), description="the GNC pose graph over the frames (outlier thresholds)"
+    )
 
 
 @dataclass
@@ -121,7 +121,7 @@ class MergeService:
         self.clock = clock
         self.stats = ServiceStats()
         self.store = Store(config.store)
-        self.graph = PoseGraph()
+        self.graph = PoseGraph(config=config.graph)
         self.frames: dict[str, dict[str, ObjectNode]] = {}  # frame -> object id -> node
         self.factors: dict[str, Factor] = {}
         self.alive: set[str] = set()
@@ -146,13 +146,13 @@ class MergeService:
         s = self.session
         self._entities = [
             declare_advanced_subscriber(
-                s, f"{self._root}/submap/**", self._on_submap,
+                s, keys.all_submaps(self._root), self._on_submap,
                 history=HistoryConfig(detect_late_publishers=True, max_samples=10_000),
                 recovery=RecoveryConfig(heartbeat=True), subscriber_detection=True,
             ),
-            s.declare_queryable(f"{self._root}/relocalize", self._on_relocalize),
-            s.declare_queryable(f"{self._root}/status", self._on_status),
-            s.liveliness().declare_subscriber(f"{self._root}/alive/*", self._on_alive,
+            s.declare_queryable(keys.relocalize_key(self._root), self._on_relocalize),
+            s.declare_queryable(keys.status_key(self._root), self._on_status),
+            s.liveliness().declare_subscriber(keys.all_alive(self._root), self._on_alive,
                                               history=True),
         ]
         self._worker = threading.Thread(target=self._work, name="mergesvc-worker", daemon=True)
@@ -162,9 +162,11 @@ class MergeService:
         return self
 
     def close(self) -> None:
+        import zenoh
+
         self._stop.set()
         for ent in self._entities:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(zenoh.ZError):  # undeclared already, with its session
                 ent.undeclare()
         self._entities = []
         if self._worker is not None:
@@ -202,12 +204,16 @@ class MergeService:
     # ------------------------------------------------------------------ ingress
 
     def _publish_error(self, robot: str, code: str, detail: str, seq: int | None) -> None:
+        import zenoh
+
         self.stats.error(code)
         try:
             msg = encode_message(ErrorMessage(code=code, detail=detail[:1000], about_seq=seq),
                                  Profile.FULL, "mergesvc", self._next_seq())
-            self.session.put(f"{self._root}/error/{robot}", msg)
-        except Exception as exc:  # never let an error report kill the callback
+            self.session.put(keys.error_key(self._root, robot), msg)
+        # an error report that cannot be made (a robot name no key can carry, an unencodable
+        # detail, a closed session) is logged: it must not end the callback that reports it
+        except (MergeError, ValueError, zenoh.ZError) as exc:
             log.warning("could not publish an error to %s: %s", robot, exc)
 
     def _next_seq(self) -> int:
@@ -217,8 +223,7 @@ class MergeService:
 
     def _on_submap(self, sample: Any) -> None:
         key = str(sample.key_expr)
-        parts = key[len(self._root) + 1:].split("/")
-        robot = parts[1] if len(parts) >= 2 else "unknown"
+        robot = keys.submap_robot(self._root, key) or "unknown"
         self.stats.submaps_received += 1
         data = sample.payload.to_bytes()
         if len(data) > self.config.max_payload_bytes:
@@ -236,7 +241,7 @@ class MergeService:
                                   f"{env.sender!r}, submap {sub.robot_id!r}")
             if sub.seq is None:
                 raise SchemaError("submap without seq")
-        except (InputError, MergeError) as exc:
+        except MergeError as exc:
             self.stats.submaps_rejected += 1
             log.warning("bad submap on %s: %s", key, exc)
             self._publish_error(robot, "bad_submap", str(exc), None)
@@ -274,15 +279,22 @@ class MergeService:
                 continue
             try:
                 self._process(row_id)
-            except Exception as exc:  # one bad submap must not stop the service
+            # Last resort of the only worker thread: one submap that fails in any way (a
+            # solver, GTSAM, a bug) is logged with its traceback and marked failed; the
+            # service goes on with the next one.
+            except Exception as exc:
                 log.exception("processing submap row %d failed", row_id)
                 self.stats.error("processing")
-                with contextlib.suppress(Exception):
+                try:
                     self.store.mark_processed(row_id, "failed", str(exc)[:500])
+                except MergeError as store_exc:
+                    log.warning("could not mark submap row %d failed: %s", row_id, store_exc)
 
     def _decode_submap(self, payload: bytes) -> Submap:
-        _, sub = decode_message(payload, self.projections)
-        assert isinstance(sub, Submap)
+        """A stored payload (checked to be a submap when it arrived) decoded again."""
+        env, sub = decode_message(payload, self.projections)
+        if not isinstance(sub, Submap):
+            raise SchemaError(f"stored payload is a {env.msg_type.value} message, not a submap")
         return sub
 
     def _process(self, row_id: int) -> None:
@@ -291,27 +303,21 @@ class MergeService:
         if row.status != "pending":
             return
         sub = self._decode_submap(row.payload)
-        me = frame_name(sub.robot_id, sub.session_id)
+        me_id = FrameId(sub.robot_id, sub.session_id)
+        me = str(me_id)
         new_factors = []
         with self._lock:
             others = [(f, self._frame_map(f)) for f, objs in self.frames.items()
                       if f != me and len(objs) >= self.config.min_map_objects]
         for other, map_ in others:
-            robot, session = other.split("/", 1)
+            other_id = FrameId.parse(other)
             self.stats.matches_tried += 1
-            outcome = match(map_, sub, self.config.match)
-            res = outcome.result
-            if not res.accepted or res.transform is None or res.covariance is None:
+            res = match(map_, sub, self.config.match).result
+            if not yields_factor(res):
                 continue
-            r_sig, t_sig = self.config.drift_sigma
-            cov = np.asarray(res.covariance) + np.diag([r_sig**2] * 3 + [t_sig**2] * 3)
-            factor = Factor(
-                factor_id=f"{robot}.{session}-{sub.robot_id}.{sub.session_id}-{sub.seq}",
-                robot_a=robot, session_a=session, robot_b=sub.robot_id, session_b=sub.session_id,
-                T_a_b=res.transform, covariance=cov.tolist(),
-                correspondences=[Correspondence(object_a=m.map_object, object_b=m.submap_object,
-                                                score=m.score) for m in res.matches],
-                status=FactorStatus.ACCEPTED,
+            factor = factor_from_match(
+                res, other_id, me_id, factor_id=match_factor_id(other_id, me_id, sub.seq),
+                drift_sigma=self.config.drift_sigma,
             )
             # a replay after a crash finds the factor stored already: publish it again (its id
             # is deterministic, so receivers see the same factor twice at most)
@@ -341,13 +347,13 @@ class MergeService:
     def _frame_map(self, name: str) -> ObjectMap:
         """A frame's objects as a map (its arrays cached with it until the frame changes)."""
         if name not in self._frame_maps:
-            robot, session = name.split("/", 1)
-            self._frame_maps[name] = ObjectMap(robot_id=robot, session_id=session,
+            frame = FrameId.parse(name)
+            self._frame_maps[name] = ObjectMap(robot_id=frame.robot, session_id=frame.session,
                                                objects=list(self.frames[name].values()))
         return self._frame_maps[name]
 
     def _add_to_frame(self, sub: Submap) -> None:
-        name = frame_name(sub.robot_id, sub.session_id)
+        name = str(FrameId(sub.robot_id, sub.session_id))
         if name not in self.frames:
             self.store.put_frame(sub.robot_id, sub.session_id, self.clock())
             self.graph.add_frame(name)
@@ -383,7 +389,7 @@ class MergeService:
     def _publish_factor(self, factor: Factor) -> None:
         payload = encode_message(factor, self.config.factor_profile, "mergesvc", self._next_seq())
         for robot in {factor.robot_a, factor.robot_b}:
-            self.session.put(f"{self._root}/factor/{robot}/{factor.factor_id}", payload)
+            self.session.put(keys.factor_key(self._root, robot, factor.factor_id), payload)
 
     # ------------------------------------------------------------------ queries
 
@@ -396,12 +402,14 @@ class MergeService:
             anchor = self._anchor
             poses.setdefault(anchor, np.eye(4))
             frames = {f: list(o.values()) for f, o in self.frames.items() if f in poses}
-            pairs = [(frame_name(f.robot_a, f.session_a), c.object_a,
-                      frame_name(f.robot_b, f.session_b), c.object_b)
-                     for f in self.factors.values() for c in f.correspondences]
+            pairs = []
+            for f in self.factors.values():
+                a, b = (str(x) for x in factor_frames(f))
+                pairs += [(a, c.object_a, b, c.object_b) for c in f.correspondences]
             fused = fuse_objects(frames, poses, pairs)
-            robot, session = anchor.split("/", 1)
-            self._global = ObjectMap(robot_id=robot, session_id=session, objects=fused.objects)
+            at = FrameId.parse(anchor)
+            self._global = ObjectMap(robot_id=at.robot, session_id=at.session,
+                                     objects=fused.objects)
             self._anchor = anchor
             return self._global, anchor
 
@@ -439,10 +447,11 @@ class MergeService:
                     raise SchemaError("relocalize needs a submap")
                 reply = self.relocalize(sub)
                 query.reply(query.key_expr, reply.model_dump_json().encode())
-            except (InputError, MergeError) as exc:
+            except MergeError as exc:
                 self.stats.error("bad_relocalize")
                 log.warning("bad relocalize query: %s", exc)
                 query.reply_err(json.dumps({"error": "bad_request", "detail": str(exc)}).encode())
+            # last resort: every query gets an answer, a failure inside (a solver, a bug) too
             except Exception as exc:
                 log.exception("relocalize failed")
                 query.reply_err(json.dumps({"error": "internal", "detail": str(exc)}).encode())
@@ -475,6 +484,7 @@ class MergeService:
         with query:
             try:
                 query.reply(query.key_expr, json.dumps(self.status()).encode())
+            # last resort: every query gets an answer, a failure inside (a bug) too
             except Exception as exc:
                 log.exception("status failed")
                 query.reply_err(json.dumps({"error": "internal", "detail": str(exc)}).encode())
@@ -482,11 +492,11 @@ class MergeService:
     def _on_alive(self, sample: Any) -> None:
         import zenoh
 
-        robot = str(sample.key_expr).rsplit("/", 1)[-1]
+        robot = keys.alive_robot(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.PUT:
             self.alive.add(robot)
         else:
             self.alive.discard(robot)
 
 
-__all__ = ["MergeService", "RelocalizeReply", "ServiceConfig", "ServiceStats", "frame_name"]
+__all__ = ["MergeService", "RelocalizeReply", "ServiceConfig", "ServiceStats"]

@@ -32,9 +32,9 @@ from typing import Any
 
 from mergesvc.core.frames import frame_name
 from mergesvc.core.model import FactorStatus
-from mergesvc.errors import InputError, StoreError
+from mergesvc.errors import InputError, StoreError, one_line
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 #: Version of the tables below; a file written by a newer build is refused.
 STORE_SCHEMA_VERSION = 1
@@ -178,10 +178,6 @@ def _check_factor_status(status: Any) -> FactorStatus:
         raise InputError(f"factor status must be one of {allowed}, got {status!r}") from None
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
 class Store:
     """The service's SQLite store. `Store(":memory:")` for tests; use as a context manager.
 
@@ -210,14 +206,14 @@ class Store:
                 check_same_thread=False,  # shared by threads under self._lock
             )
         except sqlite3.Error as exc:
-            raise StoreError(f"cannot open store {self.path}: {_one_line(exc)}") from exc
+            raise StoreError(f"cannot open store {self.path}: {one_line(exc)}") from exc
         try:
             self._open(check_integrity)
         except sqlite3.DatabaseError as exc:
             self._conn.close()
             self._conn = None
             raise StoreError(
-                f"store {self.path} is unreadable or corrupt: {_one_line(exc)}"
+                f"store {self.path} is unreadable or corrupt: {one_line(exc)}"
             ) from exc
         except BaseException:
             self._conn.close()
@@ -228,7 +224,8 @@ class Store:
 
     def _open(self, check_integrity: bool) -> None:
         conn = self._conn
-        assert conn is not None
+        if conn is None:  # only __init__ calls this, right after connecting
+            raise StoreError(f"store {self.path} is closed")
         # The first statement reads the header: a file that is not SQLite fails here.
         mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
         if not self._memory and str(mode).lower() != "wal":
@@ -267,7 +264,7 @@ class Store:
             "INSERT INTO schema_version (version, created_at_s) VALUES (?, ?)",
             (STORE_SCHEMA_VERSION, self._clock()),
         )
-        logger.info("created store %s (schema version %d)", self.path, STORE_SCHEMA_VERSION)
+        log.info("created store %s (schema version %d)", self.path, STORE_SCHEMA_VERSION)
 
     def close(self) -> None:
         """Close the connection (checkpoints the WAL). Idempotent."""
@@ -276,7 +273,7 @@ class Store:
                 try:
                     self._conn.close()
                 except sqlite3.Error as exc:
-                    raise StoreError(f"closing store {self.path}: {_one_line(exc)}") from exc
+                    raise StoreError(f"closing store {self.path}: {one_line(exc)}") from exc
                 finally:
                     self._conn = None
 
@@ -301,7 +298,7 @@ class Store:
                 # IMMEDIATE takes the write lock up front: no upgrade deadlock between processes.
                 conn.execute("BEGIN IMMEDIATE" if write else "BEGIN")
             except sqlite3.Error as exc:
-                raise StoreError(f"store {self.path}: {_one_line(exc)}") from exc
+                raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
             try:
                 yield conn
                 conn.execute("COMMIT")
@@ -310,9 +307,9 @@ class Store:
                     try:
                         conn.execute("ROLLBACK")
                     except sqlite3.Error:
-                        logger.exception("rollback failed on %s", self.path)
+                        log.exception("rollback failed on %s", self.path)
                 if isinstance(exc, sqlite3.Error):
-                    raise StoreError(f"store {self.path}: {_one_line(exc)}") from exc
+                    raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
                 raise
 
     # -- submaps ---------------------------------------------------------------------------------
@@ -481,7 +478,7 @@ class Store:
                 )
                 return True
         if bytes(row[0]) != payload:
-            logger.warning("factor %s replayed with different bytes: kept the first", factor_id)
+            log.warning("factor %s replayed with different bytes: kept the first", factor_id)
         return False
 
     def set_factor_status(self, factor_id: str, status: FactorStatus | str) -> bool:

@@ -23,7 +23,7 @@ from mergesvc.errors import ConfigError, DecodeError, LinkError
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator, LossEvent
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 
 class Direction(str, Enum):
@@ -182,7 +182,7 @@ class AcousticBridge:
         except BaseException:
             self.close()
             raise
-        logger.info(
+        log.info(
             "acoustic bridge %s/** <-> %s/** (rate %d, time_scale %g, vehicles %s)",
             uw_prefix,
             top_prefix,
@@ -228,18 +228,18 @@ class AcousticBridge:
             try:
                 sub.undeclare()
             except zenoh.ZError as exc:
-                logger.debug("undeclare failed: %s", exc)
+                log.debug("undeclare failed: %s", exc)
         self._subscribers.clear()
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             if self._thread.is_alive():
-                logger.warning("acoustic bridge worker did not stop within 5 s")
+                log.warning("acoustic bridge worker did not stop within 5 s")
         if self._owns_session and self._session is not None:
             self._session.close()
         s = self._sim.stats
-        logger.info(
+        log.info(
             "acoustic bridge closed: %d delivered, %d lost, %d pending, %d retransmissions",
             s.messages_delivered,
             s.messages_lost,
@@ -262,7 +262,7 @@ class AcousticBridge:
             if len(queue) >= self._queue_size:
                 dropped_key, _ = queue.popleft()
                 self._stats.ingress_dropped[direction.value] += 1
-                logger.warning("%s ingress queue full: dropped %s", direction.value, dropped_key)
+                log.warning("%s ingress queue full: dropped %s", direction.value, dropped_key)
             queue.append((key, payload))
         self._wake.set()
 
@@ -288,7 +288,7 @@ class AcousticBridge:
                 wait_s = (next_s - self.sim_now_s()) * self.time_scale
                 self._wake.wait(min(max(wait_s, 0.0), self._MAX_WAIT_S))
         except Exception:
-            logger.exception("acoustic bridge worker failed; bridge stopped")
+            log.exception("acoustic bridge worker failed; bridge stopped")
 
     def _offer(self, direction: Direction, key: str, payload: bytes) -> None:
         if direction is Direction.UPLINK:
@@ -302,14 +302,14 @@ class AcousticBridge:
             src, dst = self.topside, vehicle
         if suffix is None or vehicle is None:
             self._stats.unroutable += 1
-            logger.warning("%s sample %s names no known vehicle: not bridged", direction.value, key)
+            log.warning("%s sample %s names no known vehicle: not bridged", direction.value, key)
             return
         try:
             data = frame_sample(suffix, payload)
             self._sim.offer(src, dst, data)
         except LinkError as exc:
             self._stats.oversize += 1
-            logger.warning("%s sample %s not bridged: %s", direction.value, key, exc)
+            log.warning("%s sample %s not bridged: %s", direction.value, key, exc)
 
     def _on_deliver(self, delivery: Delivery) -> None:
         suffix, payload = unframe_sample(delivery.payload)
@@ -325,7 +325,7 @@ class AcousticBridge:
             suffix, _ = unframe_sample(event.payload)
         except DecodeError:
             suffix = "?"
-        logger.warning(
+        log.warning(
             "acoustic link lost %s %s -> %s %s (%s)",
             direction.value,
             event.src,
@@ -344,7 +344,7 @@ class AcousticBridge:
             except zenoh.ZError as exc:
                 with self._sim_lock:
                     self._stats.publish_errors += 1
-                logger.warning("republishing %s failed: %s", key, exc)
+                log.warning("republishing %s failed: %s", key, exc)
                 continue
             with self._sim_lock:
                 self._stats.published[direction.value] += 1

@@ -20,7 +20,7 @@ from scipy.stats import kendalltau, spearmanr
 
 from mergesvc.errors import ConfigError, DecodeError, InputError, SchemaError
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 #: Version of the .npz weight file written by `UncertaintyHead.save`.
 FORMAT_VERSION = 1
@@ -622,7 +622,7 @@ def fit(
         else:
             history.best_epoch = epoch
         history.epochs.append(metrics)
-        logger.debug("uncertainty head epoch %d: %s", epoch, metrics)
+        log.debug("uncertainty head epoch %d: %s", epoch, metrics)
         if on_epoch is not None:
             on_epoch(epoch, dict(metrics))
         if n_val and stale >= config.patience:

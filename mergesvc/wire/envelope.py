@@ -20,9 +20,9 @@ import msgpack
 from pydantic import BaseModel
 
 from mergesvc.core.model import SCHEMA_VERSION, ErrorMessage, Factor, ObjectMap, Submap
-from mergesvc.errors import CodecError, DecodeError, SchemaError
+from mergesvc.errors import CodecError, DecodeError, SchemaError, one_line
 from mergesvc.wire.factors import decode_factor_compact, encode_factor_compact
-from mergesvc.wire.fields import check_int, check_list, check_str, one_line, validate_model
+from mergesvc.wire.fields import check_int, check_list, check_str, validate_model
 from mergesvc.wire.objects import decode_objects, encode_objects
 from mergesvc.wire.profiles import (
     DEFAULT_LIMITS,

@@ -25,11 +25,6 @@ LOG2_MIN, LOG2_MAX = -126, 127  # variances must lie in [2^-126, 2^127] (float32
 NAN_OR_INF = "NaN or inf"
 
 
-def one_line(exc: BaseException | str) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return text.splitlines()[0]
-
-
 def check_int(v: Any, what: str, lo: int, hi: int) -> int:
     if type(v) is not int:
         raise DecodeError(f"{what}: expected an integer, got {type(v).__name__}")
@@ -172,7 +167,6 @@ __all__ = [
     "log_decode",
     "log_encode",
     "log_range",
-    "one_line",
     "to_raw",
     "validate_model",
 ]

@@ -21,7 +21,7 @@ from mergesvc.core.model import (
     Submap,
     parse_model,
 )
-from mergesvc.errors import DecodeError, InputError, SchemaError
+from mergesvc.errors import DecodeError, InputError, SchemaError, one_line
 from mergesvc.wire.envelope import (
     AnyMessage,
     decode_message,
@@ -30,7 +30,7 @@ from mergesvc.wire.envelope import (
     parse_profile,
     peek_projection_id,
 )
-from mergesvc.wire.fields import one_line, validate_model
+from mergesvc.wire.fields import validate_model
 from mergesvc.wire.profiles import (
     DEFAULT_LIMITS,
     CodecLimits,

@@ -1,4 +1,23 @@
-"""Every Zenoh key expression of mergesvc, versioned under one root; built only here."""
+"""Every Zenoh key expression of mergesvc, versioned under one root; built only here.
+
+A fleet has two roots: the topside `fleet_root(fleet)` (the service, and vehicles on Zenoh) and
+the vehicle side of an acoustic link `uw_root(fleet)` (the bridge republishes one on the other).
+Under either root the key space is the same:
+
+    submap/{robot}/{session}    a vehicle's submaps                  submap_key, all_submaps
+    factor/{robot}/{factor_id}  inter-robot factors for a vehicle    factor_key, robot_factors,
+                                                                     all_factors
+    error/{robot}               answers to a vehicle's bad submaps   error_key, all_errors
+    relocalize                  queryable: where is a new session    relocalize_key
+    status                      queryable: the service's status      status_key
+    alive/{robot}               liveliness token of a vehicle        alive_key, all_alive
+
+Every function takes the root first (as `fleet_root` or `uw_root` return it) and refuses a root
+of another shape, and names that would not be one key chunk (a robot), or that Zenoh refuses
+in a key (`*`, `$`, `?`, `#`, empty chunks): `ConfigError`. Names are otherwise taken as they
+come (robots, sessions and factor ids arrive from the network; the key of a name that worked
+before must not change).
+"""
 
 from __future__ import annotations
 
@@ -8,12 +27,37 @@ from mergesvc.errors import ConfigError
 
 ROOT = "mergesvc/v1"
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_ROOT = re.compile(r"^mergesvc/v1/(uw/)?[A-Za-z0-9_.-]{1,64}$")
+_RESERVED = set("*$?#")
 
 
 def _name(value: str, what: str) -> str:
-    if not _NAME.match(value):
+    if not isinstance(value, str) or not _NAME.match(value):
         raise ConfigError(f"invalid {what} {value!r}: use 1-64 of A-Z a-z 0-9 _ . -")
     return value
+
+
+def _root(root: str) -> str:
+    if not isinstance(root, str) or not _ROOT.match(root):
+        raise ConfigError(f"invalid key root {root!r}: use fleet_root(fleet) or uw_root(fleet)")
+    return root
+
+
+def _chunks(value: str, what: str, *, one: bool) -> str:
+    """`value` as one key chunk (`one`), or as chunks joined by '/' (sessions, factor ids)."""
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"invalid {what} {value!r}: must be a non-empty string")
+    if one and "/" in value:
+        raise ConfigError(f"invalid {what} {value!r}: may not contain '/'")
+    if "" in value.split("/"):
+        raise ConfigError(f"invalid {what} {value!r}: empty key chunk")
+    if _RESERVED & set(value):
+        raise ConfigError(f"invalid {what} {value!r}: may not contain * $ ? #")
+    return value
+
+
+def _robot(robot: str) -> str:
+    return _chunks(robot, "robot", one=True)
 
 
 def fleet_root(fleet: str) -> str:
@@ -24,3 +68,93 @@ def fleet_root(fleet: str) -> str:
 def uw_root(fleet: str) -> str:
     """Vehicle side of an acoustic link: what the bridge carries to fleet_root(fleet)."""
     return f"{ROOT}/uw/{_name(fleet, 'fleet')}"
+
+
+def submap_key(root: str, robot: str, session: str) -> str:
+    """Where a vehicle publishes the submaps of one session: {root}/submap/{robot}/{session}."""
+    return f"{_root(root)}/submap/{_robot(robot)}/{_chunks(session, 'session', one=False)}"
+
+
+def all_submaps(root: str) -> str:
+    """Every submap of the fleet (what the service subscribes to): {root}/submap/**."""
+    return f"{_root(root)}/submap/**"
+
+
+def submap_robot(root: str, key: str) -> str | None:
+    """The robot a submap key names ({root}/submap/{robot}/...), None for another key."""
+    prefix = f"{_root(root)}/submap/"
+    if not key.startswith(prefix):
+        return None
+    robot = key[len(prefix):].split("/", 1)[0]
+    return robot or None
+
+
+def factor_key(root: str, robot: str, factor_id: str) -> str:
+    """Where the service sends one factor to one of its robots:
+    {root}/factor/{robot}/{factor_id}."""
+    return f"{_root(root)}/factor/{_robot(robot)}/{_chunks(factor_id, 'factor id', one=False)}"
+
+
+def robot_factors(root: str, robot: str) -> str:
+    """Every factor for one robot (what a vehicle subscribes to): {root}/factor/{robot}/**."""
+    return f"{_root(root)}/factor/{_robot(robot)}/**"
+
+
+def all_factors(root: str) -> str:
+    """Every factor of the fleet: {root}/factor/**."""
+    return f"{_root(root)}/factor/**"
+
+
+def error_key(root: str, robot: str) -> str:
+    """Where the service answers a robot's bad submaps: {root}/error/{robot}."""
+    return f"{_root(root)}/error/{_robot(robot)}"
+
+
+def all_errors(root: str) -> str:
+    """Every error answer of the fleet: {root}/error/**."""
+    return f"{_root(root)}/error/**"
+
+
+def relocalize_key(root: str) -> str:
+    """The relocalize queryable: {root}/relocalize."""
+    return f"{_root(root)}/relocalize"
+
+
+def status_key(root: str) -> str:
+    """The status queryable: {root}/status."""
+    return f"{_root(root)}/status"
+
+
+def alive_key(root: str, robot: str) -> str:
+    """A robot's liveliness token: {root}/alive/{robot}."""
+    return f"{_root(root)}/alive/{_robot(robot)}"
+
+
+def all_alive(root: str) -> str:
+    """Every robot's liveliness token (what the service watches): {root}/alive/*."""
+    return f"{_root(root)}/alive/*"
+
+
+def alive_robot(key: str) -> str:
+    """The robot an alive/{robot} key names: its last chunk."""
+    return key.rsplit("/", 1)[-1]
+
+
+__all__ = [
+    "ROOT",
+    "alive_key",
+    "alive_robot",
+    "all_alive",
+    "all_errors",
+    "all_factors",
+    "all_submaps",
+    "error_key",
+    "factor_key",
+    "fleet_root",
+    "relocalize_key",
+    "robot_factors",
+    "status_key",
+    "submap_key",
+    "submap_robot",
+    "uw_root",
+]

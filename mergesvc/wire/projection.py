@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from mergesvc.core.model import MAX_EMBEDDING_DIM
-from mergesvc.errors import CodecError, DecodeError, InputError, SchemaError
-from mergesvc.wire.fields import NAN_OR_INF, one_line
+from mergesvc.errors import CodecError, DecodeError, InputError, SchemaError, one_line
+from mergesvc.wire.fields import NAN_OR_INF
 
 MAX_COEF_BITS = 8  # most bits one PCA coefficient can get
 MAX_PROJECTION_FILE_BYTES = 256 * 2**20

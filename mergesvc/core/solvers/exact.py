@@ -45,7 +45,7 @@ from mergesvc.core.solvers.primal import local_search, slots_score, to_cols
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 from mergesvc.errors import SolverError
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 # The dominance presolve forms an (m, m) matrix; above this many candidates it is skipped.
 _PRESOLVE_MAX_CANDIDATES = 4000
@@ -351,7 +351,7 @@ class ExactSearch:
                 if s > best:
                     best_slots, best = slots, s
             else:
-                logger.debug("ignoring infeasible incumbent")
+                log.debug("ignoring infeasible incumbent")
         floor = -math.inf if cutoff is None else float(cutoff)
         best = max(best, floor)  # prune against the cutoff; best_slots keeps the real solution
 
@@ -403,7 +403,7 @@ class ExactSearch:
         if stopped:
             open_max = max((float(e[-1]) for *_, e in stack if len(e)), default=-math.inf)
             upper = max(score, pruned, min(open_max, root_bound))
-            logger.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
+            log.debug("exact search stopped after %d nodes, gap %.6g", nodes, upper - score)
         else:
             upper = max(score, pruned)
         return ExactResult(to_cols(t, best_slots), score, not stopped, nodes, float(upper))

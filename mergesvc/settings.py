@@ -1,0 +1,293 @@
+"""One settings tree for every command: `Settings`, a section per part of the system, resolved
+from defaults <- a JSON file <- `MERGESVC_*` environment <- command-line flags.
+
+This layer sits between the processes (fleet) and the command line: it nests the config
+models of core, wire, link, sim and fleet, and it is the only place that reads the settings
+file and the environment. Only `mergesvc.cli` imports it; everything below takes its config
+objects as arguments. `load_settings` takes the environment as a parameter (the command line
+passes `os.environ`; tests pass `{}`), so nothing reads `os.environ` behind a caller's back.
+
+The file. JSON, either the tree (`mergesvc config --dump` prints one; any subset of sections and
+fields will do) or, as before the tree, a bare section: a `MatchConfig` object (its keys `mode`,
+`seed`, `candidates`, `affinity`, `solver`, `verify` never name a section) or an
+`UncertaintyConfig` object (`hidden_sizes`, `epochs`, ...). A bare MatchConfig is a whole
+MatchConfig, its own defaults filling what it leaves out, as `--config`/`--settings` always read
+it; it goes to `match`, or for `mergesvc serve` to `service.match`. `MERGESVC_SETTINGS=FILE`
+names the file when no `--settings` is given (`mergesvc demo` uses it to hand its resolved
+settings to the processes it starts).
+
+The environment. `MERGESVC_<SECTION>__<FIELD>[__<FIELD>...]=VALUE`, case-insensitive after the
+prefix, e.g. `MERGESVC_SERVICE__MATCH__VERIFY__MIN_MATCHES=5`; the value is read as JSON when it
+parses (numbers, true/false, null, lists, objects) and as a string otherwise (`sm`). A name whose
+first part is a MatchConfig field rather than a section is the short form for `match`:
+`MERGESVC_CANDIDATES__TOP_K=16` is `MERGESVC_MATCH__CANDIDATES__TOP_K=16`. An unknown name is a
+ConfigError (nothing is ignored silently); so are the short and the long form of one setting
+set together.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
+
+from mergesvc.core.config import MatchConfig, match_config
+from mergesvc.errors import ConfigError
+from mergesvc.fleet.agent import AgentConfig
+from mergesvc.fleet.service import ServiceConfig
+from mergesvc.link.config import LinkConfig
+from mergesvc.link.workload import Workload
+from mergesvc.sim.uncertainty import UncertaintyConfig
+from mergesvc.wire.profiles import CodecSettings
+
+ENV_PREFIX = "MERGESVC_"
+SETTINGS_ENV = "MERGESVC_SETTINGS"
+
+# AgentConfig without the vehicle's name: that is `mergesvc agent --robot`, one per process,
+# not a setting a fleet shares. Built from AgentConfig's fields, so a field added there is here.
+AgentSettings = create_model(
+    "AgentSettings",
+    __config__=ConfigDict(extra="forbid"),
+    __doc__="The `agent` section: AgentConfig (fleet/agent.py) without `robot` (--robot).",
+    __module__=__name__,
+    **{
+        name: (info.annotation, copy.copy(info))
+        for name, info in AgentConfig.model_fields.items()
+        if name != "robot"
+    },
+)
+
+
+class Settings(BaseModel):
+    """Every setting of mergesvc, a section per part; the sections are the config models of the
+    layers below, nested as they are (a field added to one of them is in the tree).
+
+    Sections and the commands that use them:
+      match        `mergesvc match` (MatchConfig, core/config.py); for `mergesvc bench ...` the
+                   settings every benchmarked configuration starts from (each benchmark sets
+                   its own axes on top: mode, solver, affinity kind, paper-mode edge radius)
+      service      `mergesvc serve`, and the service `mergesvc demo` starts (ServiceConfig,
+                   fleet/service.py). It holds the service's own matching settings,
+                   `service.match` (an inter-robot factor needs 4 matches by default), and
+                   whatever else ServiceConfig nests (e.g. the pose graph's settings)
+      agent        `mergesvc agent`, and the vehicles `mergesvc demo` starts (AgentConfig,
+                   fleet/agent.py, without `robot`, which is --robot)
+      codec        `mergesvc codec encode` (CodecSettings, wire/profiles.py)
+      link         `mergesvc link sim`, `mergesvc bench link`: the link every rate x SNR point
+                   of their sweeps starts from (LinkConfig, link/config.py). `link bridge`
+                   builds its link from its own flags and does not read this section
+      workload     `mergesvc link sim`: the traffic it simulates (Workload, link/workload.py)
+      uncertainty  `mergesvc uncertainty train` (UncertaintyConfig, sim/uncertainty.py)
+
+    `mergesvc config --dump [--settings FILE] [--section NAME]` prints the resolved tree;
+    `mergesvc bench ...` and `mergesvc demo` write it beside their results (settings.json in an
+    output folder, NAME.settings.json beside an output file NAME.json).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    match: MatchConfig = Field(default_factory=MatchConfig, description="mergesvc match")
+    service: ServiceConfig = Field(default_factory=ServiceConfig, description="mergesvc serve")
+    agent: AgentSettings = Field(  # type: ignore[valid-type]
+        default_factory=AgentSettings, description="mergesvc agent (without --robot)"
+    )
+    codec: CodecSettings = Field(default_factory=CodecSettings, description="codec encode")
+    link: LinkConfig = Field(default_factory=LinkConfig, description="link sim, bench link")
+    workload: Workload = Field(default_factory=Workload, description="link sim")
+    uncertainty: UncertaintyConfig = Field(
+        default_factory=UncertaintyConfig, description="uncertainty train"
+    )
+
+    def agent_config(self, robot: str) -> AgentConfig:
+        """The AgentConfig of vehicle `robot`: the agent section plus its name."""
+        fields = {name: getattr(self.agent, name) for name in type(self.agent).model_fields}
+        try:
+            return AgentConfig.model_validate({**fields, "robot": robot})
+        except ValidationError as exc:
+            raise _config_error(exc) from exc
+
+    def merged(self, overrides: Mapping[str, Any]) -> Settings:
+        """These settings with `overrides` (nested dicts by section) merged in and checked."""
+        return _validate(_merge(self.model_dump(), overrides))
+
+    def to_json(self) -> str:
+        return json.dumps(self.model_dump(mode="json"), indent=2) + "\n"
+
+
+SECTIONS: tuple[str, ...] = tuple(Settings.model_fields)
+_BARE = {
+    "match": frozenset(MatchConfig.model_fields),
+    "uncertainty": frozenset(UncertaintyConfig.model_fields),
+}
+
+
+def load_settings(
+    path: Path | str | None = None,
+    *,
+    environ: Mapping[str, str],
+    overrides: Mapping[str, Any] | None = None,
+    bare_match: tuple[str, ...] = ("match",),
+) -> Settings:
+    """Defaults <- the JSON file at `path` (else at environ[MERGESVC_SETTINGS], if set) <- the
+    `MERGESVC_*` variables of `environ` <- `overrides` (the command-line flags, nested dicts
+    by section). `bare_match` is where a bare MatchConfig file goes. Raises ConfigError."""
+    if path is None and environ.get(SETTINGS_ENV):
+        path = environ[SETTINGS_ENV]
+    data = Settings().model_dump()
+    if path is not None:
+        _merge(data, read_settings_file(path, bare_match=bare_match))
+    _merge(data, env_overrides(environ))
+    _merge(data, overrides or {})
+    return _validate(data)
+
+
+def read_settings_file(
+    path: Path | str, *, bare_match: tuple[str, ...] = ("match",)
+) -> dict[str, Any]:
+    """The settings file as nested overrides by section (a bare section nested where it goes).
+    Raises ConfigError for an unreadable file or keys that are neither sections nor one bare
+    section's fields."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read config {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"settings file {path} must hold a JSON object")
+    keys = set(data)
+    if keys <= set(SECTIONS):
+        return data
+    if keys <= _BARE["match"]:  # a whole MatchConfig, as --config/--settings always read it
+        return _nest(bare_match, match_config(data).model_dump(mode="json"))
+    if keys <= _BARE["uncertainty"]:
+        return {"uncertainty": data}
+    unknown = ", ".join(sorted(keys - set(SECTIONS)))
+    raise ConfigError(
+        f"settings file {path}: unknown section(s) {unknown}; sections: {', '.join(SECTIONS)} "
+        "(or a bare MatchConfig or UncertaintyConfig object)"
+    )
+
+
+def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
+    """The `MERGESVC_*` variables as nested overrides by section. Raises ConfigError for a name
+    that is no setting, or one setting named twice (short and long form)."""
+    found: dict[tuple[str, ...], tuple[int, str, Any]] = {}
+    for key, raw in environ.items():
+        if not key.startswith(ENV_PREFIX) or key == SETTINGS_ENV:
+            continue
+        path = tuple(key[len(ENV_PREFIX):].lower().split("__"))
+        short = path[0] not in SECTIONS and path[0] in MatchConfig.model_fields
+        if short:
+            path = ("match", *path)
+        leaf = _check_path(key, path)
+        if path in found:
+            raise ConfigError(f"{found[path][1]} and {key} both set {'.'.join(path)}")
+        found[path] = (0 if short else 1, key, _env_value(raw, leaf))
+    out: dict[str, Any] = {}
+    # a section given whole (a JSON object) first, its fields after; the short form first
+    for path, (_, _, value) in sorted(found.items(), key=lambda kv: (len(kv[0]), kv[1][0])):
+        _merge(out, _nest(path, value))
+    return out
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def _validate(data: Mapping[str, Any]) -> Settings:
+    try:
+        return Settings.model_validate(data)
+    except ValidationError as exc:
+        raise _config_error(exc) from exc
+
+
+def _config_error(exc: ValidationError) -> ConfigError:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err["loc"])
+    return ConfigError(f"invalid config: {loc}: {err['msg']}")
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Merge `over` into `base` (nested dicts merged, anything else replaced); returns base."""
+    for k, v in over.items():
+        old = base.get(k)
+        base[k] = _merge(old if isinstance(old, dict) else {}, v) if isinstance(v, Mapping) else v
+    return base
+
+
+def _nest(path: Iterable[str], value: Any) -> dict[str, Any]:
+    parts = list(path)
+    out: Any = value
+    for part in reversed(parts):
+        out = {part: out}
+    return out
+
+
+def _model_of(annotation: Any) -> type[BaseModel] | None:
+    """The model a field holds (also through `X | None`), or None for a plain value."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        models = [m for a in typing.get_args(annotation) if (m := _model_of(a)) is not None]
+        return models[0] if len(models) == 1 else None
+    return None
+
+
+def _is_mapping(annotation: Any) -> bool:
+    origin = typing.get_origin(annotation)
+    return isinstance(origin, type) and issubclass(origin, Mapping)
+
+
+def _check_path(key: str, path: tuple[str, ...]) -> Any:
+    """The annotation of the field at `path`; ConfigError (naming `key`) if there is none."""
+    model: type[BaseModel] = Settings
+    annotation: Any = Settings
+    for i, part in enumerate(path):
+        fields = model.model_fields
+        if part not in fields:
+            if i == 0:
+                raise ConfigError(
+                    f"unknown setting {key}: {part!r} is neither a section "
+                    f"({', '.join(SECTIONS)}) nor a match setting "
+                    f"({', '.join(MatchConfig.model_fields)})"
+                )
+            raise ConfigError(
+                f"unknown setting {key}: {'.'.join(path[:i])} has no {part!r} "
+                f"(it has {', '.join(fields)})"
+            )
+        annotation = fields[part].annotation
+        sub = _model_of(annotation)
+        if sub is None:
+            if i < len(path) - 1 and not _is_mapping(annotation):
+                raise ConfigError(
+                    f"unknown setting {key}: {'.'.join(path[: i + 1])} is a value, not a section"
+                )
+            return annotation
+        model = sub
+    return annotation
+
+
+def _env_value(raw: str, annotation: Any) -> Any:
+    """JSON if it parses, else the string; a text field keeps the text as typed ("007")."""
+    if annotation is str:
+        return raw
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError:
+        return raw
+
+
+__all__ = [
+    "ENV_PREFIX",
+    "SECTIONS",
+    "SETTINGS_ENV",
+    "AgentSettings",
+    "Settings",
+    "env_overrides",
+    "load_settings",
+    "read_settings_file",
+]
