@@ -3,23 +3,11 @@ builds (a real Zenoh session on 127.0.0.1, scouting off, as in test_service.py).
 
 from __future__ import annotations
 
-import json
-
 import zenoh
+from helpers import free_port, zenoh_config
 
 from mergesvc.core.graph import GraphConfig
-from mergesvc.fleet.demo import free_port
 from mergesvc.fleet.service import MergeService, ServiceConfig
-
-
-def router_conf(listen: str) -> zenoh.Config:
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps("router"))
-    c.insert_json5("listen/endpoints", json.dumps([listen]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("scouting/gossip/enabled", "false")
-    c.insert_json5("scouting/delay", "0")
-    return c
 
 
 def test_default_graph_settings() -> None:
@@ -31,7 +19,7 @@ def test_graph_settings_reach_the_services_pose_graph() -> None:
     assert graph != GraphConfig()
     cfg = ServiceConfig(fleet="g", store=":memory:", graph=graph)
     ep = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(router_conf(ep)) as rs, MergeService(cfg, rs) as svc:
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, MergeService(cfg, rs) as svc:
         assert svc.graph.config == graph
         assert svc.graph.config.outlier_weight == 0.25
 

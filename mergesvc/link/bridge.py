@@ -337,10 +337,12 @@ class AcousticBridge:
             self._on_lost_cb(direction, suffix, event)
 
     def _publish(self, outbox: list[tuple[Direction, str, bytes]]) -> None:
+        session = self._session
+        if session is None:  # closed while the worker held this outbox: nothing to send on
+            return
         for direction, key, payload in outbox:
             try:
-                assert self._session is not None
-                self._session.put(key, payload)
+                session.put(key, payload)
             except zenoh.ZError as exc:
                 with self._sim_lock:
                     self._stats.publish_errors += 1

@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mergesvc.core.tracking import Detection, Frame
+from mergesvc.errors import DecodeError, MergeError, SchemaError
 
 # ------------------------------------------------------------------- recorded observation logs
 #
@@ -54,8 +55,6 @@ def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path 
 
 def read_observation_log(path: Path | str) -> Iterator[Frame]:
     """Frames of an observation log, validated line by line (InputError names the line)."""
-    from mergesvc.errors import DecodeError, SchemaError
-
     with open(path) as fh:
         for k, line in enumerate(fh, start=1):
             if not line.strip():
@@ -86,7 +85,7 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                 raise DecodeError(f"{path}:{k}: not JSON: {exc.msg}") from exc
             except (KeyError, TypeError, ValueError) as exc:
                 raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
-            except Exception as exc:  # tracking.py's InputError for bad values
+            except MergeError as exc:  # tracking.py's InputError for bad values
                 raise SchemaError(f"{path}:{k}: {exc}") from exc
             yield Frame(k - 1, stamp, T, T, dets)
 

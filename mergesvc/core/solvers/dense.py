@@ -6,15 +6,24 @@ pygmtools' K is column-major: assignment (i, a) sits at index a * n1 + i.
 from __future__ import annotations
 
 import functools
+from types import ModuleType
 
 import numpy as np
-import pygmtools as pygm
 
 from mergesvc.errors import SolverError
 
 # pygmtools keeps a process-wide default backend; every call here names its backend instead of
 # changing that default for whoever else imports pygmtools.
 _BACKEND = "numpy"
+
+
+@functools.cache
+def _pygm() -> ModuleType:
+    """pygmtools, imported on first use: it pulls in aiohttp and networkx (~0.3 s), and only
+    paper mode needs it."""
+    import pygmtools
+
+    return pygmtools
 
 
 def build_dense_K(
@@ -45,6 +54,7 @@ def build_dense_K(
     def node_fn(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:  # precomputed, batched
         return node_aff_n1n2[None, :, :]
 
+    pygm = _pygm()
     return pygm.utils.build_aff_mat(
         index1, feat1, conn1, index2, feat2, conn2,
         n1=np.array([n1]), ne1=np.array([len(conn1)]),
@@ -57,6 +67,7 @@ def build_dense_K(
 
 def solve_dense(name: str, K: np.ndarray, n1: int, n2: int, max_iter: int = 50) -> np.ndarray:
     """Run a pygmtools solver on dense K. Returns the soft (n1, n2) matrix."""
+    pygm = _pygm()
     fns = {"rrwm": pygm.rrwm, "sm": pygm.sm, "ipfp": pygm.ipfp}
     if name not in fns:
         raise SolverError(f"no pygmtools solver {name!r} (have {', '.join(fns)})")
