@@ -20,18 +20,21 @@ The environment. `MERGESVC_<SECTION>__<FIELD>[__<FIELD>...]=VALUE`, case-insensi
 prefix, e.g. `MERGESVC_SERVICE__MATCH__VERIFY__MIN_MATCHES=5`; the value is read as JSON when it
 parses (numbers, true/false, null, lists, objects) and as a string otherwise (`sm`). A name whose
 first part is a MatchConfig field rather than a section is the short form for `match`:
-`MERGESVC_CANDIDATES__TOP_K=16` is `MERGESVC_MATCH__CANDIDATES__TOP_K=16`. An unknown name is a
-ConfigError (nothing is ignored silently); so are the short and the long form of one setting
-set together.
+`MERGESVC_CANDIDATES__TOP_K=16` is `MERGESVC_MATCH__CANDIDATES__TOP_K=16`. A name whose first
+part is neither (`MERGESVC_HOME`, a variable of some other tool) is not a setting: it is ignored
+with one warning (logged once per process and name). Under a section (or the short form) an
+unknown field is a ConfigError, so a typo is not ignored silently; so are the short and the long
+form of one setting set together.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import logging
 import types
 import typing
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +49,12 @@ from mergesvc.link.workload import Workload
 from mergesvc.sim.uncertainty import UncertaintyConfig
 from mergesvc.wire.profiles import CodecSettings
 
+log = logging.getLogger(__name__)
+
 ENV_PREFIX = "MERGESVC_"
 SETTINGS_ENV = "MERGESVC_SETTINGS"
+# Variables already warned about as "not a setting" (one warning per process and name).
+_WARNED: set[str] = set()
 
 # AgentConfig without the vehicle's name: that is `mergesvc agent --robot`, one per process,
 # not a setting a fleet shares. Built from AgentConfig's fields, so a field added there is here.
@@ -83,9 +90,11 @@ class Settings(BaseModel):
                    of their sweeps starts from (LinkConfig, link/config.py). `link bridge`
                    builds its link from its own flags and does not read this section
       workload     `mergesvc link sim`: the traffic it simulates (Workload, link/workload.py)
-      uncertainty  `mergesvc uncertainty train` (UncertaintyConfig, sim/uncertainty.py)
+      uncertainty  `mergesvc uncertainty train` (UncertaintyConfig,
+                   sim/uncertainty/config.py)
 
-    `mergesvc config --dump [--settings FILE] [--section NAME]` prints the resolved tree;
+    `mergesvc config --dump [--settings FILE] [--section NAME] [--for COMMAND]` prints the
+    resolved tree (--for: where the command puts a bare MatchConfig file);
     `mergesvc bench ...` and `mergesvc demo` write it beside their results (settings.json in an
     output folder, NAME.settings.json beside an output file NAME.json).
     """
@@ -127,16 +136,23 @@ _BARE = {
 }
 
 
+# Where a bare MatchConfig file goes: one path in the tree, or several (each gets the whole
+# MatchConfig). `mergesvc serve` puts it at ("service", "match"), every other command at
+# ("match",); `mergesvc config --dump` without --for shows both.
+BareMatch = tuple[str, ...] | Sequence[tuple[str, ...]]
+
+
 def load_settings(
     path: Path | str | None = None,
     *,
     environ: Mapping[str, str],
     overrides: Mapping[str, Any] | None = None,
-    bare_match: tuple[str, ...] = ("match",),
+    bare_match: BareMatch = ("match",),
 ) -> Settings:
     """Defaults <- the JSON file at `path` (else at environ[MERGESVC_SETTINGS], if set) <- the
     `MERGESVC_*` variables of `environ` <- `overrides` (the command-line flags, nested dicts
-    by section). `bare_match` is where a bare MatchConfig file goes. Raises ConfigError."""
+    by section). `bare_match` is where a bare MatchConfig file goes (a path such as
+    ("service", "match"), or several paths). Raises ConfigError."""
     if path is None and environ.get(SETTINGS_ENV):
         path = environ[SETTINGS_ENV]
     data = Settings().model_dump()
@@ -147,9 +163,7 @@ def load_settings(
     return _validate(data)
 
 
-def read_settings_file(
-    path: Path | str, *, bare_match: tuple[str, ...] = ("match",)
-) -> dict[str, Any]:
+def read_settings_file(path: Path | str, *, bare_match: BareMatch = ("match",)) -> dict[str, Any]:
     """The settings file as nested overrides by section (a bare section nested where it goes).
     Raises ConfigError for an unreadable file or keys that are neither sections nor one bare
     section's fields."""
@@ -163,7 +177,11 @@ def read_settings_file(
     if keys <= set(SECTIONS):
         return data
     if keys <= _BARE["match"]:  # a whole MatchConfig, as --config/--settings always read it
-        return _nest(bare_match, match_config(data).model_dump(mode="json"))
+        whole = match_config(data).model_dump(mode="json")
+        out: dict[str, Any] = {}
+        for where in _bare_paths(bare_match):
+            _merge(out, _nest(where, copy.deepcopy(whole)))
+        return out
     if keys <= _BARE["uncertainty"]:
         return {"uncertainty": data}
     unknown = ", ".join(sorted(keys - set(SECTIONS)))
@@ -174,9 +192,12 @@ def read_settings_file(
 
 
 def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
-    """The `MERGESVC_*` variables as nested overrides by section. Raises ConfigError for a name
-    that is no setting, or one setting named twice (short and long form)."""
+    """The `MERGESVC_*` variables as nested overrides by section. A name whose first part is
+    neither a section nor a MatchConfig field (the short form) is not a setting: ignored, with
+    one warning per process and name. Raises ConfigError for an unknown field under a section
+    (a typo), or one setting named twice (short and long form)."""
     found: dict[tuple[str, ...], tuple[int, str, Any]] = {}
+    ignored: list[str] = []
     for key, raw in environ.items():
         if not key.startswith(ENV_PREFIX) or key == SETTINGS_ENV:
             continue
@@ -184,10 +205,14 @@ def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
         short = path[0] not in SECTIONS and path[0] in MatchConfig.model_fields
         if short:
             path = ("match", *path)
+        elif path[0] not in SECTIONS:
+            ignored.append(key)
+            continue
         leaf = _check_path(key, path)
         if path in found:
             raise ConfigError(f"{found[path][1]} and {key} both set {'.'.join(path)}")
         found[path] = (0 if short else 1, key, _env_value(raw, leaf))
+    _warn_ignored(ignored)
     out: dict[str, Any] = {}
     # a section given whole (a JSON object) first, its fields after; the short form first
     for path, (_, _, value) in sorted(found.items(), key=lambda kv: (len(kv[0]), kv[1][0])):
@@ -196,6 +221,25 @@ def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ helpers
+
+
+def _warn_ignored(keys: Iterable[str]) -> None:
+    """One warning for the variables that are not settings, each name once per process."""
+    new = sorted(k for k in keys if k not in _WARNED)
+    if not new:
+        return
+    _WARNED.update(new)
+    log.warning(
+        "ignoring %s: not a setting (a MERGESVC_* setting starts with a section: %s, "
+        "or a match setting)", ", ".join(new), ", ".join(SECTIONS),
+    )
+
+
+def _bare_paths(bare_match: BareMatch) -> list[tuple[str, ...]]:
+    """`bare_match` as a list of paths (one path is a tuple of strings)."""
+    if all(isinstance(part, str) for part in bare_match):
+        return [tuple(typing.cast("tuple[str, ...]", bare_match))]
+    return [tuple(where) for where in bare_match]
 
 
 def _validate(data: Mapping[str, Any]) -> Settings:
@@ -243,18 +287,13 @@ def _is_mapping(annotation: Any) -> bool:
 
 
 def _check_path(key: str, path: tuple[str, ...]) -> Any:
-    """The annotation of the field at `path`; ConfigError (naming `key`) if there is none."""
+    """The annotation of the field at `path` (its first part a section); ConfigError (naming
+    `key`) if there is none."""
     model: type[BaseModel] = Settings
     annotation: Any = Settings
     for i, part in enumerate(path):
         fields = model.model_fields
         if part not in fields:
-            if i == 0:
-                raise ConfigError(
-                    f"unknown setting {key}: {part!r} is neither a section "
-                    f"({', '.join(SECTIONS)}) nor a match setting "
-                    f"({', '.join(MatchConfig.model_fields)})"
-                )
             raise ConfigError(
                 f"unknown setting {key}: {'.'.join(path[:i])} has no {part!r} "
                 f"(it has {', '.join(fields)})"
@@ -286,6 +325,7 @@ __all__ = [
     "SECTIONS",
     "SETTINGS_ENV",
     "AgentSettings",
+    "BareMatch",
     "Settings",
     "env_overrides",
     "load_settings",

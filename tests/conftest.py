@@ -1,8 +1,10 @@
-"""Shared fixtures: seeded scenarios (generated, never downloaded)."""
+"""Shared fixtures: seeded scenarios (generated, never downloaded), and an environment without
+a developer's MERGESVC_* settings for every test."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -17,6 +19,31 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+SETTINGS_PREFIX = "MERGESVC_"
+
+
+def strip_settings_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Remove every MERGESVC_* variable from os.environ (undone by `monkeypatch`). Processes a
+    test starts inherit os.environ, so they run without them too."""
+    for key in [k for k in os.environ if k.startswith(SETTINGS_PREFIX)]:
+        monkeypatch.delenv(key)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _no_developer_settings_in_the_session() -> Iterator[None]:
+    """Before any fixture: module- and session-scoped fixtures that start processes (a service
+    under test) start them without a developer's MERGESVC_* variables."""
+    with pytest.MonkeyPatch.context() as mp:
+        strip_settings_env(mp)
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _no_developer_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A developer's MERGESVC_* variables reach no test (nor what a test starts); a variable
+    one test sets (outside monkeypatch) does not reach the next."""
+    strip_settings_env(monkeypatch)
 
 
 @pytest.fixture(scope="session")

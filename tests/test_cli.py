@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -212,6 +213,24 @@ def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
         if a["after_m"] is not None:
             assert a["after_m"] < a["before_m"] or a["after_m"] < 2.0
     assert (tmp_path / "merged_map.png").read_bytes()[:4] == b"\x89PNG"
+    # each robot's keyframe trajectory against the truth: odometry alone for every robot,
+    # merged (the service's keyframe poses) for the anchor and every robot aligned with it
+    traj = summary["trajectory"]
+    assert set(traj) == {"auv1", "auv2", "auv3"}
+    anchor_robot = summary["anchor"].split("/")[0]
+    aligned = {rb for rb, a in summary["alignment"].items() if a["after_m"] is not None}
+    for robot, t in traj.items():
+        assert math.isfinite(t["ate_odometry_m"]) and 0.0 <= t["ate_odometry_m"] < 5.0, robot
+        assert (tmp_path / "trajectories" / f"{robot}_odometry.tum").is_file()
+        for key in ("ate_merged_m", "final_rot_err_deg"):
+            if robot == anchor_robot or robot in aligned:
+                assert t[key] is not None and math.isfinite(t[key]), (robot, key, t)
+            else:
+                assert t[key] is None or math.isfinite(t[key]), (robot, key, t)
+        if t["ate_merged_m"] is not None:
+            assert (tmp_path / "trajectories" / f"{robot}_merged.tum").is_file()
+            assert 0.0 <= t["final_rot_err_deg"] <= 180.0
+    assert sum("keyframe ATE" in line for line in r.stdout.splitlines()) == len(traj)
     out = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True)
     assert out.stdout.strip() == ""  # nothing left running
 

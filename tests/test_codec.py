@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 
@@ -83,6 +84,39 @@ def _factor(rng: np.random.Generator, n_corr: int = 3, max_cond: float = 3e3) ->
         ],
         status="accepted",
     )
+
+
+def _odometry(
+    rng: np.random.Generator, from_keyframe: int = 1233, move_m: float = 5.0
+) -> dict:
+    """A random odometry step: rotation < 0.3 rad, translation within move_m per axis, a
+    covariance with correlations (std devs 1e-4..0.05 rad, 1e-3..0.5 m)."""
+    A = rng.normal(size=(6, 9))
+    Cn = A @ A.T
+    d = np.sqrt(np.diag(Cn))
+    sig = np.concatenate([np.exp(rng.uniform(-9, -3, 3)), np.exp(rng.uniform(-7, -0.7, 3))])
+    C = Cn / np.outer(d, d) * np.outer(sig, sig)
+    q = Rotation.from_rotvec(rng.uniform(-0.17, 0.17, 3)).as_quat()
+    return {
+        "from_keyframe": from_keyframe,
+        "T_from_to": {
+            "translation": rng.uniform(-move_m, move_m, 3).tolist(),
+            "quaternion_wxyz": [q[3], q[0], q[1], q[2]],
+        },
+        "covariance": ((C + C.T) / 2).tolist(),
+    }
+
+
+def _posed(sub: Submap, rng: np.random.Generator, keyframe: int = 1234, **kw) -> Submap:
+    """`sub` anchored at `keyframe` with odometry from keyframe - 1."""
+    doc = {**sub.model_dump(), "keyframe": keyframe, "odometry": _odometry(rng, keyframe - 1, **kw)}
+    return Submap.model_validate(doc)
+
+
+def _rotation_error(q1, q2) -> float:
+    R1 = Rotation.from_quat([*q1[1:], q1[0]])
+    R2 = Rotation.from_quat([*q2[1:], q2[0]])
+    return float((R1.inv() * R2).magnitude())
 
 
 @pytest.fixture(scope="module")
@@ -308,6 +342,12 @@ def _valid_messages() -> list[tuple[bytes, Projection | None]]:
     f = _factor(np.random.default_rng(0))
     out += [(encode_message(f, p, "svc", 1), None) for p in ("full", "compact")]
     out.append((encode_message(ErrorMessage(code="x"), "full", "svc", 1), None))
+    # keyframe + odometry (issue 11): appended, so the indexes above stay
+    posed = _posed(sub, np.random.default_rng(6))
+    out += [(encode_message(posed, p, "auv2", 3), None) for p in ("full", "f16")]
+    out.append((encode_message(posed, "compact", "auv2", 3, projection=proj), proj))
+    fk = f.model_copy(update={"keyframe_a": 1234, "keyframe_b": 77})
+    out += [(encode_message(fk, p, "svc", 1), None) for p in ("full", "compact")]
     return out
 
 
@@ -505,6 +545,257 @@ def test_factor_full_is_exact_and_bad_covariance_is_refused() -> None:
     np.linalg.cholesky(np.array(h.covariance))
     with pytest.raises(ValueError, match="positive definite"):
         Factor(**{**f.model_dump(), "covariance": np.diag([1, 1, 1, 1, 1, -1.0]).tolist()})
+
+
+# ------------------------------------------------------------------ keyframes and odometry
+
+# Messages without keyframes are byte-identical to the codec before issue 11: these are the
+# encodings of `_pinned_models()` by that codec (commit 02a19cd); values chosen exactly
+# representable (powers of two, no correlations) so the bytes do not depend on the platform.
+PINNED = [
+    ("submap full", 150, "ed364451100be06bb7bd592bf549378c"),
+    ("submap f16", 101, "6e0c1a2b983d6b7f8aace2404d855d03"),
+    ("submap int8", 96, "3a460569727a37a1f0fb81647b5cf906"),
+    ("submap up int8", 92, "6f13a41295679729346298f2e39be02f"),
+    ("map f16", 95, "398818fdd0bd56998f5abb6bd763a021"),
+    ("factor full", 651, "d10e6b2429184ec487ac1b773a832080"),
+    ("factor compact", 110, "26e8d3e50c95bcb1c2975929604c8850"),
+]
+
+
+def _pinned_models() -> dict[str, tuple]:
+    objs = [
+        {"id": "o7", "position": [1.25, -3.5, 0.75], "embedding": [0.5, -0.25, 1.0, 2.0],
+         "variance": 0.125, "n_obs": 3, "label": "buoy"},
+        {"id": "o10", "position": [-2.0, 4.25, 1.5], "embedding": [-1.0, 0.75, 0.0, 0.5],
+         "variance": [0.25, 0.5, 1.0, 2.0], "n_obs": 1},
+    ]  # fmt: skip
+    sub = Submap(robot_id="auv2", session_id="s1", seq=5, stamp=12.5, objects=objs)
+    sub_up = Submap(robot_id="auv2", session_id="s1", seq=5, objects=objs, up=(0.0, 0.0, 1.0))
+    f = Factor(
+        factor_id="f17", robot_a="auv1", session_a="s0", robot_b="auv2", session_b="s1",
+        T_a_b={"translation": [12.5, -3.25, 0.5], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
+        covariance=np.diag([0.25] * 6).tolist(),
+        correspondences=[{"object_a": "m40", "object_b": "s0", "score": 0.5},
+                         {"object_a": "m43", "object_b": "s1", "score": 1.0}],
+        status="accepted",
+    )  # fmt: skip
+    return {
+        "submap full": (sub, "full"),
+        "submap f16": (sub, "f16"),
+        "submap int8": (sub, "int8"),
+        "submap up int8": (sub_up, "int8"),
+        "map f16": (ObjectMap(robot_id="svc", session_id="g", objects=objs), "f16"),
+        "factor full": (f, "full"),
+        "factor compact": (f, "compact"),
+    }
+
+
+def test_messages_without_keyframes_are_unchanged() -> None:
+    models = _pinned_models()
+    for name, n_bytes, digest in PINNED:
+        model, profile = models[name]
+        data = encode_message(model, profile, "auv2", 5)
+        assert (len(data), hashlib.sha256(data).hexdigest()[:32]) == (n_bytes, digest), name
+    # the full factor's document has no keyframe keys when they are absent
+    tree = msgpack.unpackb(encode_message(models["factor full"][0], "full", "s", 1), raw=False)
+    assert "keyframe_a" not in tree[6] and "keyframe_b" not in tree[6]
+
+
+@pytest.mark.parametrize("profile", ["full", "f16", "int8", "compact"])
+@pytest.mark.parametrize("up", [False, True])
+def test_pose_fields_are_trailing_and_optional(fleet, profile: str, up: bool) -> None:
+    """With keyframe (and odometry) the payload gains a 16th field and nothing else changes:
+    without it, the message is the one of the same submap without keyframe."""
+    sub, proj = fleet
+    if up:
+        sub = sub.model_copy(update={"up": (0.0, 0.0, 1.0)})
+    plain = msgpack.unpackb(encode_message(sub, profile, "auv2", 5, projection=proj), raw=False)
+    assert len(plain[6]) == (15 if up else 14)
+    for posed in (sub.model_copy(update={"keyframe": 9}), _posed(sub, np.random.default_rng(2))):
+        data = encode_message(posed, profile, "auv2", 5, projection=proj)
+        tree = msgpack.unpackb(data, raw=False)
+        assert len(tree[6]) == 16 and (tree[6][14] is None) != up
+        assert tree[6][15][0] == posed.keyframe
+        assert tree[6][:14] == plain[6][:14] and tree[:6] == plain[:6]
+        stripped = [*tree[:6], tree[6][:15] if up else tree[6][:14]]
+        assert msgpack.packb(stripped, use_bin_type=True) == encode_message(
+            sub, profile, "auv2", 5, projection=proj
+        )
+        _, out = decode_message(data, proj)
+        assert out.keyframe == posed.keyframe and (out.up is None) != up
+
+
+@pytest.mark.parametrize("profile", ["full", "f16", "int8", "compact"])
+def test_keyframe_and_odometry_round_trip(fleet, profile: str) -> None:
+    """full: exact. f16 / int8 / compact: translation within half the position resolution per
+    axis, rotation <= 1.5e-4 rad (15-bit smallest three); f16 / int8: std devs <= 0.14 %,
+    correlations <= 2e-3; compact: std devs within half a 1/32 octave step (<= 1.1 %), the
+    covariance diagonal (compact drops the odometry's correlations)."""
+    sub, proj = fleet
+    for seed in range(20):
+        posed = _posed(sub, np.random.default_rng(seed), keyframe=1 + 997 * seed)
+        _, out = decode_message(encode_message(posed, profile, "auv2", 5, projection=proj), proj)
+        assert isinstance(out, Submap) and out.keyframe == posed.keyframe
+        a, b = posed.odometry, out.odometry
+        assert b is not None and b.from_keyframe == a.from_keyframe
+        if profile == "full":
+            assert b == a  # bit for bit (the objects: float32 embeddings, as always)
+            continue
+        assert np.abs(np.subtract(b.T_from_to.translation, a.T_from_to.translation)).max() <= (
+            RES_M / 2 + 1e-9
+        )
+        assert _rotation_error(a.T_from_to.quaternion_wxyz, b.T_from_to.quaternion_wxyz) <= 1.5e-4
+        C, Ch = np.array(a.covariance), np.array(b.covariance)
+        np.linalg.cholesky(Ch)
+        s, sh = np.sqrt(np.diag(C)), np.sqrt(np.diag(Ch))
+        if profile == "compact":
+            assert np.abs(np.log2(sh / s)).max() <= 1 / 64 + 1e-12
+            assert np.array_equal(Ch, np.diag(np.diag(Ch)))
+        else:
+            assert np.abs(sh / s - 1).max() <= 2 ** (1 / 512) - 1 + 1e-9
+            assert np.abs(Ch / np.outer(sh, sh) - C / np.outer(s, s)).max() <= 2e-3
+    # a keyframe without odometry (a session's first submap), and keyframe 0
+    for k in (0, 2**40):
+        first = sub.model_copy(update={"keyframe": k})
+        _, out = decode_message(encode_message(first, profile, "a", 5, projection=proj), proj)
+        assert out.keyframe == k and out.odometry is None
+
+
+def test_compact_pose_budget(fleet) -> None:
+    """Keyframe + odometry add at most 32 bytes to a compact submap (measured: 30 for a 5 m
+    step at keyframe 1234); also for keyframes < 65536 and steps up to 80 m per axis."""
+    sub, proj = fleet
+    base = len(encode_message(sub, "compact", "auv2", 5, projection=proj))
+    rng = np.random.default_rng(3)
+    added = []
+    for keyframe, move_m in [(1234, 5.0), (100, 1.0), (65535, 80.0)]:
+        for _ in range(5):
+            posed = _posed(sub, rng, keyframe=keyframe, move_m=move_m)
+            added.append(len(encode_message(posed, "compact", "auv2", 5, projection=proj)) - base)
+    assert max(added) <= 32, added
+    only_keyframe = sub.model_copy(update={"keyframe": 1234})
+    assert len(encode_message(only_keyframe, "compact", "auv2", 5, projection=proj)) - base <= 8
+
+
+def _with_pose(pose, profile: str = "full", up=None, sub: Submap | None = None) -> bytes:
+    """A hand-built submap message carrying `pose` as its 16th payload field."""
+    sub = sub or _submap(3)
+    tree = msgpack.unpackb(encode_message(sub, profile, "auv2", 5), raw=False)
+    tree[6] = [*tree[6][:14], up, pose]
+    return msgpack.packb(tree, use_bin_type=True)
+
+
+def test_malformed_pose_is_refused_cleanly() -> None:
+    sub = _submap(3)
+    posed = _posed(sub, np.random.default_rng(1), keyframe=20)
+    full = msgpack.unpackb(encode_message(posed, "full", "auv2", 5), raw=False)[6][15]
+    f16 = msgpack.unpackb(encode_message(posed, "f16", "auv2", 5), raw=False)[6][15]
+    assert decode_message(_with_pose(full))[1].odometry == posed.odometry  # the builder works
+    nan = bytearray(full[2])
+    nan[8:16] = np.array([np.nan], dtype="<f8").tobytes()  # translation y
+    inf = bytearray(full[2])
+    inf[-8:] = np.array([np.inf], dtype="<f8").tobytes()  # covariance[5][5]
+    asym = np.frombuffer(full[2], dtype="<f8").copy()
+    asym[7 + 1] += 1.0  # covariance[0][1]
+    neg = np.frombuffer(full[2], dtype="<f8").copy()
+    neg[7] = -1.0  # covariance[0][0]
+    quat = np.frombuffer(full[2], dtype="<f8").copy()
+    quat[3] = 2.0  # quaternion w
+    cases = [
+        ([None, 1, full[2]], DecodeError, "odometry needs keyframe"),
+        ([20, 0, full[2]], SchemaError, "from_keyframe 20 must be before keyframe 20"),
+        ([20, -3, full[2]], SchemaError, "from_keyframe 23 must be before keyframe 20"),
+        ([20, 21, full[2]], SchemaError, "odometry.from_keyframe"),
+        ([20, 1, bytes(nan)], SchemaError, "translation.1: .*finite"),
+        ([20, 1, bytes(inf)], SchemaError, "covariance.5.5: .*finite"),
+        ([20, 1, asym.tobytes()], SchemaError, "symmetric"),
+        ([20, 1, neg.tobytes()], SchemaError, "positive definite"),
+        ([20, 1, quat.tobytes()], SchemaError, "unit norm"),
+        ([20, 1, full[2][:-8]], DecodeError, "expected 344 bytes"),
+        ([20, 1, [0.0] * 43], DecodeError, "expected binary"),
+        ([-1], DecodeError, "keyframe: -1 outside"),
+        ([2**64 - 1], DecodeError, "keyframe"),
+        (["7"], DecodeError, "keyframe: expected an integer"),
+        ([20, 1.0, full[2]], DecodeError, "odometry.delta"),
+        ([20, 1], DecodeError, "expected \\[keyframe\\] or"),
+        ([], DecodeError, "got 0 fields"),
+        (None, DecodeError, "pose: expected an array"),
+        ({"keyframe": 3}, DecodeError, "pose: expected an array"),
+    ]
+    for pose, err, msg in cases:
+        with pytest.raises(err, match=msg) as info:
+            decode_message(_with_pose(pose))
+        assert "\n" not in str(info.value)
+    # lossy profiles: the bit stream must be complete, and nothing may follow it
+    for blob, msg in [(f16[2][:-3], "truncated"), (f16[2] + b"\0", "trailing")]:
+        with pytest.raises(DecodeError, match=msg):
+            decode_message(_with_pose([20, 1, blob], "f16"))
+    # the 15th field may be nil only when a pose follows; a map carries no pose; 17 fields
+    tree = msgpack.unpackb(encode_message(sub, "int8", "auv2", 5), raw=False)
+    for payload, msg in [
+        ([*tree[6], None], "up: expected an array"),
+        ([*tree[6], None, [3], 0], "expected 14 to 16 fields, got 17"),
+    ]:
+        with pytest.raises(DecodeError, match=msg):
+            decode_message(msgpack.packb([*tree[:6], payload], use_bin_type=True))
+    m = ObjectMap(robot_id="svc", session_id="g", objects=sub.objects)
+    tree = msgpack.unpackb(encode_message(m, "full", "svc", 1), raw=False)
+    tree[6] = [*tree[6], None, [3]]
+    with pytest.raises(DecodeError, match="a map carries no keyframe"):
+        decode_message(msgpack.packb(tree, use_bin_type=True))
+    # the encoder refuses what the models would (model_copy skips validation)
+    for update, msg in [
+        ({"keyframe": None}, "odometry needs keyframe"),
+        ({"keyframe": 19 - 20}, "outside the wire range"),
+        ({"keyframe": 19}, "must be before keyframe 19"),
+        ({"keyframe": 2**63}, "outside the wire range"),
+    ]:
+        with pytest.raises(CodecError, match=msg):
+            encode_message(posed.model_copy(update=update), "full", "auv2", 5)
+    huge = posed.odometry.model_copy(update={"covariance": np.diag([1e20] * 6).tolist()})
+    with pytest.raises(CodecError, match="odometry covariance standard deviations"):
+        encode_message(posed.model_copy(update={"odometry": huge}), "compact", "a", 5,
+                       projection=Projection.fit(np.random.default_rng(4).normal(size=(30, D))))
+
+
+def test_factor_keyframes_round_trip() -> None:
+    f = _factor(np.random.default_rng(11))
+    fk = f.model_copy(update={"keyframe_a": 1234, "keyframe_b": 0})
+    for profile in ("full", "f16", "compact"):
+        env, g = decode_message(encode_message(fk, profile, "svc", 1))
+        assert (g.keyframe_a, g.keyframe_b) == (1234, 0)
+        if env.profile is Profile.FULL:
+            assert g == fk
+        plain = encode_message(f, profile, "svc", 1)
+        added = len(encode_message(fk, profile, "svc", 1)) - len(plain)
+        assert added <= (4 if profile == "compact" else 26)  # compact: two msgpack integers
+        assert decode_message(plain)[1].keyframe_a is None
+    tree = msgpack.unpackb(encode_message(fk, "compact", "svc", 1), raw=False)
+    assert tree[6][10:] == [1234, 0]
+    assert tree[6][:10] == msgpack.unpackb(encode_message(f, "compact", "svc", 1), raw=False)[6]
+    big = fk.model_copy(update={"keyframe_a": 2**63 - 1, "keyframe_b": 2**40})
+    assert decode_message(encode_message(big, "compact", "svc", 1))[1].keyframe_a == 2**63 - 1
+    # malformed: one of the two, a non-integer, out of range, a one-sided full document
+    for tail, msg in [
+        ([7], "expected 10 or 12 fields, got 11"),
+        ([7, None], "keyframe_b: expected an integer"),
+        ([7, -1], "keyframe_b: -1 outside"),
+        ([7, 1, 2], "got 13"),
+    ]:
+        bad = [*tree[:6], [*tree[6][:10], *tail]]
+        with pytest.raises(DecodeError, match=msg):
+            decode_message(msgpack.packb(bad, use_bin_type=True))
+    doc = {**fk.model_dump(mode="json"), "keyframe_b": None}
+    raw = msgpack.unpackb(encode_message(fk, "full", "svc", 1), raw=False)
+    raw[6] = doc
+    with pytest.raises(SchemaError, match="keyframe_a and keyframe_b go together"):
+        decode_message(msgpack.packb(raw, use_bin_type=True))
+    with pytest.raises(CodecError, match="keyframe_a"):
+        encode_message(fk.model_copy(update={"keyframe_a": 2**64}), "compact", "svc", 1)
+    for profile in ("full", "compact"):
+        with pytest.raises(CodecError, match="go together"):
+            encode_message(fk.model_copy(update={"keyframe_b": None}), profile, "svc", 1)
 
 
 # ------------------------------------------------------------------ files

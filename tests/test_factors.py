@@ -10,20 +10,27 @@ import pytest
 
 import mergesvc
 from mergesvc.core.factors import (
+    anchoring_keyframe,
     factor_frames,
     factor_from_match,
+    factor_nodes,
     inflate_covariance,
     match_factor_id,
+    odometry_edge,
     yields_factor,
 )
-from mergesvc.core.frames import FrameId, frame_name, split_frame
+from mergesvc.core.frames import FrameId, KeyframeId, frame_name, keyframe_name, split_frame
+from mergesvc.core.graph import pose3_from_model, transform_from_pose3
 from mergesvc.core.model import (
     Correspondence,
     Factor,
     FactorStatus,
     Match,
     MatchResult,
+    ObjectNode,
+    Odometry,
     RejectReason,
+    Submap,
     Transform,
 )
 from mergesvc.errors import InputError, one_line
@@ -188,6 +195,108 @@ def test_a_match_outcome_is_taken_as_its_result() -> None:
     assert factor_from_match(out, a, b, factor_id="f", drift_sigma=DRIFT) == factor_from_match(
         out.result, a, b, factor_id="f", drift_sigma=DRIFT
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Pose-level factors (keyframes)
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_pose_level_factor_is_re_anchored_at_keyframe_a() -> None:
+    """The match gives T_{a,Kb} (map in a's session frame, submap in keyframe Kb's body frame);
+    the factor is T_{Ka,Kb} = inv(T_{a,Ka}) T_{a,Kb}, its covariance the match's (left
+    multiplication by a constant keeps a right perturbation) inflated."""
+    rng = np.random.default_rng(5)
+    res = result(rng)
+    a, b = FrameId("auv1", "s0"), FrameId("auv2", "s0")
+    T_a_ka = gtsam.Pose3(gtsam.Rot3.Rz(0.7), np.array([4.0, -2.0, 0.5]))
+    f = factor_from_match(res, a, b, factor_id="p", drift_sigma=DRIFT, keyframe_a=12,
+                          keyframe_b=30, T_a_keyframe_a=T_a_ka)
+    assert (f.keyframe_a, f.keyframe_b) == (12, 30)
+    expected = T_a_ka.inverse().compose(pose3_from_model(res.transform))
+    assert pose3_from_model(f.T_a_b).equals(expected, 1e-9)
+    np.testing.assert_array_equal(f.covariance, inflate_covariance(res.covariance, DRIFT))
+    # a right perturbation of the match maps to the same right perturbation of the factor
+    xi = np.r_[0.01, -0.02, 0.03, 0.1, 0.2, -0.1]
+    perturbed = pose3_from_model(res.transform).compose(gtsam.Pose3.Expmap(xi))
+    d = expected.between(T_a_ka.inverse().compose(perturbed))
+    np.testing.assert_allclose(gtsam.Pose3.Logmap(d), xi, atol=1e-12)
+    assert factor_nodes(f) == (KeyframeId(a, 12), KeyframeId(b, 30))
+    # a (4, 4) pose works as well; identity (keyframe 0 of a map in its own frame) keeps T
+    same = factor_from_match(res, a, b, factor_id="p", drift_sigma=DRIFT, keyframe_a=12,
+                             keyframe_b=30, T_a_keyframe_a=T_a_ka.matrix())
+    assert pose3_from_model(same.T_a_b).equals(expected, 1e-9)
+    at0 = factor_from_match(res, a, b, factor_id="q", drift_sigma=DRIFT, keyframe_a=0,
+                            keyframe_b=4)
+    assert pose3_from_model(at0.T_a_b).equals(pose3_from_model(res.transform), 1e-9)
+    # the wire format carries the keyframes
+    back = mergesvc.decode_message(mergesvc.encode_message(f, "full", "mergesvc", 1))[1]
+    assert (back.keyframe_a, back.keyframe_b) == (12, 30)
+
+
+def test_keyframe_arguments_are_checked() -> None:
+    rng = np.random.default_rng(6)
+    a, b = FrameId("a", "s"), FrameId("b", "s")
+    res = result(rng)
+    with pytest.raises(InputError, match="together"):
+        factor_from_match(res, a, b, factor_id="x", drift_sigma=DRIFT, keyframe_a=1)
+    with pytest.raises(InputError, match="needs"):
+        factor_from_match(res, a, b, factor_id="x", drift_sigma=DRIFT,
+                          T_a_keyframe_a=np.eye(4))
+    frame_level = factor_from_match(res, a, b, factor_id="x", drift_sigma=DRIFT)
+    assert frame_level.keyframe_a is None and frame_level.keyframe_b is None
+    assert factor_nodes(frame_level) == (KeyframeId(a, 0), KeyframeId(b, 0))
+
+
+def test_anchoring_keyframe_is_the_majority_of_the_matched_objects() -> None:
+    rng = np.random.default_rng(7)
+    res = result(rng)  # matched map objects m0..m3
+    assert anchoring_keyframe(res, {"m0": 5, "m1": 5, "m2": 9, "m3": 2}) == 5
+    assert anchoring_keyframe(res, {"m0": 5, "m1": 9, "m2": 9, "m3": 5}) == 9  # tie: latest
+    assert anchoring_keyframe(res, {"m0": 3, "x": 1}) == 3  # unknown objects do not vote
+    with pytest.raises(InputError):
+        anchoring_keyframe(res, {"x": 1})
+
+
+def test_odometry_edge_of_a_keyframe_submap() -> None:
+    obj = [ObjectNode(id="o", position=(0, 0, 0), embedding=[1.0], variance=1.0)]
+    T = gtsam.Pose3(gtsam.Rot3.Ry(0.2), np.array([1.0, 2.0, 3.0]))
+    cov = np.diag([1e-4] * 3 + [1e-2] * 3)
+    sub = Submap(robot_id="r", session_id="s", seq=2, objects=obj, keyframe=9,
+                 odometry=Odometry(from_keyframe=4, T_from_to=transform_from_pose3(T),
+                                   covariance=cov.tolist()))
+    edge = odometry_edge(sub)
+    assert edge is not None
+    assert (str(edge.from_), str(edge.to)) == ("r/s#4", "r/s#9")
+    assert edge.edge_id == "odom:r/s#4-9"
+    assert edge.T_from_to.equals(T, 1e-9)
+    np.testing.assert_array_equal(edge.covariance, cov)
+    assert odometry_edge(Submap(robot_id="r", session_id="s", objects=obj, keyframe=0)) is None
+    assert odometry_edge(Submap(robot_id="r", session_id="s", objects=obj)) is None
+
+
+def test_keyframe_ids() -> None:
+    f = FrameId("auv1", "s0")
+    k = KeyframeId(f, 12)
+    assert str(k) == "auv1/s0#12" == keyframe_name(f, 12) == keyframe_name("auv1/s0", 12)
+    assert KeyframeId.parse("auv1/s0#12") == k
+    assert KeyframeId.parse("auv1/s#2#0") == KeyframeId(FrameId("auv1", "s#2"), 0)
+    assert KeyframeId.origin(f) == KeyframeId(f, 0)
+    assert sorted([KeyframeId(f, 10), KeyframeId(f, 9)])[0].k == 9
+    for bad in ("auv1/s0", "auv1/s0#", "auv1/s0#-1", "auv1/s0#x", "auv1#3", "auv1/s0#\u00b2"):
+        with pytest.raises(InputError):
+            KeyframeId.parse(bad)
+    for k_bad in (-1, 1.0, True):
+        with pytest.raises(InputError):
+            KeyframeId(f, k_bad)
+    with pytest.raises(InputError):
+        KeyframeId("auv1/s0", 1)
+
+
+def test_transform_round_trip() -> None:
+    T = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.2, 0.1), np.array([1.0, -2.0, 3.0]))
+    assert pose3_from_model(transform_from_pose3(T)).equals(T, 1e-12)
+    assert pose3_from_model(transform_from_pose3(T.matrix())).equals(T, 1e-12)
 
 
 # --------------------------------------------------------------------------------------------

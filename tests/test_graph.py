@@ -455,3 +455,156 @@ def test_wire_quaternion_is_normalised() -> None:
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     with pytest.raises(InputError):
         pose3_from_transform([0, 0, 0], [0, 0, 0, 0])
+
+
+# --------------------------------------------------------------------------------------------
+# Keyframe nodes: odometry chains as known inliers (the service's multi-robot pose graph)
+# --------------------------------------------------------------------------------------------
+
+
+def chains(rng: np.random.Generator, n: int = 8) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
+    """Two sessions A, B of n keyframes each ("A/s0#k"), joined by noisy odometry added as
+    known inliers; returns the graph and the true pose of every keyframe (world frame)."""
+    graph = PoseGraph(anchor=f"{A}#0")
+    truth = {}
+    odo_cov = np.diag([1e-4] * 3 + [4e-3] * 3)
+    for s, start in ((A, random_pose(rng)), (B, random_pose(rng))):
+        truth[f"{s}#0"] = start
+        for k in range(1, n):
+            step = gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([2.0, 0.0, 0.0]))
+            truth[f"{s}#{k}"] = truth[f"{s}#{k - 1}"].compose(step)
+            meas = step.compose(gtsam.Pose3.Expmap(rng.multivariate_normal(np.zeros(6), odo_cov)))
+            assert graph.add_factor(f"odom:{s}#{k - 1}-{k}", f"{s}#{k - 1}", f"{s}#{k}", meas,
+                                    odo_cov, known_inlier=True)
+    return graph, truth
+
+
+def closure(rng, truth, a: str, b: str, wrong: bool = False) -> tuple[gtsam.Pose3, np.ndarray]:
+    cov = random_covariance(rng)
+    T = truth[a].between(truth[b]).compose(
+        gtsam.Pose3.Expmap(rng.multivariate_normal(np.zeros(6), cov)))
+    return (gross_error(T) if wrong else T), cov
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_wrong_closure_between_chains_is_confirmed_by_two_others(seed: int) -> None:
+    """A wrong closure between two odometry chains, with two correct ones elsewhere along them:
+    the chains' tails are bridges, so without contracting the known-inlier odometry the wrong
+    closure's ends would never be 2-edge-connected and it could only be ambiguous. Odometry is
+    never weighed."""
+    rng = np.random.default_rng(20 + seed)
+    graph, truth = chains(rng)
+    graph.add_factor("c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    graph.add_factor("c2", f"{A}#4", f"{B}#5", *closure(rng, truth, f"{A}#4", f"{B}#5"))
+    graph.add_factor("wrong", f"{A}#7", f"{B}#0",
+                     *closure(rng, truth, f"{A}#7", f"{B}#0", wrong=True))
+    sol = graph.optimize()
+    assert sol.gnc_ran
+    assert sol.outlier_factor_ids == ["wrong"]
+    assert sol.ambiguous_factor_ids == []
+    odometry = [f for f in graph.factor_ids if f.startswith("odom:")]
+    assert all(sol.weights[f] == 1.0 for f in odometry)
+    assert set(odometry) <= set(sol.inlier_factor_ids)
+    T0_inv = truth[f"{A}#0"].inverse()
+    for node, T in sol.T_anchor_frame.items():
+        _, trans_err = pose_error(T, T0_inv.compose(truth[node]))
+        assert trans_err < 1.5, node  # up to 14 m of noisy odometry from the closures
+
+
+def test_one_closure_against_one_other_between_chains_is_ambiguous() -> None:
+    rng = np.random.default_rng(30)
+    graph, truth = chains(rng)
+    graph.add_factor("c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    graph.add_factor("wrong", f"{A}#6", f"{B}#0",
+                     *closure(rng, truth, f"{A}#6", f"{B}#0", wrong=True))
+    sol = graph.optimize()
+    assert sol.outlier_factor_ids == []
+    assert set(sol.ambiguous_factor_ids) <= {"c1", "wrong"} and sol.ambiguous_factor_ids
+
+
+def test_a_closure_contradicting_known_inliers_alone_is_an_outlier() -> None:
+    """A flagged factor whose two nodes are joined by known inliers alone (here: one chain)
+    contradicts what cannot be wrong: a confirmed outlier."""
+    rng = np.random.default_rng(31)
+    graph, truth = chains(rng)
+    graph.add_factor("c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    graph.add_factor("c2", f"{A}#4", f"{B}#5", *closure(rng, truth, f"{A}#4", f"{B}#5"))
+    T = gross_error(truth[f"{A}#2"].between(truth[f"{A}#6"]))
+    graph.add_factor("self", f"{A}#2", f"{A}#6", T, random_covariance(rng))
+    sol = graph.optimize()
+    assert "self" in sol.outlier_factor_ids
+
+
+def test_optimize_returns_the_last_solution_while_nothing_changed() -> None:
+    world = World(12)
+    graph = redundant_graph(world)
+    rev = graph.revision
+    sol = graph.optimize()
+    assert graph.optimize() is sol and graph.revision == rev
+    assert graph.optimize(marginals=False) is not sol  # another request
+    light = graph.optimize(marginals=False)
+    assert light.covariance_66 == {} and light.marginals_error is None
+    for T_a, T_b in zip(light.T_anchor_frame.values(), sol.T_anchor_frame.values()):
+        assert T_a.equals(T_b, 1e-9)
+    T, cov = world.measure(A, B)
+    graph.add_factor("AB9", A, B, T, cov)
+    assert graph.revision > rev
+    again = graph.optimize()
+    assert again is not sol and "AB9" in again.weights
+    assert graph.optimize() is again
+    assert not graph.add_factor("AB9", A, B, T, cov)  # a replay changes nothing
+    assert graph.optimize() is again
+    assert graph.remove_factor("AB9")
+    assert graph.optimize() is not again
+    graph.add_frame(F)
+    graph.anchor = B
+    assert graph.optimize().anchor == B
+
+
+def test_wire_factor_with_keyframes_ties_keyframe_nodes() -> None:
+    rng = np.random.default_rng(13)
+    T = random_pose(rng)
+    q = T.rotation().toQuaternion()
+    base = dict(
+        robot_a="A", session_a="s0", robot_b="B", session_b="s0",
+        T_a_b=Transform(translation=tuple(T.translation()),
+                        quaternion_wxyz=(q.w(), q.x(), q.y(), q.z())),
+        covariance=random_covariance(rng).tolist(),
+    )
+    graph = PoseGraph()
+    assert graph.add_factor_model(Factor(factor_id="k", keyframe_a=3, keyframe_b=7, **base))
+    assert graph.factor_nodes("k") == (f"{A}#3", f"{B}#7", False)
+    assert graph.add_factor_model(Factor(factor_id="f", **base), keyframe_nodes=True)
+    assert graph.factor_nodes("f") == (f"{A}#0", f"{B}#0", False)
+    assert graph.add_factor_model(Factor(factor_id="g", **base))
+    assert graph.factor_nodes("g") == (A, B, False)
+    assert graph.add_factor_model(
+        Factor(factor_id="h", keyframe_a=3, keyframe_b=7, **base), keyframe_nodes=False,
+        known_inlier=True)
+    assert graph.factor_nodes("h") == (A, B, True)
+    assert graph.nodes == graph.frames == [f"{A}#3", f"{B}#7", f"{A}#0", f"{B}#0", A, B]
+    assert graph.has_node(f"{A}#3") and not graph.has_node(f"{A}#4")
+    with pytest.raises(InputError):
+        graph.factor_nodes("nope")
+
+
+def test_fusion_over_keyframe_nodes_names_objects_by_session() -> None:
+    """Keys may be keyframe nodes: global ids and conflicts go by the session (frame_of)."""
+    objs = {
+        f"{A}#0": arrays(["a1"], [[1, 0, 0]], [[1, 0]], [[1, 1]], [1]),
+        f"{A}#5": arrays(["a2"], [[0, 0, 0]], [[1, 0]], [[1, 1]], [1]),
+        f"{B}#2": arrays(["b1"], [[0, 0, 0]], [[1, 0]], [[1, 1]], [1]),
+    }
+    poses = {f"{A}#0": gtsam.Pose3(), f"{A}#5": gtsam.Pose3(gtsam.Rot3(), np.array([5.0, 0, 0])),
+             f"{B}#2": gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 0, 0]))}
+    frame_of = {f"{A}#0": A, f"{A}#5": A, f"{B}#2": B}
+    fused = fuse_objects(objs, poses, [(f"{A}#0", "a1", f"{B}#2", "b1")], frame_of=frame_of)
+    assert [o.id for o in fused.objects] == [f"{A}/a1", f"{A}/a2"]
+    np.testing.assert_allclose(fused.objects[0].position, [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(fused.objects[1].position, [5, 0, 0], atol=1e-12)
+    assert fused.members[f"{A}/a1"] == [(f"{A}#0", "a1"), (f"{B}#2", "b1")]
+    assert fused.conflicts == []
+    joined = fuse_objects(objs, poses, [(f"{A}#0", "a1", f"{A}#5", "a2")], frame_of=frame_of)
+    assert joined.conflicts == [f"{A}/a1"]  # two objects of session A
+    plain = fuse_objects(objs, poses, [(f"{A}#0", "a1", f"{A}#5", "a2")])
+    assert plain.conflicts == [] and plain.objects[0].id == f"{A}#0/a1"

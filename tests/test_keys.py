@@ -1,6 +1,6 @@
 """Zenoh key expressions: each function's exact string (the strings README.md lists; vehicles,
 the service, the bridge and the router's ACL agree on them), names refused, and no key built
-anywhere else in fleet/ or cli/."""
+anywhere else in fleet/, cli/ or link/ (the acoustic bridge)."""
 
 from __future__ import annotations
 
@@ -59,6 +59,28 @@ def test_sessions_and_factor_ids_keep_their_slashes() -> None:
     )
 
 
+def test_the_bridge_keys() -> None:
+    """The bridge moves keys between two prefixes by their suffix; what it carries down is
+    every factor."""
+    assert keys.under(UW, "submap/auv1/s0") == "mergesvc/v1/uw/fleet0/submap/auv1/s0"
+    assert keys.under(TOP, "factor/auv1/f-1") == keys.factor_key(TOP, "auv1", "f-1")
+    assert keys.all_under(UW) == "mergesvc/v1/uw/fleet0/**"
+    assert keys.BRIDGE_DOWNLINK == ("factor/**",)
+    for root in (TOP, UW):
+        assert [keys.under(root, k) for k in keys.BRIDGE_DOWNLINK] == [keys.all_factors(root)]
+    # any plain key expression is a prefix (the bridge is not tied to the fleet roots)
+    assert keys.under("a/uw", "x/y") == "a/uw/x/y"
+    assert keys.all_under("mergesvc/v1/f/uw") == "mergesvc/v1/f/uw/**"
+
+
+@pytest.mark.parametrize("prefix", ["", "a/", "/a", "a//b", "a/*", "a/**", "a$", "a?b", "a#"])
+def test_bridge_prefixes_with_wildcards_or_empty_chunks_are_refused(prefix: str) -> None:
+    with pytest.raises(ConfigError):
+        keys.under(prefix, "submap/auv1/s0")
+    with pytest.raises(ConfigError):
+        keys.all_under(prefix)
+
+
 def test_parsing_keys() -> None:
     assert keys.submap_robot(TOP, f"{TOP}/submap/auv2/s0") == "auv2"
     assert keys.submap_robot(TOP, f"{TOP}/submap/auv2/s/1") == "auv2"
@@ -113,7 +135,7 @@ def test_roots_of_another_shape_are_refused(root: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 KEY_PARTS = ("/submap", "/factor", "/status", "/error", "/alive", "/relocalize",
-             "submap/", "factor/", "alive/", "error/")
+             "submap/", "factor/", "alive/", "error/", "/*")  # "/*": a wildcard subscription
 
 
 def _docstrings(tree: ast.Module) -> set[int]:
@@ -151,11 +173,13 @@ def test_the_literal_check_sees_keys() -> None:
         'c = f"{root}/alive/{robot}"\n'
         'd = "--store"\n'
         'e = f"factor/{robot}/**"\n'
+        'f = f"{prefix}/**"\n'
+        'g = ("factor/**",)\n'
     )
-    assert sorted(line for line, _ in key_literals(src)) == [2, 3, 4, 6]
+    assert sorted({line for line, _ in key_literals(src)}) == [2, 3, 4, 6, 7, 8]
 
 
-@pytest.mark.parametrize("folder", ["fleet", "cli"])
+@pytest.mark.parametrize("folder", ["fleet", "cli", "link"])
 def test_no_key_is_built_outside_keys_py(folder: str) -> None:
     found = [
         f"{path.relative_to(PACKAGE.parent)}:{line}: {text!r}"

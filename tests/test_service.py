@@ -109,12 +109,24 @@ def test_agents_and_service_exchange_correct_factors(world, truth) -> None:
             assert wait_for(lambda: all(ag.stats.factors_received > 0 for ag, _ in pairs
                                         if any(ag.config.robot in (f.robot_a, f.robot_b)
                                                for f in svc.factors.values())))
-            # the frames are aligned: each within 3 m of the truth in the anchor frame
+            # the frames are aligned: each within 3 m of the truth in the anchor frame (a
+            # frame's pose is its keyframe 0's, the session start)
             anchor = st["anchor"].split("/")[0]
             for frame, T in st["frame_poses"].items():
                 robot = frame.split("/")[0]
                 assert pose_err(np.asarray(T), world.T_rel_true(anchor, robot)) < 3.0, frame
             assert len(st["frame_poses"]) >= 2
+            # the vehicles send keyframe submaps: the factors tie keyframes, and every keyframe
+            # of the aligned sessions is within 3 m of the truth in the anchor frame
+            assert all(f.keyframe_a is not None and f.keyframe_b is not None
+                       for f in svc.factors.values())
+            assert st["keyframe_poses"].keys() == st["frame_poses"].keys()
+            T0_inv = np.linalg.inv(world.session_start(anchor))
+            for frame, poses in st["keyframe_poses"].items():
+                T_true = [f.T_true for f in world.frames(frame.split("/")[0])]
+                assert len(poses) >= 2 and poses["0"] == st["frame_poses"][frame]
+                for k, T in poses.items():
+                    assert pose_err(np.asarray(T), T0_inv @ T_true[int(k)]) < 3.0, (frame, k)
         finally:
             close_all(pairs)
 
@@ -232,21 +244,27 @@ def test_relocalization_of_a_new_session(world) -> None:
                             svc.status()["submaps"]["processed"] > 0)
             anchor = svc.status()["anchor"]
             # auv1 back in the water: a new session (new odometry frame) sends its first submaps
-            _, subs = build_submaps(AgentConfig(robot="auv1", session="s1"),
-                                    world.frames("auv1", session=1))
+            frames = list(world.frames("auv1", session=1))
+            _, subs = build_submaps(AgentConfig(robot="auv1", session="s1"), frames)
             assert subs
             verdicts = []
             for sub in subs[:6]:
                 payload = encode_message(sub, Profile.INT8, "auv1", sub.seq or 0)
                 reply = next(iter(cs.get(f"{ROOT}/relocalize", payload=payload, timeout=10.0)))
                 assert reply.ok is not None
-                verdicts.append(RelocalizeReply.model_validate_json(reply.ok.payload.to_bytes()))
+                v = RelocalizeReply.model_validate_json(reply.ok.payload.to_bytes())
+                assert v.keyframe == sub.keyframe
+                verdicts.append(v)
             assert all(v.reason for v in verdicts)
             located = [v for v in verdicts if v.localized]
             assert located, [v.reason for v in verdicts]
-            T_true = np.linalg.inv(world.session_start(anchor.split("/")[0])) @ \
-                world.session_start("auv1", 1)
             v = located[0]
+            # the answer is the pose of the submap's frame in the anchor frame (the anchor
+            # session's keyframe 0, its start): the keyframe's pose for a keyframe submap, the
+            # new session's start for one without keyframe
+            T_where = (world.session_start("auv1", 1) if v.keyframe is None
+                       else frames[v.keyframe].T_true)
+            T_true = np.linalg.inv(world.session_start(anchor.split("/")[0])) @ T_where
             T = np.eye(4)
             from scipy.spatial.transform import Rotation
 

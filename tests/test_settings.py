@@ -10,7 +10,11 @@ with the object that receives the settings replaced by a stub that records what 
 `mergesvc match` -> core.pipeline.match, `serve` -> MergeService (and a real MergeService built
 from what serve passed: its PoseGraph's config), `agent` -> fleet.agent.run_agent, `codec
 encode` -> wire.encode_file, `link sim` -> link.sweep_link, `uncertainty train` ->
-sim.uncertainty.fit, `bench match` -> bench.run_match_bench.
+sim.uncertainty.fit, and each benchmark -> the bench function it calls (`bench match` ->
+run_match_bench, `paper` -> run_paper_bench, `uncertainty` -> run_uncertainty_bench, `link` ->
+run_link_bench with its `link` section too, `generalize` -> run_generalize).
+
+The environment every test runs in has no MERGESVC_* variable (tests/conftest.py).
 """
 
 from __future__ import annotations
@@ -186,13 +190,6 @@ def _env_value(value: Any) -> str:
     return value if isinstance(value, str) else json.dumps(_jsonable(value))
 
 
-@pytest.fixture(autouse=True)
-def _no_developer_settings(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A developer's MERGESVC_* variables must not reach these tests (nor any test)."""
-    for key in [k for k in os.environ if k.startswith("MERGESVC_")]:
-        monkeypatch.delenv(key)
-
-
 def test_the_walk_finds_every_section_and_the_nested_models() -> None:
     paths = {p for p, _ in LEAVES}
     assert {p[0] for p in paths} == set(SECTIONS)
@@ -302,6 +299,28 @@ def via_bench(monkeypatch, tmp, pair, settings: list[str]) -> MatchConfig:
     return _invoke(["bench", "match", "--no-paper", *settings])
 
 
+def via_bench_paper(monkeypatch, tmp, pair, settings: list[str]) -> MatchConfig:
+    monkeypatch.setattr(mergesvc.bench, "run_paper_bench", lambda *a, **kw: _reach(kw["base"]))
+    return _invoke(["bench", "paper", "--quick", "--out", str(tmp / "paper"), *settings])
+
+
+def via_bench_uncertainty(monkeypatch, tmp, pair, settings: list[str]) -> MatchConfig:
+    monkeypatch.setattr(mergesvc.bench, "run_uncertainty_bench",
+                        lambda *a, **kw: _reach(kw["base"]))
+    return _invoke(["bench", "uncertainty", "--out", str(tmp / "unc"), *settings])
+
+
+def via_bench_link(monkeypatch, tmp, pair, settings: list[str]) -> tuple[MatchConfig, LinkConfig]:
+    monkeypatch.setattr(mergesvc.bench, "run_link_bench",
+                        lambda **kw: _reach((kw["base"], kw["link_config"])))
+    return _invoke(["bench", "link", *settings])
+
+
+def via_bench_generalize(monkeypatch, tmp, pair, settings: list[str]) -> MatchConfig:
+    monkeypatch.setattr(mergesvc.bench, "run_generalize", lambda *a, **kw: _reach(kw["base"]))
+    return _invoke(["bench", "generalize", "--quick", *settings])
+
+
 def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
     import zenoh
 
@@ -312,7 +331,7 @@ def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
 
 
 def via_agent(monkeypatch, tmp, pair, settings: list[str]) -> Any:
-    monkeypatch.setattr(mergesvc.fleet.agent, "run_agent", lambda run, _z: _reach(run))
+    monkeypatch.setattr(mergesvc.fleet.agent, "run_agent", lambda run, _z, _f: _reach(run))
     return _invoke(["agent", "--robot", "auv1", *settings])
 
 
@@ -338,18 +357,36 @@ def via_uncertainty(monkeypatch, tmp, pair, settings: list[str]) -> UncertaintyC
 # section -> (how to run the command, the part of the tree the object it reached holds)
 Consumer = Callable[..., Any]
 CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
-    "match": [(via_match, lambda got: got), (via_bench, lambda got: got)],
+    "match": [
+        (via_match, lambda got: got),
+        (via_bench, lambda got: got),
+        (via_bench_paper, lambda got: got),
+        (via_bench_uncertainty, lambda got: got),
+        (via_bench_link, lambda got: got[0]),
+        (via_bench_generalize, lambda got: got),
+    ],
     "service": [(via_serve, lambda got: got)],
     "agent": [],  # see test_each_agent_field_reaches_the_vehicle_or_is_refused
     "codec": [(via_codec, lambda got: got)],
-    "link": [(via_link_sim, lambda got: got[0])],
+    "link": [(via_link_sim, lambda got: got[0]), (via_bench_link, lambda got: got[1])],
     "workload": [(via_link_sim, lambda got: got[1])],
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
+BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize"}
 
 
 def test_every_section_has_a_consumer_here() -> None:
     assert set(CONSUMERS) == set(SECTIONS)
+
+
+def test_every_benchmark_is_a_consumer_here() -> None:
+    """Each `bench` command reads --settings, so each is checked above."""
+    from mergesvc.cli import bench
+
+    commands = {c.name for c in bench.app.registered_commands}
+    assert commands == BENCH_COMMANDS
+    consumers = {run.__name__ for runs in CONSUMERS.values() for run, _ in runs}
+    assert {"via_bench" if c == "match" else f"via_bench_{c}" for c in commands} <= consumers
 
 
 @pytest.mark.parametrize(("path", "value"), LEAVES, ids=IDS)
@@ -410,7 +447,7 @@ def test_run_agent_refuses_settings_for_another_vehicle() -> None:
 
     run = AgentRun(robot="auv1", config=AgentConfig(robot="auv2"))
     with pytest.raises(ConfigError, match="auv2"):
-        run_agent(run, None)
+        run_agent(run, None, [])
 
 
 # ------------------------------------------------------------------ flags
@@ -535,8 +572,8 @@ def test_the_short_form_is_the_match_section() -> None:
 @pytest.mark.parametrize(
     ("environ", "message"),
     [
-        ({"MERGESVC_FOO": "1"}, "MERGESVC_FOO: 'foo' is neither a section"),
         ({"MERGESVC_SERVICE__FOO": "1"}, "MERGESVC_SERVICE__FOO: service has no 'foo'"),
+        ({"MERGESVC_SERVICE__MATCH__VERIFYY__X": "1"}, "service.match has no 'verifyy'"),
         ({"MERGESVC_MATCH__SOLVER__NAME__X": "1"}, "match.solver.name is a value"),
         ({"MERGESVC_CANDIDATES__TOPK": "1"}, "match.candidates has no 'topk'"),
         ({"MERGESVC_CANDIDATES__TOP_K": "3", "MERGESVC_MATCH__CANDIDATES__TOP_K": "4"},
@@ -553,6 +590,55 @@ def test_an_unknown_or_bad_variable_is_a_config_error(
 
 def test_other_variables_are_not_settings() -> None:
     assert env_overrides({"HOME": "/x", "mergesvc_lower": "1", SETTINGS_ENV: "f"}) == {}
+
+
+@pytest.fixture
+def fresh_warnings(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No variable warned about yet in this process (the loader warns once per name)."""
+    monkeypatch.setattr(mergesvc.settings, "_WARNED", set())
+
+
+def test_a_variable_that_names_no_section_is_ignored_with_one_warning(
+    fresh_warnings: None, caplog: pytest.LogCaptureFixture
+) -> None:
+    """MERGESVC_HOME (another tool's variable) is no setting: ignored, warned about once."""
+    environ = {"MERGESVC_HOME": "/x", "MERGESVC_FOO__BAR": "1", "MERGESVC_CANDIDATES__TOP_K": "5"}
+    with caplog.at_level("WARNING", logger="mergesvc.settings"):
+        s = load_settings(environ=environ)
+        assert load_settings(environ=environ) == s  # the second load warns no more
+    assert s.match.candidates.top_k == 5  # the settings beside them still count
+    assert s.model_dump() == Settings().merged(
+        {"match": {"candidates": {"top_k": 5}}}).model_dump()
+    warnings = [r for r in caplog.records if r.name == "mergesvc.settings"]
+    assert len(warnings) == 1 and warnings[0].levelname == "WARNING"
+    text = warnings[0].getMessage()
+    assert "MERGESVC_HOME" in text and "MERGESVC_FOO__BAR" in text and "\n" not in text
+    assert "MERGESVC_CANDIDATES__TOP_K" not in text
+
+
+def test_an_unknown_field_under_a_section_is_still_an_error(fresh_warnings: None) -> None:
+    """Typo protection: the section (or the short form) is known, the field is not."""
+    for name in ("MERGESVC_MATCH__CANDIDATES__TOPK", "MERGESVC_CANDIDATES__TOPK",
+                 "MERGESVC_LINK__CHANEL", "MERGESVC_AGENT__ROBOT"):
+        with pytest.raises(ConfigError, match=f"unknown setting {name}"):
+            load_settings(environ={name: "1"})
+
+
+def test_a_foreign_variable_breaks_no_command(pair: tuple[Path, Path]) -> None:
+    """`MERGESVC_HOME=/x mergesvc ...` runs, with one warning line on stderr; a typo under a
+    section is still exit 1."""
+    env = {"MERGESVC_HOME": "/x"}
+    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "link", "sim", "--rate", "5",
+                        "--snr-db", "10", "--duration-s", "120"],
+                       capture_output=True, text=True, env=os.environ | env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "MERGESVC_HOME" in lines[0] and "WARNING" in lines[0], lines
+    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "match", "--map", str(pair[0]),
+                        "--submap", str(pair[1])], capture_output=True, text=True,
+                       env=os.environ | env | {"MERGESVC_MATCH__SOLVR__NAME": "sm"}, timeout=120)
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines()[-1].startswith("error: unknown setting")
 
 
 def test_text_fields_keep_the_text_as_typed() -> None:
@@ -652,3 +738,157 @@ def test_config_dump_in_a_process_of_its_own(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "config", "--dump", "--section",
                         "service.graph"], capture_output=True, text=True, env=env, timeout=120)
     assert json.loads(r.stdout)["outlier_weight"] == 0.25
+
+
+# ------------------------------------------------------------------ config --dump --for
+
+
+@pytest.mark.parametrize(
+    ("for_", "in_match", "in_service"),
+    [(None, True, True), ("serve", False, True), ("match", True, False),
+     ("bench", True, False), ("agent", True, False)],
+)
+def test_config_dump_places_a_bare_match_config_as_the_command_does(
+    for_: str | None, in_match: bool, in_service: bool, tmp_path: Path
+) -> None:
+    f = tmp_path / "bare.json"
+    f.write_text(json.dumps({"mode": "paper", "candidates": {"top_k": 5}}))
+    r = runner.invoke(app, ["config", "--dump", "--settings", str(f),
+                            *(["--for", for_] if for_ else [])])
+    assert r.exit_code == 0, r.output
+    tree = json.loads(r.output)
+    bare = match_config(mode="paper", candidates={"top_k": 5}).model_dump(mode="json")
+    assert (tree["match"] == bare) is in_match
+    assert (tree["service"]["match"] == bare) is in_service
+    if not in_match:
+        assert tree["match"] == MatchConfig().model_dump(mode="json")
+    if not in_service:
+        assert tree["service"]["match"] == ServiceConfig().match.model_dump(mode="json")
+
+
+def test_config_dump_for_serve_is_what_serve_uses(
+    tmp_path: Path, pair: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = tmp_path / "bare.json"
+    f.write_text(json.dumps({"verify": {"min_matches": 6}, "solver": {"name": "sm"}}))
+    served = via_serve(monkeypatch, tmp_path, pair, ["--settings", str(f)])
+    r = runner.invoke(app, ["config", "--dump", "--settings", str(f), "--for", "serve",
+                            "--section", "service"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output) == served.model_dump(mode="json")
+    matched = via_match(monkeypatch, tmp_path, pair, ["--settings", str(f)])
+    r = runner.invoke(app, ["config", "--dump", "--settings", str(f), "--for", "match",
+                            "--section", "match"])
+    assert json.loads(r.output) == matched.model_dump(mode="json")
+
+
+# ------------------------------------------------------------------ bad counts, help texts
+
+
+@pytest.mark.parametrize("command", [["bench", "match", "--repeats", "0"],
+                                     ["bench", "match", "--seeds", "0"],
+                                     ["bench", "paper", "--quick", "--repeats", "0"]])
+def test_a_bad_count_is_exit_2_without_a_traceback(command: list[str]) -> None:
+    """typer refuses the count (min=1) with its usage block, the message on one line."""
+    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", *command],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stdout == ""
+    assert "Traceback" not in r.stderr and "AssertionError" not in r.stderr
+    flag = command[-2]
+    assert len([line for line in r.stderr.splitlines() if flag in line
+                and ">= 1" in line.replace("greater than or equal to", ">=")]) == 1, r.stderr
+
+
+def test_the_benchmark_functions_refuse_a_bad_count_themselves() -> None:
+    """Called from Python (no typer in front): InputError, which the CLI maps to exit 2."""
+    from mergesvc.bench import PaperBenchPlan, run_link_bench, run_match_bench, run_paper_bench
+    from mergesvc.bench.match import run_case
+    from mergesvc.errors import InputError
+    from mergesvc.sim import Family, make_scenario
+
+    with pytest.raises(InputError, match="repeats must be >= 1, got 0"):
+        run_match_bench(repeats=0, seeds=1)
+    with pytest.raises(InputError, match="seeds must be >= 1"):
+        run_match_bench(seeds=0)
+    with pytest.raises(InputError, match="repeats must be >= 1"):
+        run_case(make_scenario(Family.KITTI, 0), MatchConfig(), 0)
+    with pytest.raises(InputError, match="repeats must be >= 1"):
+        run_paper_bench(PaperBenchPlan(repeats=0), Path("unused"))
+    with pytest.raises(InputError, match="seeds must be >= 1"):
+        run_link_bench(seeds=0)
+
+
+def test_the_bench_package_has_no_runtime_asserts() -> None:
+    import ast
+
+    bench = Path(mergesvc.bench.__file__).parent
+    found = [f"{p.name}:{n.lineno}" for p in sorted(bench.glob("*.py"))
+             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Assert)]
+    assert not found, found
+
+
+SETTINGS_HELP = {
+    ("match",): ["`match`", "bare MatchConfig"],
+    ("serve",): ["`service`", "service.match"],
+    ("agent",): ["`agent`"],
+    ("demo",): ["`service` and `agent`"],
+    ("codec", "encode"): ["`codec`"],
+    ("link", "sim"): ["`link` and `workload`"],
+    ("uncertainty", "train"): ["`uncertainty`", "UncertaintyConfig"],
+    ("bench", "match"): ["`match`"],
+    ("bench", "link"): ["`match`", "`link`"],
+    ("config",): ["whole tree", "--for"],
+}
+
+
+@pytest.mark.parametrize("command", list(SETTINGS_HELP), ids=" ".join)
+def test_settings_help_says_what_the_command_reads(command: tuple[str, ...]) -> None:
+    r = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "400"})
+    assert r.exit_code == 0, r.output
+    line = next(x for x in r.output.splitlines() if x.lstrip("│ ").startswith("--settings"))
+    for words in SETTINGS_HELP[command]:
+        assert words in line, (command, line)
+    # only the commands that take a bare MatchConfig file say so
+    takes_bare = command in {("match",), ("serve",), ("config",), ("bench", "match"),
+                             ("bench", "link")}
+    assert ("bare MatchConfig" in line) is takes_bare, line
+
+
+def test_help_paragraphs_do_not_break_mid_sentence() -> None:
+    """typer keeps the line breaks of a docstring's later paragraphs: each is one line."""
+    from mergesvc.cli import bench, files, fleet
+
+    bad = []
+    for typer_app in (app, bench.app, files.codec_app, files.scenario_app,
+                      files.uncertainty_app, fleet.link_app):
+        for info in typer_app.registered_commands:
+            doc = inspect.cleandoc(info.callback.__doc__ or "")
+            for paragraph in doc.split("\n\n")[1:]:
+                if "\n" in paragraph.strip():
+                    bad.append(f"{info.callback.__name__}: {paragraph[:60]!r}")
+    assert not bad, bad
+
+
+# ------------------------------------------------------------------ the tests' environment
+
+
+def test_no_settings_variable_reaches_a_test_or_a_process_it_starts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """tests/conftest.py strips MERGESVC_* for every test (autouse), and the processes a test
+    starts inherit the stripped os.environ."""
+    from conftest import strip_settings_env
+
+    child = [sys.executable, "-c",
+             "import os; print(sorted(k for k in os.environ if k.startswith('MERGESVC_')))"]
+    assert not [k for k in os.environ if k.startswith("MERGESVC_")]
+    monkeypatch.setenv("MERGESVC_HOME", "/x")  # as a developer's shell would have it
+    monkeypatch.setenv("MERGESVC_MATCH__MODE", "paper")
+    with pytest.MonkeyPatch.context() as mp:
+        strip_settings_env(mp)
+        assert not [k for k in os.environ if k.startswith("MERGESVC_")]
+        r = subprocess.run(child, capture_output=True, text=True, timeout=60)
+        assert r.stdout.strip() == "[]"
+    assert os.environ["MERGESVC_HOME"] == "/x"  # the check itself can fail:
+    r = subprocess.run(child, capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "['MERGESVC_HOME', 'MERGESVC_MATCH__MODE']"

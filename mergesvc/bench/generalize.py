@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mergesvc.bench.scoring import score_case
+from mergesvc.bench.scoring import check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import Match, MatchResult, ObjectArrays, ObjectMap, RejectReason
 from mergesvc.core.pipeline import MatchOutcome, match
+from mergesvc.errors import InputError
 from mergesvc.sim import (
     DEFAULT_DATA_DIR,
     DINO_CENTROIDS,
@@ -239,7 +240,8 @@ def build_world(cell: Cell, seed: int, data: _Data) -> World:
     spec = cell.spec()
     data.load(cell.needs())
     if cell.family == "kitti00":
-        assert data.gt is not None and data.est is not None
+        if data.gt is None or data.est is None:  # cell.needs() names both: loaded above
+            raise InputError(f"{cell.name} needs {KITTI_GT} and {KITTI_ORB} in {data.data_dir}")
         return kitti_world(spec, seed, data.gt, data.est, data.dino)
     if cell.family == "pool":
         return pool_world(spec, seed, data.dino)
@@ -409,7 +411,9 @@ def run_generalize(
     """Run the matrix. progress(message, cases done) after each case. Verified and paper mode
     are `base` (default: the defaults) with the mode set. Returns a JSON-ready report: per
     cell its settings, skip note (missing data, no `up` field), and per method the rates over
-    seeds (median, min, max) and per seed; plus every case's record."""
+    seeds (median, min, max) and per seed; plus every case's record. InputError for
+    plan.seeds below 1."""
+    check_count("seeds", plan.seeds)
     t_start = time.perf_counter()
     configs = {"verified": match_config(base, mode="verified"),
                "paper": match_config(base, mode="paper")}

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mergesvc.bench.scoring import _fmt, score_case
+from mergesvc.bench.scoring import _fmt, check_count, score_case
 from mergesvc.core.config import MatchConfig
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, make_scenario
@@ -32,7 +32,8 @@ def run_link_bench(
     delivery ratio and mean time to deliver (3 vehicles sharing the TDMA cycle, one submap each
     every period_s), and node accuracy after decoding (the submap decoded, the map as is).
     Matching uses `base` (default: the defaults); the sweep starts from `link_config` (default:
-    LinkConfig()) with each rate and SNR set."""
+    LinkConfig()) with each rate and SNR set. InputError for seeds below 1."""
+    check_count("seeds", seeds)
     from mergesvc.link import (
         DEFAULT_SWEEP_SNR_DB,
         RATE_SPECS,

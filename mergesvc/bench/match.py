@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.bench.scoring import _cpu_count, _spread, score_case
+from mergesvc.bench.scoring import _cpu_count, _spread, check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, Scenario, make_scenario
@@ -22,17 +22,19 @@ from mergesvc.sim import Family, Scenario, make_scenario
 def run_case(
     sc: Scenario, config: MatchConfig, repeats: int
 ) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
-    """Run one scenario `repeats` times; (scores of the first run, totals ms, stage ms)."""
-    totals, stages = [], {}
-    scores = None
-    for _ in range(repeats):
+    """Run one scenario `repeats` (>= 1, else InputError) times; (scores of the first run,
+    totals ms, stage ms)."""
+    check_count("repeats", repeats)
+    totals: list[float] = []
+    stages: dict[str, list[float]] = {}
+    scores: dict[str, float] = {}
+    for run in range(repeats):
         outcome = match(sc.map, sc.submap, config)
-        if scores is None:
+        if run == 0:
             scores = score_case(sc, outcome)
         for k, v in outcome.result.timings_ms.items():
             stages.setdefault(k, []).append(v)
         totals.append(outcome.result.timings_ms["total"])
-    assert scores is not None
     return scores, totals, stages
 
 
@@ -70,7 +72,10 @@ def run_match_bench(
     """Both modes on `seeds` scenarios per family and affinity. Paper mode runs once per
     scenario (it takes seconds); verified mode `repeats` times. Every configuration is `base`
     (default: the defaults) with its mode and affinity set. Returns a JSON-ready report
-    (results keyed family/mode/affinity) and echoes a table."""
+    (results keyed family/mode/affinity) and echoes a table. InputError for repeats or seeds
+    below 1."""
+    check_count("repeats", repeats)
+    check_count("seeds", seeds)
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": f"{platform.machine()} {platform.processor() or ''} "

@@ -18,7 +18,15 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mergesvc.bench.scoring import _aggregate, _config, _cpu_count, _fmt, _spread, score_case
+from mergesvc.bench.scoring import (
+    _aggregate,
+    _config,
+    _cpu_count,
+    _fmt,
+    _spread,
+    check_count,
+    score_case,
+)
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import ObjectArrays, ObjectMap
 from mergesvc.core.pipeline import MatchOutcome, match
@@ -81,12 +89,11 @@ def _run_cases(
                 for affinity in plan.affinities:
                     cfg = _config(mode, solver, affinity, sc.paper_radius_m, base)
                     reps = plan.repeats if mode == "verified" else 1
-                    outcome = None
-                    for _ in range(reps):
-                        outcome = match(sc.map, sc.submap, cfg)
-                        for k, v in outcome.result.timings_ms.items():
+                    outcomes = [match(sc.map, sc.submap, cfg) for _ in range(reps)]
+                    for run in outcomes:
+                        for k, v in run.result.timings_ms.items():
                             stages.setdefault(mode, {}).setdefault(k, []).append(v)
-                    assert outcome is not None
+                    outcome = outcomes[-1]  # plan.repeats >= 1: checked by run_paper_bench
                     key = f"{mode}/{solver}/{affinity}"
                     scores.setdefault(f"{key}/{label}", []).append(score_case(sc, outcome))
                     first.setdefault(f"{key}/{label}", outcome)
@@ -104,7 +111,8 @@ def run_paper_bench(
     """Table I (underwater runs x submap sizes) and Table II (KITTI-like places), for the
     paper's pipeline and ours, each solver and affinity; a scale sweep; JSON, markdown and
     figures under out_dir. `base` (default: the defaults) is the matching settings every
-    combination starts from. Returns the report."""
+    combination starts from. Returns the report. InputError for plan.repeats below 1."""
+    check_count("repeats", plan.repeats)
     from mergesvc.bench.figures import plot_accuracy_vs_size, plot_correspondences
     from mergesvc.sim import drive_run, underwater_run
 

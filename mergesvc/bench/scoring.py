@@ -10,7 +10,14 @@ from scipy.spatial.transform import Rotation
 
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import MatchOutcome
+from mergesvc.errors import InputError
 from mergesvc.sim import Scenario
+
+
+def check_count(name: str, value: int, minimum: int = 1) -> None:
+    """A benchmark's count argument (repeats, seeds): InputError below `minimum`."""
+    if value < minimum:
+        raise InputError(f"{name} must be >= {minimum}, got {value}")
 
 
 def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
@@ -95,4 +102,4 @@ def _cpu_count() -> int:
     return os.cpu_count() or 0
 
 
-__all__ = ["score_case"]
+__all__ = ["check_count", "score_case"]

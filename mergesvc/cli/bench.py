@@ -3,7 +3,9 @@
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
 benchmarked configuration starts from (the benchmark sets its own axes on top), `bench link`
 also starts its sweep from the `link` section. The resolved tree is written with the results:
-settings.json in an output folder, NAME.settings.json beside an output file NAME.json."""
+settings.json in an output folder, NAME.settings.json beside an output file NAME.json.
+Counts (--repeats, --seeds, --samples) are checked here (at least 1) and again by the
+benchmark functions (InputError), so a bad count is one line and exit 2, never a traceback."""
 
 from __future__ import annotations
 
@@ -15,23 +17,38 @@ from typing import Annotated
 import typer
 
 from mergesvc.cli.errors import exit_on_error
-from mergesvc.cli.options import SettingsFile, resolve_settings, write_settings_beside
+from mergesvc.cli.options import (
+    TrajectoryFile,
+    check_trajectory,
+    resolve_settings,
+    settings_file,
+    write_settings_beside,
+)
 from mergesvc.core.config import NodeAffinity
 
 app = typer.Typer(no_args_is_help=True, help="benchmarks")
 
+# --settings of each benchmark: what it reads (a bare MatchConfig file is `match` here too)
+BenchSettings = settings_file(
+    "`match` (every benchmarked configuration starts from it)", bare="MatchConfig"
+)
+LinkBenchSettings = settings_file(
+    "`match` (the base of every configuration) and `link` (the base of the sweep)",
+    bare="MatchConfig",
+)
+
 
 @app.command("match")
 def bench_match(
-    repeats: Annotated[int, typer.Option(help="runs per scenario")] = 5,
-    seeds: Annotated[int, typer.Option(help="scenarios per family")] = 5,
+    repeats: Annotated[int, typer.Option(min=1, help="runs per scenario")] = 5,
+    seeds: Annotated[int, typer.Option(min=1, help="scenarios per family")] = 5,
     paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
     affinity: Annotated[
         list[NodeAffinity] | None,
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
-    settings: SettingsFile = None,
+    settings: BenchSettings = None,
 ) -> None:
     """Latency and accuracy of verified vs paper mode on seeded scenarios."""
     from mergesvc.bench import run_match_bench
@@ -57,14 +74,14 @@ def bench_paper(
     ),
     quick: Annotated[bool, typer.Option(help="a small slice (under a minute)")] = False,
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
-    repeats: Annotated[int | None, typer.Option(help="verified-mode timing repeats")] = None,
+    repeats: Annotated[
+        int | None, typer.Option(min=1, help="verified-mode timing repeats")
+    ] = None,
     kitti_paper: Annotated[
         bool, typer.Option(help="paper mode on the KITTI-like map too (dense K: minutes)")
     ] = True,
-    trajectory: Annotated[
-        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
-    ] = None,
-    settings: SettingsFile = None,
+    trajectory: TrajectoryFile = None,
+    settings: BenchSettings = None,
 ) -> None:
     """The paper's Table I and II for its pipeline and ours, side by side, plus precision,
     recall, transform errors, stage timings and a scale sweep; figures under --out."""
@@ -76,10 +93,8 @@ def bench_paper(
     changes: dict[str, object] = {"seed": seed, "kitti_paper": kitti_paper and plan.kitti_paper}
     if repeats is not None:
         changes["repeats"] = repeats
+    check_trajectory(trajectory)
     if trajectory is not None:
-        if not trajectory.is_file():
-            typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
-            raise typer.Exit(2)
         changes["trajectory"] = str(trajectory)
     plan = dataclasses.replace(plan, **changes)
     with exit_on_error():
@@ -101,8 +116,8 @@ def bench_paper(
 def bench_uncertainty(
     out: Annotated[Path, typer.Option(help="folder for the report")] = Path("results"),
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
-    samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
-    settings: SettingsFile = None,
+    samples: Annotated[int, typer.Option(min=1, help="training observations")] = 20_000,
+    settings: BenchSettings = None,
 ) -> None:
     """What the learned uncertainty head changes: Table I accuracy with the simulator's true
     image uncertainty, the head's prediction, and a constant (uncertainty-unaware)."""
@@ -118,11 +133,11 @@ def bench_uncertainty(
 @app.command("link")
 def bench_link(
     out: Annotated[Path | None, typer.Option(help="write the table as JSON here")] = None,
-    seeds: Annotated[int, typer.Option(help="scenarios per profile")] = 5,
+    seeds: Annotated[int, typer.Option(min=1, help="scenarios per profile")] = 5,
     seed: Annotated[int, typer.Option(help="first seed")] = 0,
     period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 300.0,
     duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 3600.0,
-    settings: SettingsFile = None,
+    settings: LinkBenchSettings = None,
 ) -> None:
     """Codec profile x modem rate x SNR: bytes, airtime, delivery, time to deliver, accuracy."""
     from mergesvc.bench import run_link_bench
@@ -154,7 +169,7 @@ def bench_generalize(
         list[str] | None, typer.Option(help="run only cells whose name contains this (repeat)")
     ] = None,
     paper: Annotated[bool, typer.Option(help="also run paper mode (dense K: slow)")] = True,
-    settings: SettingsFile = None,
+    settings: BenchSettings = None,
 ) -> None:
     """Generalization matrix: real KITTI-00 / DINO-based worlds and the project's generators
     in camera / ENU / NED / random / mixed frames, embedding dims, map sizes, look-alikes,

@@ -9,20 +9,33 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli.errors import EXIT_BAD_INPUT, exit_on_error
+from mergesvc.cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, exit_on_error, fail
 from mergesvc.cli.options import (
     DeprecatedConfig,
-    SettingsFile,
+    SettingsCommand,
+    TrajectoryFile,
+    bare_match_for,
+    check_trajectory,
     deprecated_config,
     given,
     resolve_settings,
+    settings_file,
 )
 from mergesvc.core.config import MatchMode, NodeAffinity, SolverName
+from mergesvc.errors import InputError, MergeError
 from mergesvc.wire import Profile
 
 codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
 scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")
 uncertainty_app = typer.Typer(no_args_is_help=True, help="the learned image-uncertainty head")
+
+# --settings of each command here: what it reads
+MatchSettings = settings_file("`match`", bare="MatchConfig")
+DumpSettings = settings_file(
+    "the whole tree", bare="MatchConfig (placed as --for says) or UncertaintyConfig"
+)
+CodecSettingsFile = settings_file("`codec`")
+UncertaintySettings = settings_file("`uncertainty`", bare="UncertaintyConfig")
 
 
 def match(
@@ -34,7 +47,7 @@ def match(
     ),
     solver: Annotated[SolverName, typer.Option(help="graph-matching solver")] = SolverName.RRWM,
     affinity: Annotated[NodeAffinity, typer.Option(help="node affinity")] = NodeAffinity.UCOS,
-    settings: SettingsFile = None,
+    settings: MatchSettings = None,
     config: DeprecatedConfig = None,
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
 ) -> None:
@@ -111,8 +124,7 @@ def schemas(
             out_dir.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
     if stale:
-        typer.echo(f"error: schemas out of date: {', '.join(stale)}", err=True)
-        raise typer.Exit(1)
+        fail(MergeError(f"schemas out of date: {', '.join(stale)}"), EXIT_FAILED)
     typer.echo(f"schemas {'up to date' if check else 'written'} in {out_dir}")
 
 
@@ -120,22 +132,34 @@ def config(
     dump: Annotated[
         bool, typer.Option("--dump", help="print the resolved settings tree as JSON")
     ] = False,
-    settings: SettingsFile = None,
+    settings: DumpSettings = None,
     section: Annotated[
         str | None,
         typer.Option(help="print only this section or field, e.g. service or service.match"),
     ] = None,
+    for_: Annotated[
+        SettingsCommand | None,
+        typer.Option(
+            "--for",
+            help="show the tree as this command resolves it: a bare MatchConfig file is "
+            "service.match for serve, match for any other command (default: both)",
+        ),
+    ] = None,
 ) -> None:
     """Print the resolved settings tree (--dump): what a run with these settings uses.
 
-    Defaults <- --settings FILE (else $MERGESVC_SETTINGS) <- MERGESVC_* variables; a command's
-    own flags override them for that command. Sections: see mergesvc/settings.py."""
+    Defaults <- --settings FILE (else $MERGESVC_SETTINGS) <- MERGESVC_* variables.
+
+    A command's own flags override them for that command. Sections: see mergesvc/settings.py.
+
+    A bare MatchConfig file is service.match for serve, match for any other command.
+
+    --for COMMAND shows the tree as that command resolves it (default: the file in both)."""
     if not dump:
-        typer.echo("error: nothing to do: mergesvc config --dump [--settings FILE] "
-                   "[--section NAME]", err=True)
-        raise typer.Exit(EXIT_BAD_INPUT)
+        fail(InputError("nothing to do: mergesvc config --dump [--settings FILE] "
+                        "[--section NAME] [--for COMMAND]"), EXIT_BAD_INPUT)
     with exit_on_error():
-        tree = resolve_settings(settings)
+        tree = resolve_settings(settings, bare_match=bare_match_for(for_))
     data = tree.model_dump(mode="json")
     for part in section.split(".") if section else []:
         if not isinstance(data, dict) or part not in data:
@@ -154,7 +178,7 @@ def codec_encode(
     projection: Annotated[
         Path | None, typer.Option(help="fleet projection (.npz); compact fits one if absent")
     ] = None,
-    settings: SettingsFile = None,
+    settings: CodecSettingsFile = None,
 ) -> None:
     """Encode a map or submap file as one wire message; print bytes per object.
 
@@ -211,8 +235,7 @@ def scenario_underwater(
     from mergesvc.sim import underwater_run
 
     if run not in (1, 2, 3) or per_size < 1 or any(k < 1 for k in size or []):
-        typer.echo("error: --run must be 1, 2 or 3; sizes and --per-size >= 1", err=True)
-        raise typer.Exit(2)
+        fail(InputError("--run must be 1, 2 or 3; sizes and --per-size >= 1"), EXIT_BAD_INPUT)
     with exit_on_error():
         r = underwater_run(run, seed)
         cases = [(f"submap_n{k}_{j}", sc) for k in (size or [2, 3, 4, 5])
@@ -226,22 +249,17 @@ def scenario_drive(
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
     places: Annotated[int, typer.Option(help="loop-closure places")] = 4,
     size: Annotated[int, typer.Option(help="objects per submap")] = 20,
-    trajectory: Annotated[
-        Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
-    ] = None,
+    trajectory: TrajectoryFile = None,
 ) -> None:
     """A KITTI-like drive through the tracker: the map, submaps at loop-closure places."""
     from mergesvc.sim import drive_run
 
-    if trajectory is not None and not trajectory.is_file():
-        typer.echo(f"error: trajectory file not found: {trajectory}", err=True)
-        raise typer.Exit(2)
+    check_trajectory(trajectory)
     with exit_on_error():
         try:
             r = drive_run(seed, trajectory)
         except ValueError as exc:
-            typer.echo(f"error: cannot read trajectory {trajectory}: {exc}", err=True)
-            raise typer.Exit(2) from exc
+            raise InputError(f"cannot read trajectory {trajectory}: {exc}") from exc
         cases = [(f"place{j + 1}", sc) for j, sc in enumerate(r.places(places, size))]
     _write_scenarios(out_dir, r, cases)
 
@@ -252,7 +270,7 @@ def uncertainty_train(
     samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
     seed: Annotated[int, typer.Option(help="world and optimiser seed")] = 0,
     family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
-    settings: SettingsFile = None,
+    settings: UncertaintySettings = None,
     config: DeprecatedConfig = None,
 ) -> None:
     """Train the head with the ranking loss on generated observations; report held-out

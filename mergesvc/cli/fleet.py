@@ -10,24 +10,27 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from mergesvc.cli.errors import EXIT_BAD_INPUT, exit_on_error, fail
+from mergesvc.cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, exit_on_error, fail
 from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
     LinkKind,
     Listen,
     Mode,
-    SettingsFile,
+    SettingsCommand,
     ZenohConfigFile,
     ZenohMode,
+    bare_match_for,
     given,
     resolve_settings,
     settings_env,
+    settings_file,
     write_settings_beside,
     zenoh_config,
     zenoh_connect,
@@ -37,14 +40,21 @@ from mergesvc.errors import ConfigError
 from mergesvc.wire import Profile
 
 if TYPE_CHECKING:
-    pass
+    from mergesvc.core.tracking import Frame
 
 link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
 
 # the Zenoh flags with the help texts these commands have always shown
 ConnectTo = zenoh_connect("zenoh endpoint(s) to connect")
 AgentMode = zenoh_mode("zenoh mode")
-BridgeMode = zenoh_mode("zenoh mode: peer or client")
+BridgeMode = zenoh_mode("zenoh mode: router, peer or client")
+# --settings of each command here: what it reads
+ServeSettings = settings_file("`service`", bare="MatchConfig (its service.match)")
+AgentSettingsFile = settings_file("`agent` (without robot: that is --robot)")
+DemoSettings = settings_file(
+    "`service` and `agent` (written to OUT/settings.json for the processes it starts)"
+)
+LinkSimSettings = settings_file("`link` and `workload`")
 
 
 def serve(
@@ -58,7 +68,7 @@ def serve(
     projection: Annotated[
         list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
     ] = None,
-    settings: SettingsFile = None,
+    settings: ServeSettings = None,
     seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
 ) -> None:
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
@@ -79,7 +89,8 @@ def serve(
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with exit_on_error(ValueError, OSError):
         flags = given(ctx, fleet=fleet, store=str(store))
-        cfg = resolve_settings(settings, {"service": flags}, bare_match=("service", "match"))
+        cfg = resolve_settings(settings, {"service": flags},
+                               bare_match=bare_match_for(SettingsCommand.SERVE))
         cfg = cfg.service
         zconf = zenoh_config(mode, connect, listen, config)
         projections = [Projection.load(p) for p in projection or []]
@@ -90,6 +101,18 @@ def serve(
             while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
                 stop.wait(0.2)
             typer.echo(json.dumps(svc.status()["submaps"]))
+
+
+def _agent_frames(robot: str, session: str, seed: int, laps: int, objects: int,
+                  log_file: Path | None) -> Iterable[Frame]:
+    """The vehicle's frames: a recorded observation log, or its pass through the seeded fleet
+    world (session `s<N>` re-enters on pass N)."""
+    from mergesvc.sim import fleet_world, read_observation_log
+
+    if log_file is not None:
+        return read_observation_log(log_file)
+    n = int(session[1:]) if session[:1] == "s" and session[1:].isdigit() else 0
+    return fleet_world(seed, laps=laps, n_objects=objects).frames(robot, n)
 
 
 def agent(
@@ -113,7 +136,7 @@ def agent(
     connect: Connect = None,
     config: ZenohConfigFile = None,
     linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
-    settings: SettingsFile = None,
+    settings: AgentSettingsFile = None,
 ) -> None:
     """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
 
@@ -132,13 +155,14 @@ def agent(
     except ConfigError as exc:  # --robot is a flag: bad input
         fail(exc, EXIT_BAD_INPUT)
     run = AgentRun(
-        robot=robot, fleet=acfg.fleet, session=acfg.session, seed=seed, laps=laps,
-        objects=objects, log_file=log_file, profile=profile, projection=projection,
-        time_scale=time_scale, acoustic=acoustic, linger_s=linger, config=acfg,
+        robot=robot, fleet=acfg.fleet, session=acfg.session, profile=profile,
+        projection=projection, time_scale=time_scale, acoustic=acoustic, linger_s=linger,
+        config=acfg,
     )
     with exit_on_error(ValueError, OSError):
+        frames = _agent_frames(robot, acfg.session, seed, laps, objects, log_file)
         zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,))
-        stats = run_agent(run, zconf)
+        stats = run_agent(run, zconf, frames)
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
                            "bytes_sent": stats.bytes_sent,
@@ -157,17 +181,22 @@ def demo(
     profile: Annotated[Profile, typer.Option(help="codec profile of the submaps")] = (
         Profile.COMPACT
     ),
-    settings: SettingsFile = None,
+    settings: DemoSettings = None,
 ) -> None:
     """Service + 3 vehicles as processes on loopback; summary against the ground truth.
 
-    Settings: the `service` and `agent` sections, written to OUT/settings.json, which every
-    process the demo starts reads."""
-    from mergesvc.fleet.demo import DemoPlan, run_demo
+    Settings: the `service` and `agent` sections, written to OUT/settings.json.
+
+    Every process the demo starts reads OUT/settings.json."""
+    from mergesvc.fleet.demo import SESSION, STORE_FILE, DemoPlan, run_demo
 
     plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile)
     with exit_on_error():
-        tree = resolve_settings(settings)
+        # the demo's processes are started with these flags: record what they really use
+        tree = resolve_settings(settings, {
+            "service": {"fleet": plan.fleet, "store": str(out / STORE_FILE)},
+            "agent": {"fleet": plan.fleet, "session": SESSION},
+        })
     with exit_on_error(OSError):
         written = write_settings_beside(tree, out, folder=True)
     with exit_on_error(), settings_env(written):
@@ -190,7 +219,7 @@ def demo(
     for f in res.failures:
         typer.echo(f"FAILED: {f}", err=True)
     if not res.ok:
-        raise typer.Exit(1)
+        raise typer.Exit(EXIT_FAILED)
 
 
 @link_app.command("sim")
@@ -202,7 +231,7 @@ def link_sim(
     period_s: Annotated[float, typer.Option(help="one submap per vehicle every ...")] = 60.0,
     duration_s: Annotated[float, typer.Option(help="simulated mission time")] = 1800.0,
     seed: Annotated[int, typer.Option(help="channel seed")] = 0,
-    settings: SettingsFile = None,
+    settings: LinkSimSettings = None,
 ) -> None:
     """Simulate 3 vehicles and a topside on a TDMA acoustic link (no network, no waiting).
 
@@ -245,7 +274,7 @@ def link_bridge(
         SnrModel,
         TdmaConfig,
     )
-    from mergesvc.wire.keys import fleet_root, uw_root
+    from mergesvc.wire.keys import all_under, fleet_root, uw_root
 
     names = vehicles or ["auv1", "auv2", "auv3"]
     with exit_on_error(ValueError):
@@ -260,7 +289,7 @@ def link_bridge(
                              default_connect=(DEFAULT_ENDPOINT,), scouting=True)
         with AcousticBridge(cfg, uw_prefix=uw_root(fleet), top_prefix=fleet_root(fleet),
                             zenoh_config=zconf, time_scale=time_scale) as bridge:
-            typer.echo(f"bridging {uw_root(fleet)}/** <-> {fleet_root(fleet)}/** "
+            typer.echo(f"bridging {all_under(uw_root(fleet))} <-> {all_under(fleet_root(fleet))} "
                        f"(rate {rate}, {snr_db} dB, time scale {time_scale})")
             start = time.monotonic()
             try:

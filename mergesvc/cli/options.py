@@ -6,10 +6,12 @@ The Zenoh flags follow the zenoh-python examples: every program that opens a ses
 has always shown; the plain aliases carry the usual one.
 
 The settings tree (mergesvc/settings.py): every command that has settings takes
-`--settings FILE` (`SettingsFile`) and resolves them with `resolve_settings`, the one place the
-command line hands `os.environ` to the loader. `--config` is the Zenoh file and nothing else;
-`match --config` and `uncertainty train --config` survive as hidden, deprecated aliases of
-`--settings` (`deprecated_config`).
+`--settings FILE` (`settings_file(...)`, its help naming what that command reads) and resolves
+them with `resolve_settings`, the one place the command line hands `os.environ` to the loader.
+Where a bare MatchConfig file goes is `bare_match_for(command)`: `service.match` for `serve`,
+`match` for every other command (`config --dump --for COMMAND` shows it). `--config` is the
+Zenoh file and nothing else; `match --config` and `uncertainty train --config` survive as
+hidden, deprecated aliases of `--settings` (`deprecated_config`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from mergesvc.cli.errors import EXIT_BAD_INPUT, fail
-from mergesvc.errors import ConfigError
+from mergesvc.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
     import zenoh
@@ -37,13 +39,17 @@ __all__ = [
     "LinkKind",
     "Listen",
     "Mode",
-    "SettingsFile",
+    "SettingsCommand",
+    "TrajectoryFile",
     "ZenohConfigFile",
     "ZenohMode",
+    "bare_match_for",
+    "check_trajectory",
     "deprecated_config",
     "given",
     "resolve_settings",
     "settings_env",
+    "settings_file",
     "write_settings_beside",
     "zenoh_config",
     "zenoh_connect",
@@ -68,6 +74,32 @@ class LinkKind(str, Enum):
     ACOUSTIC = "acoustic"  # through the simulated modem
 
 
+class SettingsCommand(str, Enum):
+    """The commands that read `--settings` (`config --dump --for`)."""
+
+    MATCH = "match"
+    SERVE = "serve"
+    AGENT = "agent"
+    DEMO = "demo"
+    CODEC = "codec"
+    LINK = "link"
+    UNCERTAINTY = "uncertainty"
+    BENCH = "bench"
+
+
+# Where a command puts a bare MatchConfig settings file: `serve` matches with the service's
+# own settings, every other command with the `match` section.
+_BARE_MATCH: dict[SettingsCommand, tuple[str, ...]] = {SettingsCommand.SERVE: ("service", "match")}
+
+
+def bare_match_for(command: SettingsCommand | None) -> tuple[tuple[str, ...], ...]:
+    """Where `command` puts a bare MatchConfig file (`None`: every place a command may put it,
+    `match` and `service.match`)."""
+    if command is None:
+        return (("match",), ("service", "match"))
+    return (_BARE_MATCH.get(command, ("match",)),)
+
+
 def zenoh_mode(help_text: str = "zenoh mode: router, peer or client") -> Any:
     """`--mode`, typed so typer checks and lists router|peer|client."""
     return Annotated[ZenohMode, typer.Option("--mode", help=help_text)]
@@ -82,17 +114,34 @@ Mode = zenoh_mode()
 Connect = zenoh_connect()
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="zenoh listen endpoint(s)")]
 ZenohConfigFile = Annotated[Path | None, typer.Option("--config", help="zenoh JSON5 config file")]
-SettingsFile = Annotated[
-    Path | None,
-    typer.Option(
-        "--settings",
-        help="settings file (JSON): the tree `mergesvc config --dump` prints, any part of it, "
-        "or a bare MatchConfig; MERGESVC_* variables override it, flags override both",
-    ),
-]
+
+
+def settings_file(reads: str, *, bare: str | None = None) -> Any:
+    """`--settings FILE`, its help saying what the command reads (`reads`: its sections) and
+    which bare section object it also takes as a whole file (`bare`), if any."""
+    also = f", or a bare {bare}" if bare else ""
+    return Annotated[
+        Path | None,
+        typer.Option(
+            "--settings",
+            help="settings file (JSON): the tree `mergesvc config --dump` prints or any part "
+            f"of it{also}; this command reads {reads}. MERGESVC_* variables override it, "
+            "flags override both",
+        ),
+    ]
+
 DeprecatedConfig = Annotated[
     Path | None, typer.Option("--config", hidden=True, help="deprecated: use --settings")
 ]
+TrajectoryFile = Annotated[
+    Path | None, typer.Option(help="KITTI pose file to drive instead of the street loop")
+]
+
+
+def check_trajectory(path: Path | None) -> None:
+    """A `--trajectory` that names no file: one line on stderr, exit 2."""
+    if path is not None and not path.is_file():
+        fail(InputError(f"trajectory file not found: {path}"), EXIT_BAD_INPUT)
 
 
 def zenoh_config(
@@ -124,8 +173,7 @@ def deprecated_config(settings: Path | None, config: Path | None, command: str) 
     if config is None:
         return settings
     if settings is not None:
-        typer.echo("error: --config is the deprecated name of --settings: give one", err=True)
-        raise typer.Exit(EXIT_BAD_INPUT)
+        fail(InputError("--config is the deprecated name of --settings: give one"), EXIT_BAD_INPUT)
     typer.echo(f"warning: `mergesvc {command} --config` is deprecated, use --settings "
                "(--config names a Zenoh config file)", err=True)
     return config
@@ -147,11 +195,12 @@ def resolve_settings(
     path: Path | None,
     flags: Mapping[str, Any] | None = None,
     *,
-    bare_match: tuple[str, ...] = ("match",),
+    bare_match: tuple[tuple[str, ...], ...] = bare_match_for(SettingsCommand.MATCH),
 ) -> Settings:
     """Defaults <- `path` (else $MERGESVC_SETTINGS) <- MERGESVC_* <- `flags` (nested by section).
-    A bad file or variable is a ConfigError (exit 1 under exit_on_error); a flag the settings
-    refuse is bad input (exit 2), as when the command checked it itself."""
+    `bare_match`: where a bare MatchConfig file goes (`bare_match_for(command)`). A bad file or
+    variable is a ConfigError (exit 1 under exit_on_error); a flag the settings refuse is bad
+    input (exit 2), as when the command checked it itself."""
     from mergesvc.settings import load_settings
 
     settings = load_settings(path, environ=os.environ, bare_match=bare_match)

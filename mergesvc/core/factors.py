@@ -1,22 +1,37 @@
 """Match result -> inter-robot factor: what the service sends for an accepted match.
 
-A match of submap b (robot b's session frame) against the objects of frame a gives T_a_b (the
-result's T_map_submap) and its 6x6 covariance, in GTSAM's Pose3 tangent order: rotation (rad),
-then translation (m). The factor carries that transform with the covariance inflated by the
+A match of submap b against the objects of session a (placed in a's session frame) gives the
+result's T_map_submap and its 6x6 covariance, in GTSAM's Pose3 tangent order: rotation (rad),
+then translation (m). The factor carries the relative pose with the covariance inflated by the
 odometry drift (`inflate_covariance`), and the matched object pairs.
+
+- Frame level (submaps without keyframes, old clients): the submap's positions are in b's
+  session frame, and T_a_b = T_map_submap ties the two session frames.
+- Pose level (keyframes): the submap's positions are in its keyframe Kb's body frame, so
+  T_map_submap = T_{a, Kb}, the pose of Kb in a's session frame. The factor ties keyframe Ka
+  of a (`anchoring_keyframe`: the keyframe most matched map objects hang on) to Kb:
+  T_{Ka,Kb} = inv(T_{a,Ka}) T_{a,Kb}, with T_{a,Ka} the pose of Ka used to place a's map.
+  A constant left factor does not change a right-perturbation covariance, so the match's
+  covariance carries over unchanged (before the drift inflation).
+`odometry_edge` turns a keyframe submap's odometry into the known-inlier edge between two
+keyframes of its session.
 
 Pure computation: no Zenoh, no files.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import gtsam
 import numpy as np
 
-from mergesvc.core.frames import FrameId
-from mergesvc.core.model import Correspondence, Factor, FactorStatus, MatchResult
+from mergesvc.core.frames import FrameId, KeyframeId
+from mergesvc.core.graph import as_pose3, pose3_from_model, transform_from_pose3
+from mergesvc.core.model import Correspondence, Factor, FactorStatus, MatchResult, Submap
 from mergesvc.errors import InputError
 
 if TYPE_CHECKING:
@@ -60,14 +75,25 @@ def factor_from_match(
     factor_id: str,
     drift_sigma: tuple[float, float],
     status: FactorStatus = FactorStatus.ACCEPTED,
+    keyframe_a: int | None = None,
+    keyframe_b: int | None = None,
+    T_a_keyframe_a: gtsam.Pose3 | np.ndarray | None = None,
 ) -> Factor:
     """The factor T_a_b between frame_a (the map matched against) and frame_b (the submap's),
     its covariance the result's inflated by `drift_sigma`, its correspondences the matched
     pairs (object_a the map object, object_b the submap object).
 
+    Pose level (keyframe_a and keyframe_b both given): the factor ties keyframe keyframe_a of
+    frame_a to keyframe keyframe_b of frame_b (the submap's keyframe, its positions' frame):
+    T_a_b = inv(T_a_keyframe_a) T_map_submap, T_a_keyframe_a the pose of keyframe_a in
+    frame_a's session frame used to place the map (default: identity); the covariance is the
+    result's (a constant left factor leaves a right perturbation as it is) inflated. Without
+    keyframes: the frame-level factor, T_a_b = T_map_submap.
+
     A result that does not `yields_factor` (rejected, or without transform or covariance) is
-    refused with `InputError`. A factor that does not validate (e.g. an id longer than the
-    model allows) raises pydantic's ValidationError, as the model does."""
+    refused with `InputError`, and so are one keyframe without the other, or T_a_keyframe_a
+    without keyframes. A factor that does not validate (e.g. an id longer than the model
+    allows) raises pydantic's ValidationError, as the model does."""
     res = _result(result)
     transform, covariance = res.transform, res.covariance
     if not res.accepted or transform is None or covariance is None:
@@ -75,6 +101,13 @@ def factor_from_match(
             "only an accepted match with a transform and a covariance becomes a factor "
             f"(this one: {res.reason.value})"
         )
+    if (keyframe_a is None) != (keyframe_b is None):
+        raise InputError("keyframe_a and keyframe_b go together")
+    if keyframe_a is None and T_a_keyframe_a is not None:
+        raise InputError("T_a_keyframe_a needs keyframe_a and keyframe_b")
+    if T_a_keyframe_a is not None:
+        T_ka = as_pose3(T_a_keyframe_a, "T_a_keyframe_a")
+        transform = transform_from_pose3(T_ka.inverse().compose(pose3_from_model(transform)))
     cov = inflate_covariance(covariance, drift_sigma)
     return Factor(
         factor_id=factor_id,
@@ -84,6 +117,58 @@ def factor_from_match(
         correspondences=[Correspondence(object_a=m.map_object, object_b=m.submap_object,
                                         score=m.score) for m in res.matches],
         status=status,
+        keyframe_a=keyframe_a, keyframe_b=keyframe_b,
+    )
+
+
+def anchoring_keyframe(
+    result: MatchResult | MatchOutcome, keyframe_of: Mapping[str, int]
+) -> int:
+    """The keyframe of map a a pose-level factor hangs on: the one holding most of the matched
+    map objects (`keyframe_of`: map object id -> the keyframe whose frame its position is in);
+    a tie goes to the latest keyframe. InputError if no matched object has a keyframe."""
+    votes = Counter(
+        keyframe_of[m.map_object] for m in _result(result).matches if m.map_object in keyframe_of
+    )
+    if not votes:
+        raise InputError("no matched map object has a keyframe")
+    return max(votes, key=lambda k: (votes[k], k))
+
+
+def factor_nodes(factor: Factor) -> tuple[KeyframeId, KeyframeId]:
+    """The two keyframes a factor ties; a frame-level factor (no keyframes) ties keyframe 0 of
+    both sessions, their frames' origins."""
+    fa, fb = factor_frames(factor)
+    return KeyframeId(fa, factor.keyframe_a or 0), KeyframeId(fb, factor.keyframe_b or 0)
+
+
+@dataclass(frozen=True)
+class OdometryEdge:
+    """The vehicle's own motion between two keyframes of its session: T_from_to (pose of
+    `to` in `from_`) with its 6x6 covariance (GTSAM order). A known inlier of the pose graph."""
+
+    from_: KeyframeId
+    to: KeyframeId
+    T_from_to: gtsam.Pose3
+    covariance: np.ndarray
+
+    @property
+    def edge_id(self) -> str:
+        """"odom:{robot}/{session}#{from}-{to}": one edge per keyframe pair."""
+        return f"odom:{self.from_}-{self.to.k}"
+
+
+def odometry_edge(submap: Submap) -> OdometryEdge | None:
+    """The odometry edge a keyframe submap carries (None without odometry)."""
+    odo = submap.odometry
+    if odo is None or submap.keyframe is None:
+        return None
+    frame = FrameId(submap.robot_id, submap.session_id)
+    return OdometryEdge(
+        KeyframeId(frame, odo.from_keyframe),
+        KeyframeId(frame, submap.keyframe),
+        pose3_from_model(odo.T_from_to),
+        np.asarray(odo.covariance, dtype=np.float64),
     )
 
 
@@ -97,9 +182,13 @@ def _result(result: MatchResult | MatchOutcome) -> MatchResult:
 
 
 __all__ = [
+    "OdometryEdge",
+    "anchoring_keyframe",
     "factor_frames",
     "factor_from_match",
+    "factor_nodes",
     "inflate_covariance",
     "match_factor_id",
+    "odometry_edge",
     "yields_factor",
 ]

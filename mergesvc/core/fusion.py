@@ -1,5 +1,9 @@
 """Object fusion: the objects of frames aligned by the pose graph (graph.py), joined along the
-accepted correspondences and fused (the tracker's semantic Kalman fusion) into global objects."""
+accepted correspondences and fused (the tracker's semantic Kalman fusion) into global objects.
+
+The "frames" are the pose graph's nodes: session frames, or keyframes (the merge service: each
+object of a session in the frame of the keyframe whose submap last held it), with `frame_of`
+naming the session each node belongs to."""
 
 from __future__ import annotations
 
@@ -59,6 +63,8 @@ def fuse_objects(
     frame_objects: Mapping[str, ObjectArrays | ObjectMap | Sequence[ObjectNode]],
     T_anchor_frame: Mapping[str, gtsam.Pose3 | np.ndarray],
     links: Iterable[ObjectLink | tuple[str, str, str, str]],
+    *,
+    frame_of: Mapping[str, str] | None = None,
 ) -> FusedObjects:
     """Fuse the objects of aligned frames into global objects.
 
@@ -77,7 +83,16 @@ def fuse_objects(
     The global id is "{frame}/{object id}" of the first member (frames in mapping order,
     objects in array order), so it persists while that member stays first; ids longer than
     MAX_ID_LENGTH fall back to "g{k}".
+
+    frame_of: the session frame of each key of frame_objects when the keys are nodes of finer
+    grain (keyframes "{frame}#{k}"): the global id then uses the session frame ("{frame}/{id}",
+    stable while the object moves from one keyframe's submap to a later one's) and a conflict
+    is two objects of one session frame. Links name nodes (the node holding the object).
+    Default: every key is its own frame.
     """
+    def session(node: str) -> str:
+        return node if frame_of is None else frame_of.get(node, node)
+
     arrays: dict[str, ObjectArrays] = {}
     frame_labels: dict[str, list[str | None]] = {}
     for f, objs in frame_objects.items():
@@ -145,7 +160,7 @@ def fuse_objects(
     used: set[str] = set()
     for k, idx in enumerate(sorted(groups.values(), key=lambda g: g[0])):
         first = refs[idx[0]]
-        gid = f"{first[0]}/{first[1]}"
+        gid = f"{session(first[0])}/{first[1]}"
         if len(gid) > MAX_ID_LENGTH or gid in used:
             gid = f"g{k}"
         used.add(gid)
@@ -155,7 +170,7 @@ def fuse_objects(
         for i in idx[1:]:
             mu, v = fuse_gaussians(mu, v, emb[i], var[i])
         member_refs = [refs[i] for i in idx]
-        if len({fr for fr, _ in member_refs}) < len(member_refs):
+        if len({session(fr) for fr, _ in member_refs}) < len(member_refs):
             conflicts.append(gid)
         objects.append(
             ObjectNode(

@@ -1,19 +1,31 @@
-"""Global graph stage: robot-session frames aligned by a pose graph of inter-robot factors, solved
-with GTSAM's GncLMOptimizer and the truncated-least-squares loss (Yang et al., "Graduated
-Non-Convexity for Robust Spatial Perception", RA-L 2020). The objects of aligned frames are fused
-in fusion.py.
+"""Global graph stage: poses aligned by a pose graph of inter-robot factors, solved with GTSAM's
+GncLMOptimizer and the truncated-least-squares loss (Yang et al., "Graduated Non-Convexity for
+Robust Spatial Perception", RA-L 2020). The objects of aligned frames are fused in fusion.py.
+
+Nodes are names: robot-session frames "{robot}/{session}" (one pose per session), or keyframes
+"{robot}/{session}#{k}" (frames.KeyframeId: one pose per keyframe of a session, joined by the
+vehicle's odometry, added as known inliers). The merge service uses keyframes only.
 
 Outlier rules (a factor can only be judged against other factors that close a loop with it):
-  1. The anchor prior and every bridge factor (removing it splits its component) are known
-     inliers: nothing in the graph can contradict them, so GNC must not weigh them.
+  1. The anchor prior, every factor marked `known_inlier` (odometry, operator-confirmed) and
+     every bridge factor (removing it splits its component) are known inliers: nothing in the
+     graph can contradict a bridge, and a known inlier is never doubted, so GNC must not weigh
+     them.
   2. Every other factor gets a GNC TLS weight; weight < `outlier_weight` flags it.
-  3. A flagged factor is a confirmed outlier only if its two frames stay joined by at least two
-     edge-disjoint paths of unflagged factors. Then keeping it would need at least two other
-     factors to be wrong instead of one, so rejecting it is the minimum-outlier explanation.
-     Otherwise (e.g. one inconsistent triangle) the choice is arbitrary: the factor is reported
-     as ambiguous, kept, and the service should wait for more factors.
+  3. A flagged factor is a confirmed outlier only if its two nodes stay joined by at least two
+     paths of unflagged factors that share no factor other than known inliers (paths may share
+     odometry: it cannot be wrong; computed as 2-edge-connectivity with the known-inlier
+     factors contracted). Then keeping it would need at least two other factors to be wrong
+     instead of one, so rejecting it is the minimum-outlier explanation. Otherwise (e.g. one
+     inconsistent triangle, or two closures between two odometry chains that disagree) the
+     choice is arbitrary: the factor is reported as ambiguous, kept, and the service should
+     wait for more factors. With keyframe nodes this is rule 3 of the frame-level graph: the
+     odometry chains contracted, each session is one node again.
   4. Poses and marginals come from a final Levenberg-Marquardt solve over the prior and every
      factor but the confirmed outliers, started from the GNC estimate.
+
+`optimize` returns its last solution again while nothing changed (no node, factor or anchor
+added or removed since): callers may call it after every change without paying twice.
 """
 
 from __future__ import annotations
@@ -28,8 +40,8 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mergesvc.core.frames import frame_name
-from mergesvc.core.model import Factor, FactorStatus
+from mergesvc.core.frames import FrameId, KeyframeId, frame_name
+from mergesvc.core.model import Factor, FactorStatus, Transform
 from mergesvc.errors import InputError, SolverError, one_line
 
 log = logging.getLogger(__name__)
@@ -106,6 +118,21 @@ def pose3_from_transform(
         raise InputError(f"quaternion_wxyz must be 4 finite numbers of norm ~1, got {q}")
     w, x, y, z = (float(v) for v in q / norm)
     return gtsam.Pose3(gtsam.Rot3.Quaternion(w, x, y, z), np.asarray(translation, dtype=float))
+
+
+def pose3_from_model(T: Transform) -> gtsam.Pose3:
+    """gtsam.Pose3 of a wire Transform."""
+    return pose3_from_transform(T.translation, T.quaternion_wxyz)
+
+
+def transform_from_pose3(T: gtsam.Pose3 | np.ndarray) -> Transform:
+    """The wire Transform of a gtsam.Pose3 (or a (4, 4) rigid transform)."""
+    P = as_pose3(T, "transform")
+    q = P.rotation().toQuaternion()
+    return Transform(
+        translation=tuple(float(x) for x in P.translation()),
+        quaternion_wxyz=(float(q.w()), float(q.x()), float(q.y()), float(q.z())),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -195,10 +222,11 @@ class _Factor:
 class GraphSolution:
     """Result of PoseGraph.optimize.
 
-    T_anchor_frame: pose of each frame of the anchor's component in the anchor frame
-    (p_anchor = T p_frame). covariance_66: its marginal covariance (6, 6), GTSAM order (rotation,
-    translation), in the tangent space at the estimate (right perturbation); missing when
-    Marginals failed. components: connected components (frame lists), the anchor's first.
+    T_anchor_frame: pose of each node (frame or keyframe) of the anchor's component in the
+    anchor frame (p_anchor = T p_frame). covariance_66: its marginal covariance (6, 6), GTSAM
+    order (rotation, translation), in the tangent space at the estimate (right perturbation);
+    missing when Marginals failed, empty when optimize(marginals=False). components: connected
+    components (node lists), the anchor's first.
     weights: GNC weight of each factor of the anchor's component (1.0 for known inliers).
     outlier_factor_ids: confirmed outliers (retract them); ambiguous_factor_ids: flagged by GNC
     but not identifiable (kept); unchecked_factor_ids: bridges, which nothing can contradict.
@@ -229,10 +257,11 @@ class GraphSolution:
 
 
 class PoseGraph:
-    """Frames "{robot}/{session}" joined by inter-frame factors T_a_b (p_a = T_a_b p_b).
+    """Nodes (frames "{robot}/{session}" or keyframes "{robot}/{session}#{k}") joined by
+    factors T_a_b (p_a = T_a_b p_b). The API says "frame" for a node of either kind.
 
-    The anchor is the frame given, else the first frame added; it holds the gauge (a prior).
-    Frames map to gtsam keys symbol('f', i) in insertion order.
+    The anchor is the node given, else the first node added; it holds the gauge (a prior).
+    Nodes map to gtsam keys symbol('f', i) in insertion order.
     """
 
     def __init__(self, anchor: str | None = None, config: GraphConfig | None = None) -> None:
@@ -240,6 +269,8 @@ class PoseGraph:
         self._frames: dict[str, int] = {}
         self._factors: dict[str, _Factor] = {}
         self._anchor = anchor
+        self._revision = 0  # bumped by every change: optimize() reuses a solution while equal
+        self._solved: tuple[tuple[int, str, GraphConfig, bool], GraphSolution] | None = None
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -252,11 +283,35 @@ class PoseGraph:
     @anchor.setter
     def anchor(self, frame: str) -> None:
         self.add_frame(frame)
-        self._anchor = frame
+        if frame != self._anchor:
+            self._anchor = frame
+            self._revision += 1
 
     @property
     def frames(self) -> list[str]:
+        """Every node (frame or keyframe), in insertion order."""
         return list(self._frames)
+
+    @property
+    def nodes(self) -> list[str]:
+        """Every node, in insertion order (the same as `frames`)."""
+        return list(self._frames)
+
+    def has_node(self, name: str) -> bool:
+        return name in self._frames
+
+    @property
+    def revision(self) -> int:
+        """A counter that changes whenever a node, a factor or the anchor is added or removed."""
+        return self._revision
+
+    def factor_nodes(self, factor_id: str) -> tuple[str, str, bool]:
+        """(node a, node b, known_inlier) of a factor; InputError if unknown."""
+        try:
+            f = self._factors[factor_id]
+        except KeyError:
+            raise InputError(f"unknown factor {factor_id!r}") from None
+        return f.frame_a, f.frame_b, f.known_inlier
 
     @property
     def factor_ids(self) -> list[str]:
@@ -276,6 +331,7 @@ class PoseGraph:
         if frame in self._frames:
             return False
         self._frames[frame] = len(self._frames)
+        self._revision += 1
         if self._anchor is None:
             self._anchor = frame
         return True
@@ -313,25 +369,40 @@ class PoseGraph:
         self.add_frame(frame_a)
         self.add_frame(frame_b)
         self._factors[factor_id] = new
+        self._revision += 1
         return True
 
-    def add_factor_model(self, factor: Factor, *, known_inlier: bool = False) -> bool:
-        """Add a wire `Factor` (skipped, returning False, if its status is retracted)."""
+    def add_factor_model(
+        self, factor: Factor, *, known_inlier: bool = False, keyframe_nodes: bool | None = None
+    ) -> bool:
+        """Add a wire `Factor` (skipped, returning False, if its status is retracted).
+
+        keyframe_nodes: None (default) ties keyframe nodes "{frame}#{k}" when the factor
+        carries keyframes and the session frames otherwise; True always ties keyframes (a
+        factor without keyframes then ties keyframe 0 of both sessions: their frames' origins,
+        the service's graph); False always the frames (keyframes ignored)."""
         if factor.status is FactorStatus.RETRACTED:
             return False
-        T = pose3_from_transform(factor.T_a_b.translation, factor.T_a_b.quaternion_wxyz)
+        fa = FrameId(factor.robot_a, factor.session_a)
+        fb = FrameId(factor.robot_b, factor.session_b)
+        if keyframe_nodes is None:
+            keyframe_nodes = factor.keyframe_a is not None
+        if keyframe_nodes:
+            a = str(KeyframeId(fa, factor.keyframe_a or 0))
+            b = str(KeyframeId(fb, factor.keyframe_b or 0))
+        else:
+            a, b = frame_name(fa.robot, fa.session), frame_name(fb.robot, fb.session)
         return self.add_factor(
-            factor.factor_id,
-            frame_name(factor.robot_a, factor.session_a),
-            frame_name(factor.robot_b, factor.session_b),
-            T,
-            factor.covariance,
+            factor.factor_id, a, b, pose3_from_model(factor.T_a_b), factor.covariance,
             known_inlier=known_inlier,
         )
 
     def remove_factor(self, factor_id: str) -> bool:
         """Drop a factor (e.g. retracted); its frames stay. True if it was present."""
-        return self._factors.pop(factor_id, None) is not None
+        if self._factors.pop(factor_id, None) is None:
+            return False
+        self._revision += 1
+        return True
 
     # -- structure ---------------------------------------------------------------------------
 
@@ -351,15 +422,29 @@ class PoseGraph:
 
     # -- solving -----------------------------------------------------------------------------
 
-    def optimize(self, anchor: str | None = None) -> GraphSolution:
+    def optimize(self, anchor: str | None = None, *, marginals: bool = True) -> GraphSolution:
         """Solve the component of `anchor` (default: the graph's anchor); see the module rules.
 
-        Raises InputError for an unknown anchor, SolverError when GTSAM fails."""
+        marginals=False skips the marginal covariances (covariance_66 stays empty): they cost
+        about as much as the GNC solve on long keyframe chains, and the service does not use
+        them.
+
+        Returns the previous solution (the same object) when neither the graph, the anchor nor
+        the config changed since. Raises InputError for an unknown anchor, SolverError when
+        GTSAM fails."""
         anchor = anchor if anchor is not None else self._anchor
         if anchor is None:
             raise InputError("the pose graph is empty: no anchor frame")
         if anchor not in self._frames:
             raise InputError(f"unknown anchor frame {anchor!r}")
+        key = (self._revision, anchor, self.config, marginals)
+        if self._solved is not None and self._solved[0] == key:
+            return self._solved[1]
+        sol = self._solve(anchor, marginals)
+        self._solved = (key, sol)
+        return sol
+
+    def _solve(self, anchor: str, marginals: bool) -> GraphSolution:
         comps = self.components()
         comps.sort(key=lambda c: anchor not in c)
         comp = comps[0]
@@ -396,11 +481,23 @@ class PoseGraph:
             estimate = initial
             w = np.ones(len(facs))
 
-        # Rule 3: confirm a flagged factor only if unflagged factors join its frames twice over.
+        # Rule 3: confirm a flagged factor only if unflagged factors join its nodes twice over,
+        # the known inliers contracted (paths may share them: they cannot be wrong).
         flagged = [i for i in range(len(facs)) if w[i] < cfg.outlier_weight]
-        kept = [i for i in range(len(facs)) if w[i] >= cfg.outlier_weight]
-        twice = self._two_edge_connected(len(comp), [edges[i] for i in kept])
-        outliers = [i for i in flagged if twice[edges[i][0]] == twice[edges[i][1]]]
+        super_uf = UnionFind(len(comp))
+        for i, f in enumerate(facs):
+            if f.known_inlier:
+                super_uf.union(*edges[i])
+        group = [super_uf.find(i) for i in range(len(comp))]
+        kept = [
+            (group[edges[i][0]], group[edges[i][1]])
+            for i in range(len(facs))
+            if w[i] >= cfg.outlier_weight and not facs[i].known_inlier
+        ]
+        twice = self._two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
+        outliers = [
+            i for i in flagged if twice[group[edges[i][0]]] == twice[group[edges[i][1]]]
+        ]
         ambiguous = [i for i in flagged if i not in set(outliers)]
         if flagged:
             log.info(
@@ -425,7 +522,7 @@ class PoseGraph:
             raise SolverError(f"pose-graph optimisation failed: {exc}") from exc
 
         poses = {f: estimate.atPose3(self.key(f)) for f in comp}
-        covs, marg_err = self._marginals(final, estimate, comp)
+        covs, marg_err = self._marginals(final, estimate, comp) if marginals else ({}, None)
         return GraphSolution(
             anchor=anchor,
             T_anchor_frame=poses,
@@ -528,6 +625,8 @@ __all__ = [
     "PoseGraph",
     "UnionFind",
     "as_pose3",
+    "pose3_from_model",
     "pose3_from_transform",
     "pose_error",
+    "transform_from_pose3",
 ]

@@ -14,6 +14,7 @@ from typing import Annotated, Any
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -140,13 +141,6 @@ class ObjectMap(BaseModel):
         return self._arrays
 
 
-class Submap(ObjectMap):
-    """A window of a robot's recent objects, matched against a map."""
-
-    seq: int | None = Field(default=None, ge=0, description="submap sequence number")
-    stamp: float | None = Field(default=None, description="time of the submap cut, seconds")
-
-
 class Transform(BaseModel):
     """Rigid transform T_map_submap: p_map = R p_submap + t."""
 
@@ -154,6 +148,81 @@ class Transform(BaseModel):
 
     translation: tuple[float, float, float]
     quaternion_wxyz: tuple[float, float, float, float]
+
+
+def _check_unit_quaternion(v: Transform) -> Transform:
+    norm = sum(x * x for x in v.quaternion_wxyz) ** 0.5  # no overflow warning: inf
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"quaternion_wxyz must have unit norm, got {norm:.6g}")
+    return v
+
+
+def _check_spd(v: list[list[float]]) -> list[list[float]]:
+    if len(v) != 6 or any(len(r) != 6 for r in v):
+        raise ValueError("covariance must be 6x6")
+    C = np.array(v, dtype=np.float64)
+    with np.errstate(all="ignore"):  # huge entries: judged by the result, not warnings
+        if not np.abs(C - C.T).max() <= 1e-9 * np.abs(C).max():
+            raise ValueError("covariance must be symmetric")
+        try:
+            L = np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            L = None
+    if L is None or not np.all(np.isfinite(L)):
+        raise ValueError("covariance must be positive definite")
+    return v
+
+
+# A rigid transform whose quaternion has unit norm; a 6x6 SPD covariance (GTSAM Pose3 order).
+Pose = Annotated[Transform, AfterValidator(_check_unit_quaternion)]
+Covariance6 = Annotated[list[list[float]], AfterValidator(_check_spd)]
+
+
+class Odometry(BaseModel):
+    """The vehicle's own estimate of how far it moved between two of its keyframes:
+    T_from_to, the pose of keyframe `to` (the submap's) in keyframe `from_keyframe`,
+    p_from = R p_to + t, with its 6x6 covariance in GTSAM order (rotation, translation)."""
+
+    model_config = _STRICT
+
+    from_keyframe: int = Field(ge=0, description="the earlier keyframe (the previous submap's)")
+    T_from_to: Pose = Field(description="pose of the submap's keyframe in from_keyframe")
+    covariance: Covariance6 = Field(
+        description="6x6 SPD covariance of T_from_to, GTSAM Pose3 order (rotation, translation)"
+    )
+
+
+class Submap(ObjectMap):
+    """A window of a robot's recent objects, matched against a map.
+
+    Anchored to a pose when `keyframe` is set: the submap was cut at the vehicle's keyframe
+    `keyframe` (an index in its session, increasing), object positions are in that keyframe's
+    body frame, and `odometry` (absent for a session's first keyframe) is the vehicle's motion
+    since an earlier keyframe, so the service holds every robot's odometry chain. Without
+    `keyframe`, positions are in the session's own frame (the session origin)."""
+
+    seq: int | None = Field(default=None, ge=0, description="submap sequence number")
+    stamp: float | None = Field(default=None, description="time of the submap cut, seconds")
+    keyframe: int | None = Field(
+        default=None, ge=0,
+        description="keyframe (pose index in the session) the submap is anchored at; object "
+        "positions are then in that keyframe's body frame",
+    )
+    odometry: Odometry | None = Field(
+        default=None, description="motion since an earlier keyframe (needs `keyframe`)"
+    )
+
+    @model_validator(mode="after")
+    def _odometry_needs_keyframe(self) -> Submap:
+        if self.odometry is not None:
+            if self.keyframe is None:
+                raise ValueError("odometry needs keyframe")
+            if self.odometry.from_keyframe >= self.keyframe:
+                raise ValueError(
+                    f"odometry.from_keyframe {self.odometry.from_keyframe} must be before "
+                    f"keyframe {self.keyframe}"
+                )
+        return self
 
 
 class RejectReason(str, Enum):
@@ -372,6 +441,7 @@ __all__ = [
     "ObjectArrays",
     "ObjectMap",
     "ObjectNode",
+    "Odometry",
     "RejectReason",
     "Submap",
     "Transform",
@@ -404,7 +474,9 @@ class Correspondence(BaseModel):
 
 class Factor(BaseModel):
     """Inter-robot factor: relative pose T_a_b between the frames of (robot_a, session_a) and
-    (robot_b, session_b), p_a = R p_b + t, as a GTSAM BetweenFactorPose3 would hold it.
+    (robot_b, session_b), p_a = R p_b + t, as a GTSAM BetweenFactorPose3 would hold it. With
+    `keyframe_a`/`keyframe_b` it ties two keyframe poses (a pose-level loop closure); without,
+    the two sessions' frames.
 
     `covariance` is 6x6, symmetric positive definite, in the Pose3 tangent space of T_a_b,
     GTSAM order: rotation (rad) then translation (m).
@@ -418,44 +490,31 @@ class Factor(BaseModel):
     session_a: Identifier
     robot_b: Identifier
     session_b: Identifier
-    T_a_b: Transform = Field(description="pose of frame b in frame a: p_a = R p_b + t")
-    covariance: list[list[float]] = Field(
+    T_a_b: Pose = Field(description="pose of frame b in frame a: p_a = R p_b + t")
+    covariance: Covariance6 = Field(
         description="6x6 SPD covariance of T_a_b, GTSAM Pose3 order (rotation, translation)"
     )
     correspondences: list[Correspondence] = Field(
         default_factory=list, max_length=MAX_CORRESPONDENCES
     )
     status: FactorStatus | None = Field(default=None, description="accepted or retracted")
+    keyframe_a: int | None = Field(
+        default=None, ge=0,
+        description="pose-level factor: T_a_b is between keyframe keyframe_a of session a and "
+        "keyframe_b of session b (both set, or neither: then between the session frames)",
+    )
+    keyframe_b: int | None = Field(default=None, ge=0, description="see keyframe_a")
+
+    @model_validator(mode="after")
+    def _keyframes_together(self) -> Factor:
+        if (self.keyframe_a is None) != (self.keyframe_b is None):
+            raise ValueError("keyframe_a and keyframe_b go together")
+        return self
 
     @field_validator("schema_version", mode="before")
     @classmethod
     def _version(cls, v: Any) -> int:
         return _check_version(v)
-
-    @field_validator("T_a_b")
-    @classmethod
-    def _unit_quaternion(cls, v: Transform) -> Transform:
-        norm = sum(x * x for x in v.quaternion_wxyz) ** 0.5  # no overflow warning: inf
-        if abs(norm - 1.0) > 1e-3:
-            raise ValueError(f"quaternion_wxyz must have unit norm, got {norm:.6g}")
-        return v
-
-    @field_validator("covariance")
-    @classmethod
-    def _spd(cls, v: list[list[float]]) -> list[list[float]]:
-        if len(v) != 6 or any(len(r) != 6 for r in v):
-            raise ValueError("covariance must be 6x6")
-        C = np.array(v, dtype=np.float64)
-        with np.errstate(all="ignore"):  # huge entries: judged by the result, not warnings
-            if not np.abs(C - C.T).max() <= 1e-9 * np.abs(C).max():
-                raise ValueError("covariance must be symmetric")
-            try:
-                L = np.linalg.cholesky(C)
-            except np.linalg.LinAlgError:
-                L = None
-        if L is None or not np.all(np.isfinite(L)):
-            raise ValueError("covariance must be positive definite")
-        return v
 
 
 class ErrorMessage(BaseModel):

@@ -21,16 +21,16 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.frames import FrameId
-from mergesvc.core.model import Factor, ObjectNode, Submap
+from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
-from mergesvc.errors import ConfigError, MergeError
+from mergesvc.errors import ConfigError, InputError, MergeError
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
 
 X = gtsam.symbol_shorthand.X  # vehicle poses
 L = gtsam.symbol_shorthand.L  # landmarks (tracked objects)
-F = gtsam.symbol_shorthand.F  # other robots' session frames, from inter-robot factors
+F = gtsam.symbol_shorthand.F  # other robots' keyframes, from inter-robot factors
 
 
 class AgentConfig(BaseModel):
@@ -46,15 +46,33 @@ class AgentConfig(BaseModel):
     window_objects: int = Field(8, ge=2, description="recently seen objects in one submap")
     min_obs: int = Field(2, ge=1, description="objects seen fewer times are not sent")
     odometry_sigma: tuple[float, float] = Field(
-        (0.02, 0.05), description="odometry noise per step: rotation rad, translation m"
+        (0.005, 0.02),
+        description="odometry noise per step: rotation rad, translation m. Set it to your "
+        "vehicle's: a sigma far looser than the real noise lets every loop closure bend the "
+        "trajectory (0.02 rad against a true 0.0035 made merged trajectories worse than "
+        "odometry alone in the pool demo)",
     )
     tracking: TrackingConfig = TrackingConfig(cos_min=0.6, window_s=60.0)
 
 
 @dataclass
+class _Received:
+    """An inter-robot factor in the ISAM2 graph: its index there and the variable it ties to."""
+
+    factor: Factor
+    index: int
+    other_key: int
+
+
+@dataclass
 class LocalMap:
     """A vehicle's map in its own odometry frame: tracks plus an ISAM2 graph of poses (x_k,
-    odometry BetweenFactorPose3) and landmarks (l_j, BearingRangeFactor3D per detection)."""
+    odometry BetweenFactorPose3) and landmarks (l_j, BearingRangeFactor3D per detection), and
+    the other robots' keyframes that inter-robot factors tie to (f_i, BetweenFactorPose3).
+
+    Poses are indexed by frame: x_k is the k-th frame this map took (k = 0 the session's first
+    pose, the origin of the session frame). A submap is cut at the frame just added, its
+    keyframe, and is anchored there (see `cut_submap`)."""
 
     config: AgentConfig
     tracker: ObjectTracker = field(init=False)
@@ -66,8 +84,13 @@ class LocalMap:
     _last_cut_m: float = 0.0
     _new_since_cut: int = 0
     _confirmed: set[str] = field(default_factory=set)
-    frame_keys: dict[str, int] = field(default_factory=dict)  # other robots' frames -> F(i)
+    # other robots' keyframes ("robot/session", keyframe) -> index i of the variable F(i)
+    other_keys: dict[tuple[str, int], int] = field(default_factory=dict)
     path_xyz_m: list[np.ndarray] = field(default_factory=list)  # odometry estimate per frame
+    poses_est: list[np.ndarray] = field(default_factory=list)  # raw odometry pose per frame
+    stamps_s: list[float] = field(default_factory=list)
+    keyframes: list[int] = field(default_factory=list)  # the keyframe of every submap cut
+    _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
 
     def __post_init__(self) -> None:
         self.tracker = ObjectTracker(self.config.tracking)
@@ -108,6 +131,8 @@ class LocalMap:
         self.isam.update(graph, values)
         self._prev_pose = frame.T_est
         self.path_xyz_m.append(frame.T_est[:3, 3].copy())
+        self.poses_est.append(np.array(frame.T_est, dtype=np.float64))
+        self.stamps_s.append(float(frame.stamp_s))
         self.frames_seen += 1
         for t in self.tracker.tracks:
             if t.n_obs >= self.config.min_obs and t.track_id not in self._confirmed:
@@ -120,50 +145,199 @@ class LocalMap:
         )
 
     def cut_submap(self, seq: int, stamp_s: float) -> Submap | None:
-        """The most recently seen confirmed objects, positions from the smoothed graph."""
+        """The most recently seen confirmed objects, anchored at the pose just added.
+
+        The submap's `keyframe` is k, the index of the last frame added: object positions are
+        the smoothed (ISAM2) landmark estimates expressed in the smoothed x_k's body frame,
+        p_k = T_k^-1 p. Its `odometry` is the vehicle's raw motion since the previous submap's
+        keyframe (keyframe 0, the session origin, for the first submap): see `odometry`."""
         tracks = [t for t in self.tracker.tracks if t.track_id in self._confirmed]
-        if len(tracks) < 2:
+        if len(tracks) < 2 or self.frames_seen == 0:
             return None
+        k = self.frames_seen - 1
+        if self.keyframes and k <= self.keyframes[-1]:
+            return None  # one submap per keyframe
+        prev = self.keyframes[-1] if self.keyframes else 0
         tracks.sort(key=lambda t: t.last_seen_s)
         window = tracks[-self.config.window_objects:]
         est = self.isam.calculateEstimate()
-        nodes = [self._node(t, est) for t in window]
+        T_k_inv = np.linalg.inv(est.atPose3(X(k)).matrix())
+        nodes = [self._node(t, est, T_k_inv) for t in window]
         self._last_cut_m = self.distance_m
         self._new_since_cut = 0
+        self.keyframes.append(k)
         return Submap(robot_id=self.config.robot, session_id=self.config.session, seq=seq,
-                      stamp=stamp_s, objects=nodes)
+                      stamp=stamp_s, objects=nodes, keyframe=k,
+                      odometry=self.odometry(prev, k) if k > prev else None)
 
-    def _node(self, t: Track, est: gtsam.Values) -> ObjectNode:
+    def odometry(self, from_keyframe: int, to_keyframe: int) -> Odometry:
+        """The vehicle's raw odometry from one of its poses to a later one: T_from_to =
+        inv(T_est[from]) T_est[to], the composition of the odometry steps in between (not the
+        smoothed estimate, so that the service can use it as a factor independent of the
+        landmarks this vehicle also sends), with `odometry_covariance` of the step count."""
+        if not 0 <= from_keyframe < to_keyframe < self.frames_seen:
+            raise InputError(
+                f"odometry needs 0 <= from < to < {self.frames_seen}, got {from_keyframe}, "
+                f"{to_keyframe}")
+        T = np.linalg.inv(self.poses_est[from_keyframe]) @ self.poses_est[to_keyframe]
+        cov = odometry_covariance(to_keyframe - from_keyframe, self.config.odometry_sigma)
+        return Odometry(from_keyframe=from_keyframe, T_from_to=_transform(T),
+                        covariance=cov.tolist())
+
+    def _node(self, t: Track, est: gtsam.Values, T_k_inv: np.ndarray) -> ObjectNode:
         key = L(self.landmark_of[t.track_id])
         p = est.atPoint3(key) if est.exists(key) else t.position_xyz_m
+        p = T_k_inv[:3, :3] @ np.asarray(p, dtype=np.float64) + T_k_inv[:3, 3]
         return ObjectNode(id=t.track_id, position=(float(p[0]), float(p[1]), float(p[2])),
                           embedding=t.mean_d.tolist(), variance=t.variance_d.tolist(),
                           n_obs=t.n_obs)
 
+    def own_poses(self, est: gtsam.Values | None = None) -> np.ndarray:
+        """(n, 4, 4) smoothed estimate of every own pose x_0 .. x_{n-1}, in the session frame."""
+        if not self.frames_seen:
+            return np.zeros((0, 4, 4))
+        est = self.isam.calculateEstimate() if est is None else est
+        return np.stack([est.atPose3(X(k)).matrix() for k in range(self.frames_seen)])
+
     def add_inter_robot(self, factor: Factor) -> str:
-        """Add a received factor: the other robot's session frame becomes a variable tied to
-        this session's frame (x_0). Returns a log line with the correction."""
-        me = (factor.robot_a, factor.session_a) == (self.config.robot, self.config.session)
-        other = (factor.robot_b, factor.session_b) if me else (factor.robot_a, factor.session_a)
-        T = _pose_of(factor)
-        T_me_other = T if me else T.inverse()
+        """Add (or, with status `retracted`, remove) a received inter-robot factor. Returns a
+        log line with how much the own trajectory moved.
+
+        A pose-level factor (`keyframe_a`/`keyframe_b` set) becomes a BetweenFactorPose3 from
+        the own keyframe pose x_k to a variable for the other robot's keyframe, one variable
+        per other (robot, session, keyframe), first estimated as x_k composed with the factor.
+        A frame-level factor (keyframes absent) is the same between the session origins:
+        own keyframe 0 and the other session's keyframe 0. One factor to a new variable only
+        places it; two factors to the same other keyframe from different own keyframes close
+        a loop through it and correct the own trajectory.
+
+        A retracted factor is removed from ISAM2 (removeFactorIndices); a variable left without
+        factors gets a weak prior at its current estimate, so the system stays well-posed
+        (the prior touches only that variable, not the own poses). A factor id already in the
+        graph with the same content is ignored; with new content it replaces the old one.
+        Factors not between this session and another are ignored."""
+        mine = (self.config.robot, self.config.session)
+        me_a = (factor.robot_a, factor.session_a) == mine
+        me_b = (factor.robot_b, factor.session_b) == mine
+        fid = factor.factor_id
+        if me_a == me_b:
+            return f"factor {fid}: not between this session and another: ignored"
+        if factor.status == FactorStatus.RETRACTED:
+            return self._retract(factor)
+        old = self._received.get(fid)
+        if old is not None and _same(old.factor, factor):
+            return f"factor {fid}: already in the graph: ignored"
+        own_k = (factor.keyframe_a if me_a else factor.keyframe_b) or 0
+        other_k = (factor.keyframe_b if me_a else factor.keyframe_a) or 0
+        if own_k >= self.frames_seen:
+            raise InputError(f"factor {fid} ties own keyframe {own_k}, this map has "
+                             f"{self.frames_seen} poses")
+        other = (str(FrameId(factor.robot_b, factor.session_b) if me_a
+                     else FrameId(factor.robot_a, factor.session_a)), other_k)
+        T_ab = _pose_of(factor)
         cov = np.asarray(factor.covariance, dtype=np.float64)
-        name = str(FrameId(*other))
-        key = F(self.frame_keys.setdefault(name, len(self.frame_keys)))
+        if me_a:
+            T_me_other = T_ab
+        else:  # (T exp(xi))^-1 = T^-1 exp(-Ad_T xi): the inverse's covariance is Ad C Ad^T
+            T_me_other = T_ab.inverse()
+            Ad = T_ab.AdjointMap()
+            cov = Ad @ cov @ Ad.T
+            cov = 0.5 * (cov + cov.T)
+        key = F(self.other_keys.setdefault(other, len(self.other_keys)))
+        est = self.isam.calculateEstimate()
+        before = self.own_poses(est)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.BetweenFactorPose3(
-            X(0), key, T_me_other, gtsam.noiseModel.Gaussian.Covariance(cov)))
+            X(own_k), key, T_me_other, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        first = not est.exists(key)
+        if first:
+            values.insert(key, est.atPose3(X(own_k)).compose(T_me_other))
+        remove: list[int] = []
+        if old is not None:  # same id, new content: replace it
+            del self._received[fid]
+            remove.append(old.index)
+            if old.other_key != key:
+                self._keep_posed(old.other_key, graph, est)
+        res = self.isam.update(graph, values, remove)
+        self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key)
+        after_est = self._settle()
+        at = after_est.atPose3(key).translation()
+        name = f"{other[0]}#{other[1]}"
+        return (f"factor {fid}: keyframe {name} at {np.round(at, 2).tolist()} from my "
+                f"keyframe {own_k}" + (" (first estimate)" if first else "")
+                + ("; replaced the earlier version" if old is not None else "")
+                + "; " + _moved(before, self.own_poses(after_est)))
+
+    def _retract(self, factor: Factor) -> str:
+        rec = self._received.pop(factor.factor_id, None)
+        if rec is None:
+            return f"factor {factor.factor_id} retracted: it was not in the graph"
         est = self.isam.calculateEstimate()
-        before = est.atPose3(key) if est.exists(key) else None
-        if before is None:
-            values.insert(key, est.atPose3(X(0)).compose(T_me_other))
-        self.isam.update(graph, values)
-        after = self.isam.calculateEstimate().atPose3(key)
-        moved = 0.0 if before is None else float(
-            np.linalg.norm(after.translation() - before.translation()))
-        return (f"factor {factor.factor_id}: frame {name} at "
-                f"{np.round(after.translation(), 2).tolist()} in my frame"
-                + (f" (moved {moved:.2f} m)" if before is not None else " (first estimate)"))
+        before = self.own_poses(est)
+        graph = gtsam.NonlinearFactorGraph()
+        self._keep_posed(rec.other_key, graph, est)
+        self.isam.update(graph, gtsam.Values(), [rec.index])
+        after_est = self._settle()
+        return (f"factor {factor.factor_id} retracted: removed from the graph; "
+                + _moved(before, self.own_poses(after_est)))
+
+    def _keep_posed(self, key: int, graph: gtsam.NonlinearFactorGraph,
+                    est: gtsam.Values) -> None:
+        """A weak prior on an other robot's keyframe variable about to lose its last factor."""
+        if any(r.other_key == key for r in self._received.values()):
+            return
+        graph.add(gtsam.PriorFactorPose3(key, est.atPose3(key),
+                                         gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
+
+    def _settle(self, rounds: int = 4, tol_m: float = 1e-3) -> gtsam.Values:
+        """ISAM2 relinearizes only every few updates: after a loop closure, relinearize until
+        the own poses stop moving (at most `rounds` times)."""
+        prev = self.own_poses()
+        est = self.isam.calculateEstimate()
+        for _ in range(rounds):
+            self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [],
+                             force_relinearize=True)
+            est = self.isam.calculateEstimate()
+            now = self.own_poses(est)
+            if not len(now) or np.abs(now[:, :3, 3] - prev[:, :3, 3]).max() < tol_m:
+                break
+            prev = now
+        return est
+
+
+def odometry_covariance(n_steps: int, odometry_sigma: tuple[float, float]) -> np.ndarray:
+    """6x6 covariance (GTSAM order: rotation, then translation) of n_steps composed odometry
+    steps, each with independent noise diag(r^2, r^2, r^2, t^2, t^2, t^2): n_steps times the
+    per-step covariance.
+
+    This treats the composition as a random walk on each axis separately: it ignores that
+    the steps' noise is in each step's own body frame (rotated along the way), that heading
+    errors grow into lateral position errors along the path (the rotation-translation
+    correlation, and a translation variance growing faster than linearly on long curved
+    stretches), and any correlation between the steps. Good enough between keyframes a few
+    tens of steps apart; it understates the translation uncertainty of long stretches."""
+    r, t = odometry_sigma
+    return float(n_steps) * np.diag([r * r] * 3 + [t * t] * 3)
+
+
+def _transform(T: np.ndarray) -> Transform:
+    q = gtsam.Rot3(np.asarray(T[:3, :3], dtype=np.float64)).toQuaternion()
+    w = np.array([q.w(), q.x(), q.y(), q.z()])
+    w /= np.linalg.norm(w)
+    return Transform(translation=tuple(float(x) for x in T[:3, 3]),
+                     quaternion_wxyz=tuple(float(x) for x in w))
+
+
+def _same(a: Factor, b: Factor) -> bool:
+    return a.model_dump(exclude={"status"}) == b.model_dump(exclude={"status"})
+
+
+def _moved(before: np.ndarray, after: np.ndarray) -> str:
+    """How much the own trajectory moved: max and mean translation change of the poses."""
+    if not len(before):
+        return "own trajectory: no poses"
+    d = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+    return f"own trajectory moved max {d.max():.3f} m, mean {d.mean():.3f} m"
 
 
 def _pose_of(factor: Factor) -> gtsam.Pose3:
@@ -281,17 +455,13 @@ class Agent:
 
 @dataclass(frozen=True)
 class AgentRun:
-    """One vehicle run as `mergesvc agent` starts it: who the vehicle is, where its frames
-    come from (a seeded fleet world, or a recorded observation log), how its submaps are
-    coded and which side of the key space it publishes on."""
+    """One vehicle run as `mergesvc agent` starts it: who the vehicle is, how its submaps are
+    coded and which side of the key space it publishes on. Where its frames come from (a
+    recorded log, a simulated world) is the caller's business: run_agent takes them."""
 
     robot: str
     fleet: str = "fleet0"
     session: str = "s0"
-    seed: int = 0  # fleet world seed (ignored with log_file)
-    laps: int = 2
-    objects: int = 24
-    log_file: Path | None = None  # replay this observation log instead of the world
     profile: Profile = Profile.INT8
     projection: Path | None = None  # fleet projection (.npz); the compact profile needs it
     time_scale: float = 0.0  # wall s per simulated s; 0: no pacing
@@ -300,20 +470,10 @@ class AgentRun:
     config: AgentConfig | None = None  # the agent settings; None: defaults for this robot
 
 
-def _world_frames(run: AgentRun) -> Iterable[Frame]:
-    from mergesvc.sim import fleet_world, read_observation_log
-
-    if run.log_file is not None:
-        return read_observation_log(run.log_file)
-    sid = run.session
-    return fleet_world(run.seed, laps=run.laps, n_objects=run.objects).frames(
-        run.robot, int(sid.lstrip("s") or 0) if sid[1:].isdigit() else 0)
-
-
-def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
-    """Build the vehicle (frames, codec, keys), open a Zenoh session with `zenoh_config`, run
-    the frames through an `Agent`, linger for factors, close. Raises MergeError (ConfigError
-    for the compact profile without a projection), ValueError/OSError for unreadable input."""
+def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> AgentStats:
+    """Build the vehicle (codec, keys), open a Zenoh session with `zenoh_config`, run `frames`
+    through an `Agent`, linger for factors, close. Raises MergeError (ConfigError for the
+    compact profile without a projection), ValueError/OSError for unreadable input."""
     import zenoh
 
     proj = Projection.load(run.projection) if run.projection is not None else None
@@ -325,7 +485,6 @@ def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
             f"agent settings are for {acfg.robot}/{acfg.session} in fleet {acfg.fleet}, the run "
             f"is {run.robot}/{run.session} in fleet {run.fleet}"
         )
-    frames = _world_frames(run)
     root = keys.uw_root(run.fleet) if run.acoustic else keys.fleet_root(run.fleet)
 
     def encode(sub: Submap, seq: int) -> bytes:
@@ -348,4 +507,4 @@ def run_agent(run: AgentRun, zenoh_config: Any) -> AgentStats:
 
 
 __all__ = ["Agent", "AgentConfig", "AgentRun", "AgentStats", "LocalMap", "build_submaps",
-           "run_agent"]
+           "odometry_covariance", "run_agent"]

@@ -1,7 +1,8 @@
 """The multi-robot demo: a merge service and three vehicles as separate processes on loopback
 (optionally through the acoustic-link bridge), a seeded pool mission, and a summary scored
 against the ground truth: submaps, bytes, factors, precision, frame alignment before and after
-merging, and a PNG of the merged map.
+merging, each robot's keyframe trajectory error (odometry alone and merged; TUM files), and a
+PNG of the merged map.
 """
 
 from __future__ import annotations
@@ -22,15 +23,24 @@ from typing import Any
 
 import numpy as np
 
+from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor
+from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
-from mergesvc.fleet.agent import AgentConfig, build_submaps
+from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
 from mergesvc.sim import fleet_world, image_s_dataset
 from mergesvc.wire import Profile, Projection, decode_message, keys
 
 log = logging.getLogger(__name__)
 
 ROBOTS = ("auv1", "auv2", "auv3")
+SESSION = "s0"  # every vehicle's session in the demo
+STORE_FILE = "merge.db"
+
+
+def _frame(robot: str) -> str:
+    """The frame name of a demo vehicle's session."""
+    return str(FrameId(robot, SESSION))
 
 
 class DemoError(RuntimeError):
@@ -46,6 +56,11 @@ class DemoPlan:
     profile: Profile = Profile.COMPACT
     link: str = "zenoh"  # or "acoustic": through the simulated modem
     timeout_s: float = 120.0
+
+    @property
+    def fleet(self) -> str:
+        """The fleet name the demo's processes use."""
+        return f"demo{self.seed}"
 
     @classmethod
     def quick(cls, **kw: Any) -> DemoPlan:
@@ -97,12 +112,12 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
     import zenoh
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    fleet = f"demo{plan.seed}"
+    fleet = plan.fleet
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     proj_path = out_dir / "projection.npz"
     fleet_projection(plan.seed, proj_path)
-    store = out_dir / "merge.db"
+    store = out_dir / STORE_FILE
     for p in out_dir.glob("merge.db*"):
         p.unlink()
     cli = [sys.executable, "-m", "mergesvc.cli"]
@@ -140,7 +155,8 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
                              *[x for r in ROBOTS for x in ("--vehicles", r)]])
             time.sleep(1.0)
         for r in ROBOTS:
-            spawn(r, ["agent", "--robot", r, "--fleet", fleet, "--seed", str(plan.seed),
+            spawn(r, ["agent", "--robot", r, "--fleet", fleet, "--session", SESSION,
+                      "--seed", str(plan.seed),
                       "--laps", str(plan.laps), "--objects", str(plan.n_objects),
                       "--profile", plan.profile.value, "--projection", str(proj_path),
                       "--time-scale", str(plan.time_scale), "--connect", endpoint,
@@ -159,6 +175,8 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
             return result
         result.summary = score_demo(plan, status, factors, logs, out_dir)
         result.summary["elapsed_s"] = round(time.monotonic() - t_start, 1)
+        for line in trajectory_lines(result.summary):
+            echo(line)
         if result.summary["factors_accepted"] == 0:
             result.failures.append("no factor was accepted")
     except subprocess.TimeoutExpired as exc:
@@ -241,7 +259,8 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
                logs: dict[str, Path], out_dir: Path) -> dict[str, Any]:
     """Everything the summary says, against the mission's ground truth."""
     world = fleet_world(plan.seed, ROBOTS, plan.laps, plan.n_objects)
-    local = {r: build_submaps(AgentConfig(robot=r), world.frames(r))[0] for r in ROBOTS}
+    frames = {r: list(world.frames(r)) for r in ROBOTS}
+    local = {r: build_submaps(AgentConfig(robot=r), frames[r])[0] for r in ROBOTS}
 
     def truth(robot: str, oid: str) -> str | None:
         try:
@@ -261,16 +280,16 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
             ok = ta is not None and ta == tb
             right += ok
             wrong += not ok
-    anchor = status.get("anchor") or "auv1/s0"
-    a_robot = anchor.split("/")[0]
+    anchor = status.get("anchor") or _frame(ROBOTS[0])
+    a_robot = FrameId.parse(anchor).robot
     poses = {f: np.asarray(T) for f, T in status.get("frame_poses", {}).items()}
     align = {}
     for r in ROBOTS:
-        if f"{r}/s0" == anchor:
+        if _frame(r) == anchor:
             continue
         T_true = world.T_rel_true(a_robot, r)
         before = _pose_error(np.eye(4), T_true)
-        after = _pose_error(poses[f"{r}/s0"], T_true) if f"{r}/s0" in poses else None
+        after = _pose_error(poses[_frame(r)], T_true) if _frame(r) in poses else None
         align[r] = {"before_m": before[0], "before_deg": before[1],
                     "after_m": after[0] if after else None,
                     "after_deg": after[1] if after else None}
@@ -290,9 +309,85 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
         "anchor": anchor,
         "latency_ms": status["latency_ms"],
     }
+    summary["trajectory"] = score_trajectories(world, frames, local, status, anchor, out_dir)
     summary["figure"] = str(plot_merged(world, local, poses, anchor, active, out_dir /
                                         "merged_map.png"))
     return summary
+
+
+def score_trajectories(world: Any, frames: dict[str, list[Frame]],
+                       local: dict[str, LocalMap], status: dict[str, Any], anchor: str,
+                       out_dir: Path) -> dict[str, dict[str, Any]]:
+    """Per robot: the ATE of its keyframe trajectory from odometry alone and as the service
+    merged it, and the error of the last merged keyframe pose, against the truth.
+
+    Keyframes are frame indices (keyframe k: frame k, true pose T_true, odometry pose T_est).
+    The odometry-only trajectory is T_est at keyframe 0 and at every keyframe the vehicle cut
+    a submap at (replayed with the default agent settings, as the rest of the scoring is).
+    The merged one is the service's `keyframe_poses` of the robot's session (in the anchor
+    frame; only keyframes in the anchor's component). Both are aligned to the truth by the
+    SE(3) Umeyama transform of their positions (evo's `--align`): the ATE measures the
+    trajectory's shape, not where its frame sits (that is `alignment`). `final_*`: the last
+    keyframe's error after that alignment (final_rot_err_odometry_deg: the same for the
+    odometry-only trajectory). A robot without at least 3 merged keyframes (not connected to
+    the anchor, or a service without keyframe poses) gets null merged values.
+
+    Writes TUM files into out_dir/trajectories: {robot}_odometry.tum (own session frame),
+    {robot}_merged.tum (anchor frame) and {robot}_truth.tum (all frames, in the anchor's
+    true session frame), for evo_ape."""
+    from mergesvc.core.trajectory import ate_rmse, final_pose_error
+    from mergesvc.wire.formats import write_tum
+
+    T_anchor_world = np.linalg.inv(world.session_start(FrameId.parse(anchor).robot))
+    merged_all = status.get("keyframe_poses") or {}
+    tum_dir = out_dir / "trajectories"
+    tum_dir.mkdir(parents=True, exist_ok=True)
+    out: dict[str, dict[str, Any]] = {}
+    for r in ROBOTS:
+        fr = frames[r]
+        stamps = np.array([f.stamp_s for f in fr])
+        truth = np.stack([T_anchor_world @ f.T_true for f in fr])
+        keys_odo = sorted({0, *local[r].keyframes})
+        odo = np.stack([fr[k].T_est for k in keys_odo])
+        merged_raw = merged_all.get(_frame(r)) or {}
+        keys_m = sorted(int(k) for k in merged_raw if 0 <= int(k) < len(fr))
+        merged = (np.stack([np.asarray(merged_raw[str(k)], dtype=np.float64) for k in keys_m])
+                  if keys_m else np.zeros((0, 4, 4)))
+        row: dict[str, Any] = {"keyframes": len(keys_odo), "keyframes_merged": len(keys_m),
+                               "ate_odometry_m": None, "ate_merged_m": None,
+                               "final_rot_err_odometry_deg": None,
+                               "final_pos_err_m": None, "final_rot_err_deg": None}
+        with contextlib.suppress(MergeError):  # too few or collinear keyframes: null
+            row["ate_odometry_m"] = ate_rmse(odo, truth[keys_odo])
+            row["final_rot_err_odometry_deg"] = final_pose_error(odo, truth[keys_odo])[1]
+        with contextlib.suppress(MergeError):
+            row["ate_merged_m"] = ate_rmse(merged, truth[keys_m])
+            m, deg = final_pose_error(merged, truth[keys_m])
+            row["final_pos_err_m"], row["final_rot_err_deg"] = m, deg
+        tum = {"odometry": write_tum(tum_dir / f"{r}_odometry.tum", stamps[keys_odo], odo),
+               "truth": write_tum(tum_dir / f"{r}_truth.tum", stamps, truth)}
+        if keys_m:
+            tum["merged"] = write_tum(tum_dir / f"{r}_merged.tum", stamps[keys_m], merged)
+        row["tum"] = {k: str(v) for k, v in tum.items()}
+        out[r] = row
+    return out
+
+
+def trajectory_lines(summary: dict[str, Any]) -> list[str]:
+    """One line per robot of the summary's trajectory scores, for the demo's output."""
+
+    def num(x: float | None, unit: str) -> str:
+        return "n/a" if x is None else f"{x:.2f} {unit}"
+
+    lines = []
+    for r, t in summary.get("trajectory", {}).items():
+        lines.append(
+            f"  {r} keyframe ATE: odometry {num(t['ate_odometry_m'], 'm')} "
+            f"({t['keyframes']} keyframes), merged {num(t['ate_merged_m'], 'm')} "
+            f"({t['keyframes_merged']} keyframes); last keyframe: merged "
+            f"{num(t['final_pos_err_m'], 'm')} / {num(t['final_rot_err_deg'], 'deg')}, "
+            f"odometry {num(t['final_rot_err_odometry_deg'], 'deg')}")
+    return lines
 
 
 def _agent_totals(path: Path | None) -> dict[str, int]:
@@ -324,13 +419,13 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
 
     fig, ax = plt.subplots(figsize=(9, 5.5), dpi=110)
     colors = {"auv1": "tab:blue", "auv2": "tab:orange", "auv3": "tab:green"}
-    a_robot = anchor.split("/")[0]
+    a_robot = FrameId.parse(anchor).robot
     T_aw = np.linalg.inv(world.robot(a_robot).T_world_start)
     obj = (world.objects_xyz_m @ T_aw[:3, :3].T + T_aw[:3, 3])[:, :2]
     ax.scatter(*obj.T, marker="x", c="0.6", s=30, label="true objects (anchor frame)")
     placed: dict[tuple[str, str], np.ndarray] = {}
     for r, lm in local.items():
-        T = poses.get(f"{r}/s0")
+        T = poses.get(_frame(r))
         if T is None:
             continue
         xy = np.array([T[:3, :3] @ p + T[:3, 3] for p in
@@ -368,4 +463,6 @@ __all__ = [
     "query_status",
     "run_demo",
     "score_demo",
+    "score_trajectories",
+    "trajectory_lines",
 ]

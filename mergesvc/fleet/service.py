@@ -1,6 +1,31 @@
 """Merge service over Zenoh: submaps in (persisted first), verified matching against every other
-robot-session frame, inter-robot factors out, a GNC pose graph over the frames, fused global
-objects, relocalization and status queryables.
+robot session's map, inter-robot factors out, one multi-robot GNC pose graph over every
+session's keyframes, fused global objects, relocalization and status queryables.
+
+Per session the service holds (`SessionState`, rebuilt from the stored submaps on restart):
+  - its keyframes: nodes "{robot}/{session}#{k}" of the pose graph (frames.KeyframeId).
+    Keyframe 0 is the session's first pose, the origin of its frame. A submap with `keyframe`
+    set has its positions in that keyframe's body frame; one without (old clients, `mergesvc
+    match` files) is anchored at keyframe 0 with identity, i.e. in the session frame;
+  - its odometry edges: each keyframe submap's `odometry` (from_keyframe -> keyframe), added to
+    the graph as known inliers (never weighed by GNC, never retracted);
+  - its objects: each object id from the submap with the highest seq holding it, its position
+    in that submap's keyframe frame.
+A session's map for matching places every object with the current pose of its keyframe in the
+session frame: keyframe 0 is the identity; keyframes the last graph solution holds (the session
+is in the anchor's component) take their optimized pose relative to the solved keyframe 0; the
+others are composed along odometry edges from the nearest (fewest edges) keyframe that has a
+pose. Keyframes not joined to keyframe 0 by odometry (a lost submap broke the chain) are
+skipped, with their objects, until they are joined (by later odometry, or by inter-robot
+factors that put both pieces in the solved graph).
+
+Matching submap b (positions in its keyframe Kb) against session a's map gives T_{a,Kb}; the
+factor ties keyframe Ka of a (the keyframe most matched map objects hang on, ties to the
+latest) to Kb: T_{Ka,Kb} = inv(T_{a,Ka}) T_{a,Kb} (core/factors.py). A submap without keyframe
+matched against objects of a's keyframe 0 gives the frame-level factor of old (no keyframes on
+the wire), which ties the two sessions' keyframes 0. The graph is optimized after every submap
+that added a factor (or an odometry edge between two keyframes already in the graph), and not
+otherwise; PoseGraph.optimize also returns its last solution while nothing changed.
 
 Threads: Zenoh callbacks only validate, persist and enqueue; one worker thread matches. The
 queue holds row ids only and is bounded: under a burst, ids that do not fit stay unprocessed in
@@ -15,16 +40,26 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections import defaultdict, deque
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.config import MatchConfig
-from mergesvc.core.factors import factor_frames, factor_from_match, match_factor_id, yields_factor
-from mergesvc.core.frames import FrameId
+from mergesvc.core.factors import (
+    OdometryEdge,
+    anchoring_keyframe,
+    factor_frames,
+    factor_from_match,
+    match_factor_id,
+    odometry_edge,
+    yields_factor,
+)
+from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.fusion import fuse_objects
 from mergesvc.core.graph import GraphConfig, GraphSolution, PoseGraph
 from mergesvc.core.model import (
@@ -57,9 +92,10 @@ class ServiceConfig(BaseModel):
     min_map_objects: int = Field(3, ge=3, description="frames with fewer objects are not matched")
     drift_sigma: tuple[float, float] = Field(
         (0.05, 0.5),
-        description="added to every factor's covariance: rotation rad, translation m. Odometry "
-        "frames drift, so the same pair of frames seen through different stretches of two "
-        "trajectories differs by more than the fit's own covariance says",
+        description="added to every factor's covariance: rotation rad, translation m. A "
+        "session's map places objects of many keyframes with estimated (drifting) poses, and "
+        "a frame-level factor (old clients) ties two whole drifting frames, so a factor "
+        "differs from the truth by more than the fit's own covariance says",
     )
     match: MatchConfig = Field(
         default_factory=lambda: MatchConfig.model_validate(
@@ -70,7 +106,8 @@ class ServiceConfig(BaseModel):
         "small pool, and a wrong factor costs more than a late one)",
     )
     graph: GraphConfig = Field(
-        GraphConfig(), description="the GNC pose graph over the frames (outlier thresholds)"
+        GraphConfig(),
+        description="the GNC pose graph over the sessions' keyframes (outlier thresholds)",
     )
 
 
@@ -93,7 +130,12 @@ class ServiceStats:
 
 
 class RelocalizeReply(BaseModel):
-    """Answer of the relocalize queryable: the new session's frame in the anchor frame."""
+    """Answer of the relocalize queryable: where the query submap's frame is in the anchor
+    frame (the anchor session's keyframe 0).
+
+    T_anchor_session: the pose of the frame the query submap's positions are in: its keyframe
+    (`keyframe`, the vehicle's pose where it cut the submap) when the submap has one, else the
+    new session's frame (its origin)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -103,6 +145,91 @@ class RelocalizeReply(BaseModel):
     T_anchor_session: Transform | None = None
     covariance: list[list[float]] | None = None
     matches: int = 0
+    keyframe: int | None = Field(
+        None, description="the query submap's keyframe T_anchor_session is the pose of; None: "
+        "the session frame"
+    )
+
+
+@dataclass(frozen=True)
+class HeldObject:
+    """An object of a session as the service holds it: from the submap `seq` (the latest that
+    held it), its position in the frame of that submap's keyframe."""
+
+    seq: int
+    keyframe: int
+    node: ObjectNode
+
+
+@dataclass
+class SessionState:
+    """One robot session: its keyframes, the odometry edges between them, its objects."""
+
+    frame: FrameId
+    keyframes: set[int] = field(default_factory=lambda: {0})
+    edges: dict[tuple[int, int], OdometryEdge] = field(default_factory=dict)
+    objects: dict[str, HeldObject] = field(default_factory=dict)
+    version: int = 0  # bumped by every submap
+    _adjacent: dict[int, list[tuple[int, gtsam.Pose3]]] = field(
+        default_factory=lambda: defaultdict(list), repr=False
+    )
+
+    @property
+    def name(self) -> str:
+        return str(self.frame)
+
+    def node(self, k: int) -> str:
+        """The pose-graph node of keyframe k: "{robot}/{session}#{k}"."""
+        return str(KeyframeId(self.frame, k))
+
+    def add(self, sub: Submap) -> OdometryEdge | None:
+        """Take a submap in (idempotent); returns its odometry edge when it is new."""
+        k = 0 if sub.keyframe is None else sub.keyframe
+        seq = sub.seq if sub.seq is not None else -1
+        self.keyframes.add(k)
+        for o in sub.objects:  # the latest submap holding an object gives its estimate
+            held = self.objects.get(o.id)
+            if held is None or held.seq <= seq:
+                self.objects[o.id] = HeldObject(seq, k, o)
+        self.version += 1
+        edge = odometry_edge(sub)
+        if edge is None:
+            return None
+        pair = (edge.from_.k, edge.to.k)
+        old = self.edges.get(pair)
+        if old is not None:
+            if not old.T_from_to.equals(edge.T_from_to, 1e-9):
+                log.warning("%s: odometry %d -> %d sent again with another value: kept the "
+                            "first", self.name, *pair)
+            return None
+        self.edges[pair] = edge
+        self.keyframes.add(edge.from_.k)
+        self._adjacent[pair[0]].append((pair[1], edge.T_from_to))
+        self._adjacent[pair[1]].append((pair[0], edge.T_from_to.inverse()))
+        return edge
+
+    def propagate(self, seeds: Mapping[int, gtsam.Pose3]) -> dict[int, gtsam.Pose3]:
+        """Poses of the keyframes reachable from `seeds` (keyframe -> pose) along odometry
+        edges, each composed from the nearest seed (fewest edges); seeds keep their pose."""
+        poses = dict(seeds)
+        todo = deque(sorted(seeds))
+        while todo:
+            k = todo.popleft()
+            for j, T_k_j in self._adjacent.get(k, ()):
+                if j not in poses:
+                    poses[j] = poses[k].compose(T_k_j)
+                    todo.append(j)
+        return poses
+
+
+@dataclass(frozen=True)
+class SessionMap:
+    """A session's objects placed in its frame for matching: the map, each object's keyframe
+    and the keyframe poses (in the session frame) used to place them."""
+
+    map: ObjectMap
+    keyframe_of: dict[str, int]
+    poses: dict[int, gtsam.Pose3]
 
 
 class MergeService:
@@ -122,7 +249,7 @@ class MergeService:
         self.stats = ServiceStats()
         self.store = Store(config.store)
         self.graph = PoseGraph(config=config.graph)
-        self.frames: dict[str, dict[str, ObjectNode]] = {}  # frame -> object id -> node
+        self.sessions: dict[str, SessionState] = {}  # "robot/session" -> its keyframes, objects
         self.factors: dict[str, Factor] = {}
         self.alive: set[str] = set()
         self._seq = 0
@@ -133,16 +260,18 @@ class MergeService:
         self._entities: list[Any] = []
         self._root = keys.fleet_root(config.fleet)
         self._global: ObjectMap | None = None
-        self._anchor: str | None = None
-        self._frame_maps: dict[str, ObjectMap] = {}  # validated once per frame change
+        self._anchor: str | None = None  # the anchor session "robot/session"
+        # session -> ((session version, solution count), its map): rebuilt when either changes
+        self._session_maps: dict[str, tuple[tuple[int, int], SessionMap | None]] = {}
         self.solution: GraphSolution | None = None
+        self._solutions = 0  # solutions taken so far (keys the session maps' cache)
 
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> MergeService:
         from zenoh.ext import HistoryConfig, RecoveryConfig, declare_advanced_subscriber
 
-        self._rebuild()
+        self.restore()
         s = self.session
         self._entities = [
             declare_advanced_subscriber(
@@ -157,8 +286,9 @@ class MergeService:
         ]
         self._worker = threading.Thread(target=self._work, name="mergesvc-worker", daemon=True)
         self._worker.start()
-        log.info("merge service up: fleet %s, %d frames, %d factors restored",
-                 self.config.fleet, len(self.frames), len(self.factors))
+        log.info("merge service up: fleet %s, %d sessions, %d keyframes, %d factors restored",
+                 self.config.fleet, len(self.sessions),
+                 sum(len(st.keyframes) for st in self.sessions.values()), len(self.factors))
         return self
 
     def close(self) -> None:
@@ -180,21 +310,21 @@ class MergeService:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _rebuild(self) -> None:
-        """After a restart: frames from processed submaps, factors, the graph; then redo the
-        submaps that were persisted but not processed."""
+    def restore(self) -> None:
+        """After a restart: the sessions (keyframes, odometry edges, objects) from the processed
+        submaps, the accepted factors, the graph solved once; then redo the submaps that were
+        persisted but not processed. The graph is the one the service had: the same nodes,
+        odometry edges and factors."""
         frames = self.store.frames()
         if frames:
-            self._anchor = frames[0].frame  # published coordinates stay in one frame
-            self.graph.anchor = self._anchor
+            self._set_anchor(frames[0].frame)  # published coordinates stay in one frame
         for row in self.store.submaps():
             if row.status in ("processed", "no_match"):
-                sub = self._decode_submap(row.payload)
-                self._add_to_frame(sub)
+                self._add_submap(self._decode_submap(row.payload))
         for f in self.store.factors():
             factor = Factor.model_validate_json(f.payload)
             if f.status == "accepted":
-                self.graph.add_factor_model(factor)
+                self.graph.add_factor_model(factor, keyframe_nodes=True)
                 self.factors[factor.factor_id] = factor
         if self.factors:
             self._optimize(publish=False)
@@ -207,6 +337,8 @@ class MergeService:
         import zenoh
 
         self.stats.error(code)
+        if self.session is None:
+            return
         try:
             msg = encode_message(ErrorMessage(code=code, detail=detail[:1000], about_seq=seq),
                                  Profile.FULL, "mergesvc", self._next_seq())
@@ -260,6 +392,23 @@ class MergeService:
             return
         self._offer(row_id)
 
+    def ingest(self, sub: Submap, profile: Profile = Profile.FULL) -> int:
+        """Persist and process one submap now, in the calling thread, as if it had arrived
+        coded with `profile` (a restart reloads it like any other): offline replays and tests,
+        with or without a Zenoh session (without one nothing is published). Returns its row
+        id; a submap stored before is not processed again."""
+        if sub.seq is None:
+            raise SchemaError("submap without seq")
+        data = encode_message(sub, profile, sub.robot_id, sub.seq)
+        row_id, created = self.store.put_submap(sub.robot_id, sub.session_id, sub.seq, data,
+                                                self.clock())
+        self.stats.submaps_received += 1
+        if created:
+            self._process(row_id)
+        else:
+            self.stats.submaps_duplicate += 1
+        return row_id
+
     def _offer(self, row_id: int) -> None:
         try:
             self._queue.put_nowait(row_id)
@@ -307,33 +456,30 @@ class MergeService:
         me = str(me_id)
         new_factors = []
         with self._lock:
-            others = [(f, self._frame_map(f)) for f, objs in self.frames.items()
-                      if f != me and len(objs) >= self.config.min_map_objects]
-        for other, map_ in others:
+            others = [(name, sm) for name in self.sessions
+                      if name != me and (sm := self._session_map(name)) is not None]
+        for other, sm in others:
             other_id = FrameId.parse(other)
             self.stats.matches_tried += 1
-            res = match(map_, sub, self.config.match).result
+            res = match(sm.map, sub, self.config.match).result
             if not yields_factor(res):
                 continue
-            factor = factor_from_match(
-                res, other_id, me_id, factor_id=match_factor_id(other_id, me_id, sub.seq),
-                drift_sigma=self.config.drift_sigma,
-            )
+            factor = self._factor(res, sm, other_id, sub)
             # a replay after a crash finds the factor stored already: publish it again (its id
             # is deterministic, so receivers see the same factor twice at most)
             self.store.put_factor(factor.factor_id, other, me, factor.model_dump_json().encode(),
                                   "accepted")
             new_factors.append(factor)
         with self._lock:
-            self._add_to_frame(sub)
+            closes_loop = self._add_submap(sub)
             for factor in new_factors:
                 if factor.factor_id not in self.factors:
                     self.factors[factor.factor_id] = factor
-                    self.graph.add_factor_model(factor)
+                    self.graph.add_factor_model(factor, keyframe_nodes=True)
         for factor in new_factors:
             self._publish_factor(factor)
             self.stats.factors_accepted += 1
-        if new_factors:
+        if new_factors or closes_loop:
             self._optimize(publish=True)
         self.store.mark_processed(row_id, "processed" if new_factors else "no_match",
                                   f"{len(new_factors)} factors")
@@ -341,39 +487,111 @@ class MergeService:
         ms = (time.perf_counter() - t0) * 1e3
         self.stats.latency_ms.append(ms)
         del self.stats.latency_ms[:-1000]
-        log.info("submap %s seq %s: %d objects, %d frames tried, %d factors, %.0f ms",
-                 me, sub.seq, len(sub.objects), len(others), len(new_factors), ms)
+        log.info("submap %s seq %s keyframe %s: %d objects, %d sessions tried, %d factors, "
+                 "%.0f ms", me, sub.seq, sub.keyframe, len(sub.objects), len(others),
+                 len(new_factors), ms)
 
-    def _frame_map(self, name: str) -> ObjectMap:
-        """A frame's objects as a map (its arrays cached with it until the frame changes)."""
-        if name not in self._frame_maps:
-            frame = FrameId.parse(name)
-            self._frame_maps[name] = ObjectMap(robot_id=frame.robot, session_id=frame.session,
-                                               objects=list(self.frames[name].values()))
-        return self._frame_maps[name]
+    def _factor(self, res: Any, sm: SessionMap, other: FrameId, sub: Submap) -> Factor:
+        """The factor of an accepted match of `sub` against session `other`'s map: pose level
+        (keyframe Ka of other -> the submap's keyframe) unless both ends are keyframe 0 and the
+        submap has no keyframe (an old client against frame-anchored objects: the frame-level
+        factor of old, which ties the same two nodes)."""
+        me = FrameId(sub.robot_id, sub.session_id)
+        fid = match_factor_id(other, me, sub.seq if sub.seq is not None else 0)
+        ka = anchoring_keyframe(res, sm.keyframe_of)
+        if sub.keyframe is None and ka == 0:
+            return factor_from_match(res, other, me, factor_id=fid,
+                                     drift_sigma=self.config.drift_sigma)
+        return factor_from_match(
+            res, other, me, factor_id=fid, drift_sigma=self.config.drift_sigma,
+            keyframe_a=ka, keyframe_b=sub.keyframe or 0, T_a_keyframe_a=sm.poses[ka],
+        )
 
-    def _add_to_frame(self, sub: Submap) -> None:
+    def _set_anchor(self, name: str) -> None:
+        self._anchor = name
+        self.graph.anchor = str(KeyframeId.origin(FrameId.parse(name)))
+
+    def _add_submap(self, sub: Submap) -> bool:
+        """A processed submap into its session's state and the graph (its keyframe node, its
+        odometry edge as a known inlier). True when the edge joined two nodes the graph had
+        already (it may close a loop: the graph must be solved again)."""
         name = str(FrameId(sub.robot_id, sub.session_id))
-        if name not in self.frames:
+        st = self.sessions.get(name)
+        if st is None:
+            st = self.sessions[name] = SessionState(FrameId(sub.robot_id, sub.session_id))
             self.store.put_frame(sub.robot_id, sub.session_id, self.clock())
-            self.graph.add_frame(name)
-        objs = self.frames.setdefault(name, {})
-        for o in sub.objects:  # the latest estimate of an object replaces the older one
-            objs[o.id] = o
-        self._frame_maps.pop(name, None)
+            self.graph.add_frame(st.node(0))
+            if self._anchor is None:
+                self._set_anchor(name)
+        edge = st.add(sub)
+        closes_loop = False
+        if edge is not None:
+            a, b = str(edge.from_), str(edge.to)
+            closes_loop = self.graph.has_node(a) and self.graph.has_node(b)
+            self.graph.add_factor(edge.edge_id, a, b, edge.T_from_to, edge.covariance,
+                                  known_inlier=True)
+        self.graph.add_frame(st.node(0 if sub.keyframe is None else sub.keyframe))
         self._global = None
-        if self._anchor is None:
-            self._anchor = name
-            self.graph.anchor = name
+        return closes_loop
+
+    def _session_map(self, name: str) -> SessionMap | None:
+        """A session's objects placed in its frame (None with fewer than min_map_objects
+        placed); cached until the session or the graph solution changes."""
+        st = self.sessions[name]
+        key = (st.version, self._solutions)
+        cached = self._session_maps.get(name)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        poses = self._session_poses(st)
+        placed, keyframe_of = [], {}
+        for oid, held in st.objects.items():
+            T = poses.get(held.keyframe)
+            if T is None:
+                continue  # a keyframe the odometry does not join to keyframe 0 (yet)
+            p = T.transformFrom(np.asarray(held.node.position, dtype=np.float64))
+            placed.append(held.node if held.keyframe == 0 and T.equals(gtsam.Pose3(), 0.0)
+                          else held.node.model_copy(update={"position": tuple(map(float, p))}))
+            keyframe_of[oid] = held.keyframe
+        sm = None
+        if len(placed) >= self.config.min_map_objects:
+            sm = SessionMap(ObjectMap(robot_id=st.frame.robot, session_id=st.frame.session,
+                                      objects=placed), keyframe_of, poses)
+        self._session_maps[name] = (key, sm)
+        return sm
+
+    def _session_poses(self, st: SessionState) -> dict[int, gtsam.Pose3]:
+        """Pose of each placeable keyframe in the session frame (see the module docstring)."""
+        sol = self.solution
+        seeds = {0: gtsam.Pose3()}
+        if sol is not None and (origin := sol.T_anchor_frame.get(st.node(0))) is not None:
+            inv = origin.inverse()
+            seeds = {k: inv.compose(T) for k in st.keyframes
+                     if (T := sol.T_anchor_frame.get(st.node(k))) is not None}
+            seeds[0] = gtsam.Pose3()
+        return st.propagate(seeds)
+
+    def _anchor_poses(self, st: SessionState) -> dict[int, gtsam.Pose3]:
+        """Pose of each keyframe of a session in the anchor frame: the solved ones, and those
+        joined to them by odometry (composed from the nearest); {} outside the anchor's
+        component. Before any solution, only the anchor session, by odometry."""
+        sol = self.solution
+        if sol is None:
+            return st.propagate({0: gtsam.Pose3()}) if st.name == self._anchor else {}
+        seeds = {k: T for k in st.keyframes
+                 if (T := sol.T_anchor_frame.get(st.node(k))) is not None}
+        return st.propagate(seeds) if seeds else {}
 
     def _optimize(self, publish: bool) -> None:
         with self._lock:
             try:
-                sol = self.graph.optimize()
+                sol = self.graph.optimize(marginals=False)
             except MergeError as exc:
                 log.warning("pose graph optimisation failed: %s", exc)
                 return
+            if sol is self.solution:
+                return  # nothing changed since the last solve
             self.solution = sol
+            self._solutions += 1
             self._global = None
             # ambiguous factors (GNC doubts them, but no two other paths confirm it) are kept
             retract = [fid for fid in sol.outlier_factor_ids if fid in self.factors]
@@ -387,6 +605,8 @@ class MergeService:
                 self._publish_factor(factor.model_copy(update={"status": FactorStatus.RETRACTED}))
 
     def _publish_factor(self, factor: Factor) -> None:
+        if self.session is None:  # offline (ingest): nothing to publish to
+            return
         payload = encode_message(factor, self.config.factor_profile, "mergesvc", self._next_seq())
         for robot in {factor.robot_a, factor.robot_b}:
             self.session.put(keys.factor_key(self._root, robot, factor.factor_id), payload)
@@ -394,43 +614,80 @@ class MergeService:
     # ------------------------------------------------------------------ queries
 
     def global_map(self) -> tuple[ObjectMap | None, str | None]:
-        """Objects of every frame aligned to the anchor, fused (None before any alignment)."""
+        """Objects of every session aligned with the anchor, each placed with the optimized
+        pose of its keyframe, fused (None before any submap)."""
         with self._lock:
-            if self._global is not None or not self.frames:
+            if self._global is not None or not self.sessions:
                 return self._global, self._anchor
-            poses = self._frame_poses()
             anchor = self._anchor
-            poses.setdefault(anchor, np.eye(4))
-            frames = {f: list(o.values()) for f, o in self.frames.items() if f in poses}
+            frames: dict[str, list[ObjectNode]] = {}
+            poses: dict[str, gtsam.Pose3] = {}
+            frame_of: dict[str, str] = {}
+            for name, st in self.sessions.items():
+                placed = self._anchor_poses(st)
+                owned: dict[int, list[ObjectNode]] = defaultdict(list)
+                for held in st.objects.values():
+                    if held.keyframe in placed:
+                        owned[held.keyframe].append(held.node)
+                for k in sorted(owned):
+                    node = st.node(k)
+                    frames[node], poses[node], frame_of[node] = owned[k], placed[k], name
             pairs = []
             for f in self.factors.values():
-                a, b = (str(x) for x in factor_frames(f))
-                pairs += [(a, c.object_a, b, c.object_b) for c in f.correspondences]
-            fused = fuse_objects(frames, poses, pairs)
+                a, b = (self.sessions.get(str(x)) for x in factor_frames(f))
+                if a is None or b is None:
+                    continue
+                for c in f.correspondences:
+                    ha, hb = a.objects.get(c.object_a), b.objects.get(c.object_b)
+                    if ha is not None and hb is not None:
+                        pairs.append((a.node(ha.keyframe), c.object_a,
+                                      b.node(hb.keyframe), c.object_b))
+            if not frames:
+                return None, anchor
+            fused = fuse_objects(frames, poses, pairs, frame_of=frame_of)
             at = FrameId.parse(anchor)
             self._global = ObjectMap(robot_id=at.robot, session_id=at.session,
                                      objects=fused.objects)
-            self._anchor = anchor
             return self._global, anchor
 
     def _frame_poses(self) -> dict[str, np.ndarray]:
-        """(4, 4) pose of every frame aligned with the anchor, in the anchor frame."""
+        """(4, 4) pose of every session's keyframe 0 (its frame origin) solved with the
+        anchor, in the anchor frame."""
         if self.solution is None:
             return {}
-        return {f: np.asarray(T.matrix()) for f, T in self.solution.T_anchor_frame.items()}
+        out = {}
+        for name, st in self.sessions.items():
+            T = self.solution.T_anchor_frame.get(st.node(0))
+            if T is not None:
+                out[name] = np.asarray(T.matrix())
+        return out
+
+    def keyframe_poses(self) -> dict[str, dict[int, np.ndarray]]:
+        """(4, 4) pose of every keyframe of the anchor's component in the anchor frame (solved,
+        or composed by odometry from the nearest solved keyframe); {} before any solution."""
+        if self.solution is None:
+            return {}
+        out = {}
+        for name, st in self.sessions.items():
+            placed = self._anchor_poses(st)
+            if placed:
+                out[name] = {k: np.asarray(placed[k].matrix()) for k in sorted(placed)}
+        return out
 
     def relocalize(self, sub: Submap) -> RelocalizeReply:
-        """Where a new session's frame is in the anchor frame, from a first submap."""
+        """Where a new session is in the anchor frame, from a first submap matched against the
+        global map: the pose of the submap's keyframe (or, without one, of its session frame)
+        in the anchor frame (the anchor session's keyframe 0)."""
         gmap, anchor = self.global_map()
         if gmap is None or len(gmap.objects) < self.config.min_map_objects:
             return RelocalizeReply(localized=False, reason="no_map")
         res = match(gmap, sub, self.config.match).result
         if not res.accepted:
             return RelocalizeReply(localized=False, reason=res.reason.value, anchor=anchor,
-                                   matches=len(res.matches))
+                                   matches=len(res.matches), keyframe=sub.keyframe)
         return RelocalizeReply(localized=True, reason="verified", anchor=anchor,
                                T_anchor_session=res.transform, covariance=res.covariance,
-                               matches=len(res.matches))
+                               matches=len(res.matches), keyframe=sub.keyframe)
 
     def _on_relocalize(self, query: Any) -> None:
         self.stats.relocalize_queries += 1
@@ -457,11 +714,18 @@ class MergeService:
                 query.reply_err(json.dumps({"error": "internal", "detail": str(exc)}).encode())
 
     def status(self) -> dict[str, Any]:
-        lat = np.asarray(self.stats.latency_ms or [np.nan])
+        lat = np.asarray(self.stats.latency_ms, dtype=np.float64)
+        pct = {f"p{q}": float(np.percentile(lat, q)) if lat.size else float("nan")
+               for q in (50, 90, 99)}
+        with self._lock:
+            frames = {f: len(st.objects) for f, st in self.sessions.items()}
+            frame_poses = {f: T.tolist() for f, T in self._frame_poses().items()}
+            keyframe_poses = {f: {str(k): T.tolist() for k, T in poses.items()}
+                              for f, poses in self.keyframe_poses().items()}
         return {
             "fleet": self.config.fleet,
             "robots_alive": sorted(self.alive),
-            "frames": {f: len(o) for f, o in self.frames.items()},
+            "frames": frames,
             "submaps": {"received": self.stats.submaps_received,
                         "duplicate": self.stats.submaps_duplicate,
                         "processed": self.stats.submaps_processed,
@@ -472,11 +736,10 @@ class MergeService:
                         "retracted": self.stats.factors_retracted,
                         "active": len(self.factors)},
             "errors": dict(self.stats.errors),
-            "latency_ms": {"p50": float(np.nanpercentile(lat, 50)),
-                           "p90": float(np.nanpercentile(lat, 90)),
-                           "p99": float(np.nanpercentile(lat, 99))},
+            "latency_ms": pct,
             "anchor": self._anchor,
-            "frame_poses": {f: T.tolist() for f, T in self._frame_poses().items()},
+            "frame_poses": frame_poses,
+            "keyframe_poses": keyframe_poses,
             "store": self.store.stats(),
         }
 
@@ -499,4 +762,12 @@ class MergeService:
             self.alive.discard(robot)
 
 
-__all__ = ["MergeService", "RelocalizeReply", "ServiceConfig", "ServiceStats"]
+__all__ = [
+    "HeldObject",
+    "MergeService",
+    "RelocalizeReply",
+    "ServiceConfig",
+    "ServiceStats",
+    "SessionMap",
+    "SessionState",
+]

@@ -26,9 +26,11 @@ MSG_ID_MODULO = 1 << 12
 MAX_FRAGMENTS = 1 << 10
 MAX_MESSAGE_BYTES = 65536
 """Largest message the ARQ layer accepts (bytes, before the CRC-32 trailer)."""
-_ACK_ENTRY_HEADER_BYTES = 5  # msg id + flags (2), base (2), bitmap length (1)
+ACK_ENTRY_HEADER_BYTES = 5
+"""Header of an ack entry with a bitmap: msg id + flags (2), base (2), bitmap length (1)."""
 _ACK_COMPLETE_BYTES = 2
-_CRC16_BYTES = 2
+CRC16_BYTES = 2
+"""The CRC-16 that ends every frame (fragments and acks)."""
 _FLAG_COMPLETE = 0x1
 
 
@@ -65,7 +67,7 @@ def decode_fragment(frame: bytes) -> Fragment:
     """Inverse of `encode_fragment`; raises DecodeError on a CRC mismatch or a bad header."""
     if len(frame) < FRAGMENT_HEADER_BYTES:
         raise DecodeError(f"fragment of {len(frame)} bytes is shorter than its header")
-    body, crc = frame[:-_CRC16_BYTES], frame[-_CRC16_BYTES:]
+    body, crc = frame[:-CRC16_BYTES], frame[-CRC16_BYTES:]
     if _crc16(body) != crc:
         raise DecodeError("fragment CRC-16 mismatch")
     word = int.from_bytes(body[:4], "big")
@@ -116,7 +118,7 @@ class AckEntry:
 
     @property
     def encoded_bytes(self) -> int:
-        return _ACK_COMPLETE_BYTES if self.complete else _ACK_ENTRY_HEADER_BYTES + len(self.bitmap)
+        return _ACK_COMPLETE_BYTES if self.complete else ACK_ENTRY_HEADER_BYTES + len(self.bitmap)
 
     def received(self, count: int) -> Iterable[int]:
         """Fragment indices this entry acknowledges, for a message of `count` fragments."""
@@ -146,9 +148,9 @@ def encode_ack(entries: Sequence[AckEntry]) -> bytes:
 
 def decode_ack(frame: bytes) -> list[AckEntry]:
     """Inverse of `encode_ack`; DecodeError on a CRC mismatch or truncated entry."""
-    if len(frame) < _CRC16_BYTES or _crc16(frame[:-_CRC16_BYTES]) != frame[-_CRC16_BYTES:]:
+    if len(frame) < CRC16_BYTES or _crc16(frame[:-CRC16_BYTES]) != frame[-CRC16_BYTES:]:
         raise DecodeError("ack CRC-16 mismatch")
-    body, pos, entries = frame[:-_CRC16_BYTES], 0, []
+    body, pos, entries = frame[:-CRC16_BYTES], 0, []
     while pos < len(body):
         if pos + 2 > len(body):
             raise DecodeError("truncated ack entry")
@@ -168,7 +170,9 @@ def decode_ack(frame: bytes) -> list[AckEntry]:
     return entries
 
 
-def _ack_entry(msg_id: int, received: Iterable[int], max_bitmap_bytes: int) -> AckEntry:
+def ack_entry(msg_id: int, received: Iterable[int], max_bitmap_bytes: int) -> AckEntry:
+    """The selective-repeat ack of a message partly received: `base` the first fragment
+    missing, a bitmap of the fragments received beyond it (at most `max_bitmap_bytes`)."""
     got = set(received)
     base = 0
     while base in got:
@@ -183,6 +187,8 @@ def _ack_entry(msg_id: int, received: Iterable[int], max_bitmap_bytes: int) -> A
 
 
 __all__ = [
+    "ACK_ENTRY_HEADER_BYTES",
+    "CRC16_BYTES",
     "FRAGMENT_HEADER_BYTES",
     "MAX_FRAGMENTS",
     "MAX_MESSAGE_BYTES",
@@ -191,6 +197,7 @@ __all__ = [
     "MSG_ID_MODULO",
     "AckEntry",
     "Fragment",
+    "ack_entry",
     "decode_ack",
     "decode_fragment",
     "encode_ack",

@@ -2,7 +2,8 @@
 topside through the link simulator, run in scaled real time.
 
 Also the key mapping (`uplink_key`, `downlink_key`, `route_vehicle`) and the per-sample framing
-that crosses the link (`frame_sample`, `unframe_sample`).
+that crosses the link (`frame_sample`, `unframe_sample`). Keys are built with
+mergesvc.wire.keys (`under`, `all_under`, `BRIDGE_DOWNLINK`), as everywhere.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import zenoh
 from mergesvc.errors import ConfigError, DecodeError, LinkError
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator, LossEvent
+from mergesvc.wire.keys import BRIDGE_DOWNLINK, all_under, under
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +43,7 @@ def key_suffix(key: str, prefix: str) -> str | None:
 def uplink_key(key: str, *, uw_prefix: str, top_prefix: str) -> str | None:
     """Vehicle-side key -> the topside key it is republished on (None: not bridged)."""
     suffix = key_suffix(key, uw_prefix)
-    return None if suffix is None else f"{top_prefix}/{suffix}"
+    return None if suffix is None else under(top_prefix, suffix)
 
 
 def downlink_key(key: str, *, uw_prefix: str, top_prefix: str) -> str | None:
@@ -49,7 +51,7 @@ def downlink_key(key: str, *, uw_prefix: str, top_prefix: str) -> str | None:
     if key_suffix(key, uw_prefix) is not None or key == uw_prefix:
         return None
     suffix = key_suffix(key, top_prefix)
-    return None if suffix is None else f"{uw_prefix}/{suffix}"
+    return None if suffix is None else under(uw_prefix, suffix)
 
 
 def route_vehicle(suffix: str, vehicles: Sequence[str]) -> str | None:
@@ -95,8 +97,9 @@ class AcousticBridge:
 
     Uplink: samples on `{uw_prefix}/**` are sent from the vehicle named in the key to `topside`
     and republished on `{top_prefix}/<suffix>`. Downlink: samples on `{top_prefix}/<k>` for each
-    `k` in `downlink_keys` go from `topside` to the vehicle named in the key and are republished
-    on `{uw_prefix}/<suffix>`. The key suffix travels over the link with the payload; encodings
+    `k` in `downlink_keys` (key expressions below the prefix; default keys.BRIDGE_DOWNLINK, every
+    factor) go from `topside` to the vehicle named in the key and are republished on
+    `{uw_prefix}/<suffix>`. The key suffix travels over the link with the payload; encodings
     and attachments do not. Simulated time runs at `1 / time_scale` times wall time
     (time_scale=0.01: a 3 s packet takes 30 ms). Each direction has a bounded ingress queue
     (drop oldest, counted) in front of the simulator's bounded per-node queues.
@@ -110,7 +113,7 @@ class AcousticBridge:
         *,
         uw_prefix: str,
         top_prefix: str,
-        downlink_keys: Sequence[str] = ("factor/**",),
+        downlink_keys: Sequence[str] = BRIDGE_DOWNLINK,
         topside: str = "topside",
         zenoh_config: zenoh.Config | None = None,
         session: zenoh.Session | None = None,
@@ -165,13 +168,13 @@ class AcousticBridge:
             remote = zenoh.Locality.REMOTE  # never re-bridge what this session republished
             self._subscribers.append(
                 self._session.declare_subscriber(
-                    f"{uw_prefix}/**", self._uplink_sample, allowed_origin=remote
+                    all_under(uw_prefix), self._uplink_sample, allowed_origin=remote
                 )
             )
             for k in downlink_keys:
                 self._subscribers.append(
                     self._session.declare_subscriber(
-                        f"{top_prefix}/{k}", self._downlink_sample, allowed_origin=remote
+                        under(top_prefix, k), self._downlink_sample, allowed_origin=remote
                     )
                 )
             self._thread = threading.Thread(target=self._run, name="acoustic-bridge", daemon=True)
@@ -183,9 +186,9 @@ class AcousticBridge:
             self.close()
             raise
         log.info(
-            "acoustic bridge %s/** <-> %s/** (rate %d, time_scale %g, vehicles %s)",
-            uw_prefix,
-            top_prefix,
+            "acoustic bridge %s <-> %s (rate %d, time_scale %g, vehicles %s)",
+            all_under(uw_prefix),
+            all_under(top_prefix),
             config.channel.rate.value,
             time_scale,
             ",".join(self.vehicles),
@@ -314,9 +317,9 @@ class AcousticBridge:
     def _on_deliver(self, delivery: Delivery) -> None:
         suffix, payload = unframe_sample(delivery.payload)
         if delivery.dst == self.topside:
-            self._outbox.append((Direction.UPLINK, f"{self.top_prefix}/{suffix}", payload))
+            self._outbox.append((Direction.UPLINK, under(self.top_prefix, suffix), payload))
         else:
-            self._outbox.append((Direction.DOWNLINK, f"{self.uw_prefix}/{suffix}", payload))
+            self._outbox.append((Direction.DOWNLINK, under(self.uw_prefix, suffix), payload))
 
     def _on_lost(self, event: LossEvent) -> None:
         direction = Direction.UPLINK if event.dst == self.topside else Direction.DOWNLINK

@@ -18,12 +18,12 @@ import numpy as np
 
 from mergesvc.errors import ConfigError, DecodeError, LinkError
 from mergesvc.link.arq import (
-    _ACK_ENTRY_HEADER_BYTES,
-    _CRC16_BYTES,
+    ACK_ENTRY_HEADER_BYTES,
+    CRC16_BYTES,
     MINIFRAME_BYTES,
     MSG_ID_MODULO,
     AckEntry,
-    _ack_entry,
+    ack_entry,
     decode_ack,
     decode_fragment,
     encode_ack,
@@ -322,13 +322,13 @@ class LinkSimulator:
         return cursor
 
     def _build_ack(self, rx: _RxState) -> list[AckEntry]:
-        room = MINIFRAME_BYTES - _CRC16_BYTES
+        room = MINIFRAME_BYTES - CRC16_BYTES
         entries: list[AckEntry] = []
         for msg_id in list(rx.ack_pending):
             if msg_id in rx.completed:
                 entry = AckEntry(msg_id=msg_id, complete=True)
-            elif msg_id in rx.partial and room > _ACK_ENTRY_HEADER_BYTES:
-                entry = _ack_entry(msg_id, rx.partial[msg_id].parts, room - _ACK_ENTRY_HEADER_BYTES)
+            elif msg_id in rx.partial and room > ACK_ENTRY_HEADER_BYTES:
+                entry = ack_entry(msg_id, rx.partial[msg_id].parts, room - ACK_ENTRY_HEADER_BYTES)
             elif msg_id in rx.partial:
                 break
             else:

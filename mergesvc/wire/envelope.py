@@ -3,8 +3,9 @@
 Envelope (every message), a msgpack array:
     [schema_version, codec_version, type, sender, seq, profile, payload]
 The payload of a map or submap is coded by mergesvc.wire.objects, of a compact factor by
-mergesvc.wire.factors; other factors carry their JSON document, error messages
-[code, detail, about_seq].
+mergesvc.wire.factors; other factors carry their JSON document (without `keyframe_a` /
+`keyframe_b` when they are absent, so such a factor reads in decoders that predate them),
+error messages [code, detail, about_seq].
 
 Decoding never trusts a length: sizes are checked against `CodecLimits` before anything is
 allocated, and every failure is a `DecodeError` (bytes) or `SchemaError` (version, content).
@@ -103,11 +104,15 @@ def encode_message(
             )
         payload: Any = encode_objects(model, profile, sender, seq, settings, projection)
     elif isinstance(model, Factor):
+        if (model.keyframe_a is None) != (model.keyframe_b is None):  # model_copy skips checks
+            raise CodecError("keyframe_a and keyframe_b go together")
         if profile is Profile.COMPACT:
             payload = encode_factor_compact(model, settings)
         else:
             profile = Profile.FULL
-            payload = model.model_dump(mode="json")
+            # a factor without keyframes is the document it was before they existed
+            none = {k for k in ("keyframe_a", "keyframe_b") if getattr(model, k) is None}
+            payload = model.model_dump(mode="json", exclude=none or None)
     else:
         profile = Profile.FULL
         payload = [model.code, model.detail, model.about_seq]

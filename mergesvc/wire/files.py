@@ -82,7 +82,8 @@ def _read_json_model(path: Path) -> AnyMessage:
     if not isinstance(raw, dict):
         raise SchemaError(f"invalid {path}: expected a JSON object")
     if "objects" in raw:
-        model: type[BaseModel] = Submap if ("seq" in raw or "stamp" in raw) else ObjectMap
+        submap_keys = ("seq", "stamp", "keyframe", "odometry")
+        model: type[BaseModel] = Submap if any(k in raw for k in submap_keys) else ObjectMap
     elif "factor_id" in raw:
         model = Factor
     elif "code" in raw:

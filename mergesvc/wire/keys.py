@@ -17,6 +17,16 @@ of another shape, and names that would not be one key chunk (a robot), or that Z
 in a key (`*`, `$`, `?`, `#`, empty chunks): `ConfigError`. Names are otherwise taken as they
 come (robots, sessions and factor ids arrive from the network; the key of a name that worked
 before must not change).
+
+The acoustic bridge (link/bridge.py) moves keys between two prefixes (`uw_root` and
+`fleet_root`; any plain key expression will do) by their part below the prefix, the suffix:
+
+    {prefix}/{suffix}           a suffix below a prefix                  under
+    {prefix}/**                 every key below a prefix                 all_under
+    BRIDGE_DOWNLINK             what goes down to the vehicles, as suffixes: every factor
+
+`under` and `all_under` refuse a prefix with wildcards, `$?#` or empty chunks (ConfigError);
+the suffix is a key's own tail (or one of BRIDGE_DOWNLINK) and is taken as it comes.
 """
 
 from __future__ import annotations
@@ -140,7 +150,29 @@ def alive_robot(key: str) -> str:
     return key.rsplit("/", 1)[-1]
 
 
+#: What the acoustic bridge carries from the topside down to the vehicles, as key expressions
+#: below a root (under(root, s) for s in BRIDGE_DOWNLINK): every factor, all_factors(root).
+BRIDGE_DOWNLINK: tuple[str, ...] = ("factor/**",)
+
+
+def _prefix(prefix: str) -> str:
+    return _chunks(prefix, "key prefix", one=False)
+
+
+def under(prefix: str, suffix: str) -> str:
+    """`suffix` below a plain key expression `prefix`: {prefix}/{suffix} (the bridge's
+    republished keys and its downlink subscriptions)."""
+    return f"{_prefix(prefix)}/{suffix}"
+
+
+def all_under(prefix: str) -> str:
+    """Every key below a plain key expression `prefix`: {prefix}/** (what the bridge carries
+    up from the vehicle side)."""
+    return f"{_prefix(prefix)}/**"
+
+
 __all__ = [
+    "BRIDGE_DOWNLINK",
     "ROOT",
     "alive_key",
     "alive_robot",
@@ -148,6 +180,7 @@ __all__ = [
     "all_errors",
     "all_factors",
     "all_submaps",
+    "all_under",
     "error_key",
     "factor_key",
     "fleet_root",
@@ -156,5 +189,6 @@ __all__ = [
     "status_key",
     "submap_key",
     "submap_robot",
+    "under",
     "uw_root",
 ]

@@ -2,12 +2,33 @@
 
 Object map / submap payload, a msgpack array:
     [robot_id | nil (= sender), session_id, seq (nil: = envelope seq, -1: none), stamp, n, d,
-     ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob (, up)]
+     ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob (, up (, pose))]
 (up, optional: the declared vertical as three int8 codes, direction only; absent = undeclared.
 A decoder that predates it refuses a payload of 15 fields; one without `up` reads everywhere.)
 where the small header fields say how to read `blob`, one bit stream (MSB first) holding, in
 order: id deltas, label codes, n_obs - 1, isotropic flags, positions, variances, embeddings.
 What each profile carries per object: see mergesvc.wire.profiles.
+
+pose, optional, submaps only (Submap.keyframe / Submap.odometry): the 16th field, `up` then
+nil if the submap declares none. A submap without a keyframe has no pose field and is
+byte-identical to before it existed; a decoder that predates it refuses 16 fields.
+    pose = [keyframe] | [keyframe, delta, odometry]
+keyframe and delta = keyframe - odometry.from_keyframe (>= 1) are msgpack integers; odometry
+(T_from_to and its 6x6 covariance, GTSAM order rotation then translation) is binary:
+    full         43 float64 little-endian: translation (3), quaternion wxyz (4), covariance
+                 (36, row-major); exact (344 bytes)
+    f16, int8    a bit stream, as a compact factor's pose: per translation axis a 6-bit width
+                 and the zigzag value at the position resolution (CodecSettings.
+                 position_resolution_m, carried in `positions`: 1 cm by default, error <= 5 mm
+                 per axis), the rotation as smallest three quaternion components (2 + 3 x 15
+                 bits, <= 1.5e-4 rad), the covariance as six log2 standard deviations (14 bits,
+                 1/256 octave in [2^-32, 2^32), <= 0.14 %) and its 15 canonical partial
+                 correlations (13 bits each, <= 2e-3); ~50 bytes
+    compact      translation and rotation as in f16; the covariance as its six log2 standard
+                 deviations only (ODOMETRY_SIGMA: 11 bits, 1/32 octave in [2^-32, 2^32),
+                 <= 1.1 % error per standard deviation): compact drops the odometry's
+                 correlations and decodes a diagonal covariance. 16-22 bytes for a move of
+                 metres to tens of metres, about 25-30 bytes per submap in all
 """
 
 from __future__ import annotations
@@ -21,6 +42,19 @@ import numpy as np
 from mergesvc.core.model import ObjectArrays, ObjectMap, Submap
 from mergesvc.errors import CodecError, DecodeError, SchemaError
 from mergesvc.wire.bits import BitReader, BitWriter, bits_for
+from mergesvc.wire.factors import (
+    MAX_KEYFRAME,
+    SigmaCode,
+    check_keyframe,
+    read_covariance,
+    read_rotation,
+    read_sigmas,
+    read_translation,
+    write_covariance,
+    write_rotation,
+    write_sigmas,
+    write_translation,
+)
 from mergesvc.wire.fields import (
     LOG2_MAX,
     LOG2_MIN,
@@ -42,6 +76,9 @@ from mergesvc.wire.profiles import CodecLimits, CodecSettings, Envelope, Message
 from mergesvc.wire.projection import Projection, dequantize_coefficients, quantize_coefficients
 
 COMPACT_MAX_N_OBS = 255  # compact saturates n_obs here (a fusion weight, not an identity)
+# compact odometry standard deviations: log2 in [-32, 32) at 1/32 octave (11 bits, <= 1.1 %)
+ODOMETRY_SIGMA = SigmaCode(11, 32, -32)
+_ODOMETRY_FULL_VALUES = 3 + 4 + 36  # translation, quaternion wxyz, covariance row-major
 
 
 def encode_objects(
@@ -88,10 +125,10 @@ def encode_objects(
         w.write_fields(iso.astype(np.uint64), 1)
 
     pos_hdr = None
+    res_um = round(settings.position_resolution_m * 1e6)
     if profile is Profile.FULL:
         w.write_bytes(to_raw(arr.position_xyz_m, "<f8", "positions"))
     else:
-        res_um = round(settings.position_resolution_m * 1e6)
         q_abs = np.rint(arr.position_xyz_m / (res_um / 1e6))
         if np.abs(q_abs).max() >= 2.0**53:
             raise CodecError("positions too far from the origin for the position resolution")
@@ -144,7 +181,9 @@ def encode_objects(
     seq_field = None  # maps have no seq; a submap's is usually the envelope's
     if isinstance(m, Submap) and m.seq != seq:
         seq_field = -1 if m.seq is None else m.seq
-    tail = [] if m.up is None else [encode_up(m.up)]
+    tail: list = [] if m.up is None else [encode_up(m.up)]
+    if isinstance(m, Submap) and (m.keyframe is not None or m.odometry is not None):
+        tail = [tail[0] if tail else None, encode_pose(m, profile, res_um)]
     return [
         None if m.robot_id == sender else m.robot_id,
         m.session_id,
@@ -183,6 +222,78 @@ def decode_up(v: Any) -> tuple[float, float, float]:
     return (codes[0] / norm, codes[1] / norm, codes[2] / norm)
 
 
+def encode_pose(m: Submap, profile: Profile, res_um: int) -> list:
+    """The pose field: [keyframe] or [keyframe, delta, odometry] (see the module docstring);
+    res_um is the payload's position resolution (the odometry's translation step)."""
+    if m.keyframe is None:
+        raise CodecError("odometry needs keyframe")
+    keyframe = check_keyframe(m.keyframe, "keyframe")
+    odo = m.odometry
+    if odo is None:
+        return [keyframe]
+    delta = keyframe - odo.from_keyframe
+    if delta < 1:
+        raise CodecError(
+            f"odometry.from_keyframe {odo.from_keyframe} must be before keyframe {keyframe}"
+        )
+    T = odo.T_from_to
+    if profile is Profile.FULL:
+        values = np.concatenate(
+            [T.translation, T.quaternion_wxyz, np.ravel(np.array(odo.covariance, np.float64))]
+        )
+        return [keyframe, delta, to_raw(values, "<f8", "odometry")]
+    w = BitWriter()
+    write_translation(w, T.translation, res_um, "odometry translation")
+    write_rotation(w, T.quaternion_wxyz)
+    if profile is Profile.COMPACT:
+        write_sigmas(w, np.array(odo.covariance, np.float64), ODOMETRY_SIGMA, "odometry covariance")
+    else:
+        write_covariance(w, odo.covariance, "odometry covariance")
+    return [keyframe, delta, w.getvalue()]
+
+
+def decode_pose(v: Any, profile: Profile, res_um: int) -> dict[str, Any]:
+    """The submap fields `keyframe` (and `odometry`) of a pose field, for the model to judge."""
+    fields = check_list(v, "pose")
+    if len(fields) not in (1, 3):
+        raise DecodeError(
+            f"pose: expected [keyframe] or [keyframe, delta, odometry], got {len(fields)} fields"
+        )
+    if fields[0] is None and len(fields) == 3:
+        raise DecodeError("pose: odometry needs keyframe")
+    keyframe = check_int(fields[0], "keyframe", 0, MAX_KEYFRAME)
+    if len(fields) == 1:
+        return {"keyframe": keyframe}
+    delta = check_int(fields[1], "odometry.delta", -MAX_KEYFRAME, MAX_KEYFRAME)
+    blob = fields[2]
+    if type(blob) is not bytes:
+        raise DecodeError("odometry: expected binary, got " + type(blob).__name__)
+    if profile is Profile.FULL:
+        if len(blob) != 8 * _ODOMETRY_FULL_VALUES:
+            raise DecodeError(
+                f"odometry: expected {8 * _ODOMETRY_FULL_VALUES} bytes, got {len(blob)}"
+            )
+        a = np.frombuffer(blob, dtype="<f8").astype(np.float64)  # NaN / inf: the model says
+        t, q, C = a[:3].tolist(), a[3:7].tolist(), a[7:].reshape(6, 6).tolist()
+    else:
+        r = BitReader(blob, "odometry")
+        t = read_translation(r, res_um, "odometry")
+        q = read_rotation(r)
+        if profile is Profile.COMPACT:
+            C = np.diag(read_sigmas(r, ODOMETRY_SIGMA) ** 2).tolist()
+        else:
+            C = read_covariance(r)
+        r.finish()
+    return {
+        "keyframe": keyframe,
+        "odometry": {
+            "from_keyframe": keyframe - delta,
+            "T_from_to": {"translation": t, "quaternion_wxyz": q},
+            "covariance": C,
+        },
+    }
+
+
 def _find_projection(pid: str, projections: Mapping[str, Projection], what: str) -> Projection:
     if pid not in projections:
         have = ", ".join(sorted(projections)) or "none"
@@ -201,11 +312,16 @@ def decode_objects(
 ) -> tuple[ObjectMap, str | None]:
     what = f"{env.msg_type.value} payload"
     fields = check_list(payload, what)
-    if len(fields) not in (14, 15):  # the 15th, optional: the declared vertical
-        raise DecodeError(f"{what}: expected 14 or 15 fields, got {len(fields)}")
+    # optional: the 15th the declared vertical, the 16th the pose (the 15th then may be nil)
+    if len(fields) not in (14, 15, 16):
+        raise DecodeError(f"{what}: expected 14 to 16 fields, got {len(fields)}")
     robot, session, seq, stamp, n, d, ids_hdr, label_hdr = fields[:8]
     nobs_bits, var_mode, pos_hdr, var_hdr, emb_hdr, blob = fields[8:14]
-    up = decode_up(fields[14]) if len(fields) == 15 else None
+    has_up = len(fields) == 15 or (len(fields) == 16 and fields[14] is not None)
+    up = decode_up(fields[14]) if has_up else None
+    pose_field = fields[15] if len(fields) == 16 else None
+    if len(fields) == 16 and env.msg_type is not MessageType.SUBMAP:
+        raise DecodeError(f"{what}: a map carries no keyframe or odometry")
     robot = check_str(robot, "robot_id", optional=True, max_len=128) or env.sender
     session = check_str(session, "session_id", max_len=128)
     if seq is not None:
@@ -245,6 +361,7 @@ def decode_objects(
         raise DecodeError("compact carries one variance per object (var_mode must be 0)")
     n_iso, n_dim = int(iso.sum()), int((~iso).sum())
 
+    res_um = 0  # full: the odometry is exact
     if not lossy:
         pos = from_raw(r, 3 * n, "<f8", "positions").reshape(n, 3)
     else:
@@ -317,6 +434,8 @@ def decode_objects(
         model = Submap
         doc["seq"] = env.seq if seq is None else None if seq == -1 else seq
         doc["stamp"] = stamp
+        if len(fields) == 16:
+            doc.update(decode_pose(pose_field, profile, res_um))
     elif seq is not None or stamp is not None:
         raise DecodeError("a map carries no seq or stamp")
     return validate_model(model, doc, f"decoded {env.msg_type.value}"), pid
@@ -324,8 +443,11 @@ def decode_objects(
 
 __all__ = [
     "COMPACT_MAX_N_OBS",
+    "ODOMETRY_SIGMA",
     "decode_objects",
+    "decode_pose",
     "decode_up",
     "encode_objects",
+    "encode_pose",
     "encode_up",
 ]

@@ -1,0 +1,200 @@
+"""The vehicle's local map (fleet/agent.py LocalMap) without a network: submaps anchored at
+keyframes, their odometry chain, and pose-level inter-robot factors correcting the own
+trajectory, all against a fleet world's ground truth."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from mergesvc.core.model import Factor, FactorStatus
+from mergesvc.fleet.agent import AgentConfig, LocalMap, _transform, build_submaps
+from mergesvc.sim import fleet_world
+
+try:
+    from mergesvc.core.trajectory import ate_rmse
+except ImportError:  # the trajectory module is not there yet: positions after aligning x_0
+
+    def ate_rmse(est: np.ndarray, ref: np.ndarray) -> float:  # type: ignore[misc]
+        """RMSE of the positions with both trajectories expressed relative to their first
+        pose (the session origin: keyframe 0), no further alignment."""
+        e = np.linalg.inv(est[0]) @ est
+        r = np.linalg.inv(ref[0]) @ ref
+        return float(np.sqrt(np.mean(np.sum((e[:, :3, 3] - r[:, :3, 3]) ** 2, axis=1))))
+
+
+ROBOTS = ("auv1", "auv2", "auv3")
+
+
+@pytest.fixture(scope="module")
+def world():
+    return fleet_world(0, ROBOTS, laps=2)
+
+
+@pytest.fixture(scope="module")
+def frames(world):
+    return {r: list(world.frames(r)) for r in ROBOTS}
+
+
+def _pose(t) -> np.ndarray:
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(*t.quaternion_wxyz),
+                       gtsam.Point3(*t.translation)).matrix()
+
+
+def _true_xyz(world, lm: LocalMap, oid: str) -> np.ndarray | None:
+    tid = lm.tracker.track(oid).truth_id
+    return None if tid is None else world.objects_xyz_m[world.object_ids.index(tid)]
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_submaps_are_anchored_at_their_keyframe(world, frames, robot) -> None:
+    """Positions are in the keyframe's body frame: through the TRUE keyframe pose they land on
+    the true objects, at least as well as the session-frame positions (what the agent sent
+    before) do through the true session frame."""
+    fr = frames[robot]
+    lm, subs = build_submaps(AgentConfig(robot=robot), fr)
+    assert len(subs) >= 3
+    ks = [s.keyframe for s in subs]
+    assert ks == lm.keyframes and all(k is not None for k in ks)
+    assert ks == sorted(set(ks)) and ks[-1] < len(fr)
+    est = lm.own_poses()
+    T_world_start = world.robot(robot).T_world_start
+    err_key, err_session = [], []
+    for s in subs:
+        T_true_k = fr[s.keyframe].T_true
+        for o in s.objects:
+            truth = _true_xyz(world, lm, o.id)
+            if truth is None:  # a false detection
+                continue
+            p = np.array(o.position)
+            err_key.append(np.linalg.norm(T_true_k[:3, :3] @ p + T_true_k[:3, 3] - truth))
+            p_session = est[s.keyframe][:3, :3] @ p + est[s.keyframe][:3, 3]
+            q = T_world_start[:3, :3] @ p_session + T_world_start[:3, 3]
+            err_session.append(np.linalg.norm(q - truth))
+    assert len(err_key) >= 10
+    assert np.median(err_key) < 0.5 and np.percentile(err_key, 90) < 1.0
+    assert np.median(err_key) <= np.median(err_session) + 0.05
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_odometry_chain_composes_to_the_raw_odometry(frames, robot) -> None:
+    fr = frames[robot]
+    cfg = AgentConfig(robot=robot)
+    _, subs = build_submaps(cfg, fr)
+    T = np.eye(4)
+    prev = 0
+    for s in subs:
+        odo = s.odometry
+        assert odo is not None and odo.from_keyframe == prev  # the first one from keyframe 0
+        step = _pose(odo.T_from_to)
+        raw = np.linalg.inv(fr[prev].T_est) @ fr[s.keyframe].T_est
+        np.testing.assert_allclose(step, raw, atol=1e-6)
+        r, t = cfg.odometry_sigma
+        n = s.keyframe - prev
+        np.testing.assert_allclose(odo.covariance, n * np.diag([r * r] * 3 + [t * t] * 3))
+        T = T @ step
+        prev = s.keyframe
+    np.testing.assert_allclose(T, fr[subs[-1].keyframe].T_est, atol=1e-6)
+
+
+def _factor(fid: str, me: str, own_k: int, T_me_other: np.ndarray, other_k: int,
+            cov: np.ndarray, me_is_a: bool = True) -> Factor:
+    """A pose-level factor between my keyframe own_k and keyframe other_k of robot "other",
+    written from either side (me as robot_a, or as robot_b with the inverse transform and
+    its covariance carried over by the adjoint)."""
+    if me_is_a:
+        return Factor(factor_id=fid, robot_a=me, session_a="s0", robot_b="other",
+                      session_b="s0", T_a_b=_transform(T_me_other), covariance=cov.tolist(),
+                      keyframe_a=own_k, keyframe_b=other_k)
+    Ad = gtsam.Pose3(T_me_other).AdjointMap()
+    cov_inv = Ad @ cov @ Ad.T
+    return Factor(factor_id=fid, robot_a="other", session_a="s0", robot_b=me, session_b="s0",
+                  T_a_b=_transform(np.linalg.inv(T_me_other)),
+                  covariance=(0.5 * (cov_inv + cov_inv.T)).tolist(),
+                  keyframe_a=other_k, keyframe_b=own_k)
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_two_factors_to_one_other_keyframe_correct_the_own_trajectory(frames, robot) -> None:
+    """Two pose-level factors (from the truth) tie an early and a late own keyframe to one
+    keyframe of another robot: a loop through it, the own trajectory's ATE goes down. One
+    factor alone only places the other keyframe; retracting the second undoes the loop."""
+    fr = frames[robot]
+    other = frames["auv2" if robot != "auv2" else "auv1"]
+    # a loose odometry model (the default when this was written), pinned: the local map's
+    # smoothed trajectory then drifts well away from the truth, so there is a lot to correct
+    lm, subs = build_submaps(AgentConfig(robot=robot, odometry_sigma=(0.02, 0.05)), fr)
+    truth = np.stack([f.T_true for f in fr])
+
+    def ate() -> float:
+        return ate_rmse(lm.own_poses(), truth)
+
+    j = 5  # the other robot's keyframe both factors see
+    cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
+    cov[3, 4] = cov[4, 3] = 0.5 * 0.05**2  # not diagonal: the adjoint must carry it over
+
+    def rel(k: int) -> np.ndarray:
+        return np.linalg.inv(truth[k]) @ other[j].T_true
+
+    k1, k2 = subs[0].keyframe, subs[-1].keyframe
+    assert k2 - k1 > 100  # most of the mission apart: the drift between them is large
+    before = ate()
+    line = lm.add_inter_robot(_factor("f1", robot, k1, rel(k1), j, cov))
+    assert "first estimate" in line and "moved max" in line
+    assert ate() == pytest.approx(before, abs=0.02)  # one factor: no loop, nothing corrected
+    line = lm.add_inter_robot(_factor("f2", robot, k2, rel(k2), j, cov, me_is_a=False))
+    after = ate()
+    moved_max = float(line.split("moved max ")[1].split(" m")[0])
+    assert after < 0.85 * before and moved_max > 0.2, (before, after, line)
+    assert len(lm.other_keys) == 1  # both factors tie to the same other keyframe
+    # the same factor again changes nothing; retracted, it leaves the graph
+    assert "already in the graph" in lm.add_inter_robot(
+        _factor("f2", robot, k2, rel(k2), j, cov, me_is_a=False))
+    line = lm.add_inter_robot(_factor("f2", robot, k2, rel(k2), j, cov, me_is_a=False)
+                              .model_copy(update={"status": FactorStatus.RETRACTED}))
+    assert "removed" in line
+    assert ate() == pytest.approx(before, abs=0.05)
+    # the last factor on the other keyframe retracted too: the graph stays solvable
+    line = lm.add_inter_robot(_factor("f1", robot, k1, rel(k1), j, cov)
+                              .model_copy(update={"status": FactorStatus.RETRACTED}))
+    assert "removed" in line and ate() == pytest.approx(before, abs=0.05)
+    assert "not in the graph" in lm.add_inter_robot(
+        _factor("f9", robot, k1, rel(k1), j, cov)
+        .model_copy(update={"status": FactorStatus.RETRACTED}))
+
+
+def test_the_inverse_side_gives_the_same_correction(frames) -> None:
+    """A factor received as robot_b (T_a_b inverted, covariance through the adjoint) corrects
+    the trajectory exactly as the same factor received as robot_a."""
+    fr, other = frames["auv3"], frames["auv1"]
+    truth = np.stack([f.T_true for f in fr])
+    cov = np.diag([0.02**2, 0.01**2, 0.03**2, 0.05**2, 0.2**2, 0.1**2])
+    out = []
+    for me_is_a in (True, False):
+        lm, subs = build_submaps(AgentConfig(robot="auv3"), fr)
+        for i, s in enumerate((subs[0], subs[-1])):
+            T = np.linalg.inv(truth[s.keyframe]) @ other[7].T_true
+            lm.add_inter_robot(_factor(f"f{i}", "auv3", s.keyframe, T, 7, cov, me_is_a))
+        out.append(lm.own_poses())
+    np.testing.assert_allclose(out[0][:, :3, 3], out[1][:, :3, 3], atol=1e-3)
+
+
+def test_frame_level_factor_is_anchored_at_keyframe_0(frames) -> None:
+    """Without keyframes a factor ties the session origins: x_0 and the other session's
+    keyframe 0 (the same variable a pose-level factor to that keyframe 0 uses)."""
+    lm, subs = build_submaps(AgentConfig(robot="auv1"), frames["auv1"])
+    T = np.eye(4)
+    T[:3, 3] = [4.0, -2.0, 0.5]
+    cov = np.diag([0.01] * 3 + [0.1] * 3)
+    f = Factor(factor_id="fr", robot_a="other", session_a="s0", robot_b="auv1",
+               session_b="s0", T_a_b=_transform(np.linalg.inv(T)), covariance=cov.tolist())
+    line = lm.add_inter_robot(f)
+    assert "from my keyframe 0" in line and "[4.0, -2.0, 0.5]" in line
+    assert list(lm.other_keys) == [("other/s0", 0)]
+    g = _factor("pk", "auv1", subs[0].keyframe, np.eye(4), 0, cov)
+    lm.add_inter_robot(g)
+    assert list(lm.other_keys) == [("other/s0", 0)]
+    # factors between two other sessions, or two of mine, are not for this map
+    h = f.model_copy(update={"factor_id": "x", "robot_b": "auv9"})
+    assert "ignored" in lm.add_inter_robot(h)
