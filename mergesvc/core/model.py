@@ -433,6 +433,7 @@ def json_schemas() -> dict[str, dict[str, Any]]:
 __all__ = [
     "SCHEMA_VERSION",
     "Correspondence",
+    "Covariance6",
     "ErrorMessage",
     "Factor",
     "FactorStatus",
@@ -442,6 +443,7 @@ __all__ = [
     "ObjectMap",
     "ObjectNode",
     "Odometry",
+    "Pose",
     "RejectReason",
     "Submap",
     "Transform",
