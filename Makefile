@@ -30,6 +30,7 @@ bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench link --out results/bench_link.json
 	$(BIN)/mergesvc bench uncertainty --out results
 	$(BIN)/mergesvc bench generalize --seeds 3 --out results/generalize.json
+	$(BIN)/mergesvc bench merge --out results/bench_merge.json
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gtsam
 import pytest
 
 from mergesvc.sim import Family, make_scenario
@@ -231,6 +232,17 @@ def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
             assert (tmp_path / "trajectories" / f"{robot}_merged.tum").is_file()
             assert 0.0 <= t["final_rot_err_deg"] <= 180.0
     assert sum("keyframe ATE" in line for line in r.stdout.splitlines()) == len(traj)
+    # the stopped service's store exported (mergesvc export): the g2o graph loads in gtsam with
+    # every node the export names, and a merged TUM file for every robot aligned with the anchor
+    exports = [Path(p) for p in summary["exports"]]
+    assert exports and all(p.is_file() and (tmp_path / "export") in p.parents for p in exports)
+    g2o = tmp_path / "export" / "graph.g2o"
+    assert g2o in exports
+    graph, initial = gtsam.readG2o(str(g2o), True)
+    nodes = json.loads((tmp_path / "export" / "graph_nodes.json").read_text())
+    assert initial.size() == len(nodes) > 0 and graph.size() >= len(nodes) - len(traj)
+    for robot in {anchor_robot, *aligned}:
+        assert tmp_path / "export" / "trajectories" / f"{robot}_s0_merged.tum" in exports
     out = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True)
     assert out.stdout.strip() == ""  # nothing left running
 

@@ -43,6 +43,7 @@ import mergesvc.bench
 import mergesvc.core.pipeline
 import mergesvc.fleet.agent
 import mergesvc.fleet.demo
+import mergesvc.fleet.replay  # binds the real MergeService before any test patches it
 import mergesvc.fleet.service
 import mergesvc.link
 import mergesvc.sim
@@ -321,6 +322,12 @@ def via_bench_generalize(monkeypatch, tmp, pair, settings: list[str]) -> MatchCo
     return _invoke(["bench", "generalize", "--quick", *settings])
 
 
+def via_bench_merge(monkeypatch, tmp, pair, settings: list[str]) -> tuple[Any, LinkConfig]:
+    monkeypatch.setattr(mergesvc.bench, "run_merge_bench",
+                        lambda *a, **kw: _reach((kw["service"], kw["link_config"])))
+    return _invoke(["bench", "merge", "--quick", *settings])
+
+
 def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
     import zenoh
 
@@ -365,14 +372,15 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
         (via_bench_link, lambda got: got[0]),
         (via_bench_generalize, lambda got: got),
     ],
-    "service": [(via_serve, lambda got: got)],
+    "service": [(via_serve, lambda got: got), (via_bench_merge, lambda got: got[0])],
     "agent": [],  # see test_each_agent_field_reaches_the_vehicle_or_is_refused
     "codec": [(via_codec, lambda got: got)],
-    "link": [(via_link_sim, lambda got: got[0]), (via_bench_link, lambda got: got[1])],
+    "link": [(via_link_sim, lambda got: got[0]), (via_bench_link, lambda got: got[1]),
+             (via_bench_merge, lambda got: got[1])],
     "workload": [(via_link_sim, lambda got: got[1])],
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
-BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize"}
+BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge"}
 
 
 def test_every_section_has_a_consumer_here() -> None:

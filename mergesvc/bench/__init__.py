@@ -3,7 +3,8 @@
 Leaves: scoring (score_case and helpers shared by the benchmarks), match (`bench match`), paper
 (`bench paper`: the paper's tables, the scale sweep), uncertainty (`bench uncertainty`: image
 uncertainty, affinity x variances), link (`bench link`), generalize (`bench generalize`),
-figures.
+merge (`bench merge`: its plan, seeds and tables; the in-process fleet it scores is
+fleet/replay.py, passed in by cli), figures.
 
 May import: mergesvc.core, mergesvc.wire, mergesvc.link, mergesvc.sim, mergesvc.errors.
 """
@@ -11,6 +12,7 @@ May import: mergesvc.core, mergesvc.wire, mergesvc.link, mergesvc.sim, mergesvc.
 from mergesvc.bench.generalize import METHODS, GeneralizePlan, run_generalize
 from mergesvc.bench.link import run_link_bench
 from mergesvc.bench.match import run_match_bench
+from mergesvc.bench.merge import MergeBenchPlan, run_merge_bench
 from mergesvc.bench.paper import PaperBenchPlan, run_paper_bench
 from mergesvc.bench.scoring import score_case
 from mergesvc.bench.uncertainty import (
@@ -24,12 +26,14 @@ __all__ = [
     "METHODS",
     "AffinityUncertaintyPlan",
     "GeneralizePlan",
+    "MergeBenchPlan",
     "PaperBenchPlan",
     "constant_variance",
     "run_affinity_uncertainty_bench",
     "run_generalize",
     "run_link_bench",
     "run_match_bench",
+    "run_merge_bench",
     "run_paper_bench",
     "run_uncertainty_bench",
     "score_case",

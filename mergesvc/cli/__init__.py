@@ -1,5 +1,5 @@
 """Command line: `mergesvc match`, `example`, `schemas`, `config`, `serve`, `agent`, `demo`,
-`bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+`export`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
 `config --dump`), `bench` (benchmarks) and `fleet` (the service, vehicles, the demo and the
@@ -39,7 +39,8 @@ def _main(
 
 
 for _command in (
-    files.match, files.example, files.schemas, files.config, fleet.serve, fleet.agent, fleet.demo
+    files.match, files.example, files.schemas, files.config, fleet.serve, fleet.agent, fleet.demo,
+    fleet.export,
 ):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")

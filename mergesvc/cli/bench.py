@@ -1,4 +1,4 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize` (see docs/benchmarks.md).
+"""`mergesvc bench match|paper|uncertainty|link|generalize|merge` (see docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
 benchmarked configuration starts from (the benchmark sets its own axes on top), `bench link`
@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -25,6 +25,9 @@ from mergesvc.cli.options import (
     write_settings_beside,
 )
 from mergesvc.core.config import NodeAffinity
+
+if TYPE_CHECKING:
+    from mergesvc.settings import Settings
 
 app = typer.Typer(no_args_is_help=True, help="benchmarks")
 
@@ -203,8 +206,60 @@ def bench_generalize(
     typer.echo(report["markdown"])
     typer.echo(f"\n{len(plan.cells)} cells x {seeds} seed(s) in {report['elapsed_s']:.0f} s")
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(report, indent=1, default=float))
-        out.with_suffix(".md").write_text(report["markdown"] + "\n")
-        write_settings_beside(tree, out, folder=False)
-        typer.echo(f"wrote {out} and {out.with_suffix('.md')}")
+        _write_report(report, out, tree)
+
+
+MergeBenchSettings = settings_file(
+    "`service` (the merge service), `agent` (the vehicles) and `link` (the base of the "
+    "acoustic world's link)"
+)
+
+
+def _write_report(report: dict, out: Path, tree: Settings) -> None:
+    """The report as JSON at `out`, its markdown table beside it, and the settings used."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=1, default=float))
+    out.with_suffix(".md").write_text(report["markdown"] + "\n")
+    write_settings_beside(tree, out, folder=False)
+    typer.echo(f"wrote {out} and {out.with_suffix('.md')}")
+
+
+@app.command("merge")
+def bench_merge(
+    quick: Annotated[bool, typer.Option(help="pool (1 lap) + a short KITTI-00 stretch")] = False,
+    seed: Annotated[int, typer.Option(min=0, help="first world seed")] = 0,
+    seeds: Annotated[int | None, typer.Option(min=1, help="seeds per world (default 3, quick 1)")
+                     ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="write the report as JSON here (and .md beside it)")
+    ] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="the shared data folder (default: ../shared/data)")
+    ] = None,
+    acoustic: Annotated[bool, typer.Option(help="also the pool through the acoustic link")
+                        ] = True,
+    settings: MergeBenchSettings = None,
+) -> None:
+    """Merged trajectories in-process against the truth: the pool fleet, 3 cars on real
+    KITTI-00 stretches, the pool through the acoustic link; per robot ATE odometry vs merged,
+    final rotation error, object RMSE; factors accepted, retracted, correct; precision;
+    service ms per submap."""
+    from mergesvc.bench import MergeBenchPlan, run_merge_bench
+    from mergesvc.fleet.replay import replay_world
+
+    if data is not None and not data.is_dir():
+        raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
+    if quick:
+        plan = MergeBenchPlan.quick(seed, seeds or 1, data)
+    else:
+        plan = MergeBenchPlan(seed=seed, seeds=seeds or 3, data_dir=data)
+    plan.acoustic = acoustic
+    with exit_on_error():
+        tree = resolve_settings(settings)
+        report = run_merge_bench(plan, replay=replay_world, service=tree.service,
+                                 agent=tree.agent_config, link_config=tree.link,
+                                 echo=typer.echo)
+    typer.echo(report["markdown"])
+    typer.echo(f"{report['elapsed_s']:.0f} s")
+    if out is not None:
+        _write_report(report, out, tree)

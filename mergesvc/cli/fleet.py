@@ -1,8 +1,9 @@
 """Commands that run the fleet: `serve` (the merge service), `agent` (a vehicle), `demo`
-(both, as processes on loopback), `link sim|bridge` (the acoustic link).
+(both, as processes on loopback), `export` (a service's store as g2o and TUM files), `link
+sim|bridge` (the acoustic link).
 
-Settings (mergesvc/settings.py): `serve` reads the `service` section, `agent` the `agent`
-section, `demo` hands its resolved tree to the processes it starts, `link sim` reads `link`
+Settings (mergesvc/settings.py): `serve` and `export` read the `service` section, `agent` the
+`agent` section, `demo` hands its resolved tree to the processes it starts, `link sim` reads `link`
 and `workload`; `link bridge` builds its link from its flags."""
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ DemoSettings = settings_file(
     "`service` and `agent` (written to OUT/settings.json for the processes it starts)"
 )
 LinkSimSettings = settings_file("`link` and `workload`")
+ExportSettings = settings_file("`service` (its `graph` solves, its `store` is the default "
+                               "--store)", bare="MatchConfig (its service.match)")
 
 
 def serve(
@@ -101,6 +104,41 @@ def serve(
             while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
                 stop.wait(0.2)
             typer.echo(json.dumps(svc.status()["submaps"]))
+
+
+def export(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option(help="folder for graph.g2o, graph_nodes.json, "
+                                            "export.json and the TUM trajectories")],
+    store: Annotated[
+        Path | None, typer.Option(help="the service's SQLite file [default: the setting "
+                                       "service.store]")
+    ] = None,
+    projection: Annotated[
+        list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
+    ] = None,
+    settings: ExportSettings = None,
+) -> None:
+    """Export a service's store: the pose graph (g2o) and each session's trajectory (TUM). The
+    service is rebuilt from a copy of the store as a restart rebuilds it (the processed submaps,
+    the factors in force): the store is never changed, a running service may keep writing.
+
+    Settings: the `service` section, as serve reads it.
+
+    Writes graph.g2o, graph_nodes.json (id -> robot/session#k), export.json, trajectories/.
+
+    Prints one line per file written."""
+    from mergesvc.fleet.export import export_store
+    from mergesvc.wire import Projection
+
+    with exit_on_error(ValueError, OSError):
+        flags = given(ctx, store=str(store))
+        cfg = resolve_settings(settings, {"service": flags},
+                               bare_match=bare_match_for(SettingsCommand.SERVE)).service
+        projections = [Projection.load(p) for p in projection or []]
+        res = export_store(cfg.store, out, config=cfg, projections=projections)
+    for f in res.files:
+        typer.echo(str(f))
 
 
 def _agent_frames(robot: str, session: str, seed: int, laps: int, objects: int,
@@ -197,6 +235,7 @@ def demo(
             "service": {"fleet": plan.fleet, "store": str(out / STORE_FILE)},
             "agent": {"fleet": plan.fleet, "session": SESSION},
         })
+    plan = dataclasses.replace(plan, service=tree.service)  # the export solves with them
     with exit_on_error(OSError):
         written = write_settings_beside(tree, out, folder=True)
     with exit_on_error(), settings_env(written):
@@ -216,6 +255,9 @@ def demo(
                        f"{a['before_deg']:.1f} deg, after {after}")
         typer.echo(f"service latency per submap ms: {s['latency_ms']}; figure {s['figure']}; "
                    f"{s['elapsed_s']} s")
+    if s.get("exports"):
+        typer.echo(f"exported {len(s['exports'])} files (g2o graph, TUM trajectories): "
+                   f"{Path(s['exports'][0]).parent}")
     for f in res.failures:
         typer.echo(f"FAILED: {f}", err=True)
     if not res.ok:

@@ -2,7 +2,8 @@
 (optionally through the acoustic-link bridge), a seeded pool mission, and a summary scored
 against the ground truth: submaps, bytes, factors, precision, frame alignment before and after
 merging, each robot's keyframe trajectory error (odometry alone and merged; TUM files), and a
-PNG of the merged map.
+PNG of the merged map. Once the service has stopped, its store is exported (fleet/export.py)
+into OUT/export: the global pose graph in g2o and each session's TUM trajectories.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from mergesvc.core.model import Factor
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
+from mergesvc.fleet.service import ServiceConfig
 from mergesvc.sim import fleet_world, image_s_dataset
 from mergesvc.wire import Profile, Projection, decode_message, keys
 
@@ -36,6 +38,7 @@ log = logging.getLogger(__name__)
 ROBOTS = ("auv1", "auv2", "auv3")
 SESSION = "s0"  # every vehicle's session in the demo
 STORE_FILE = "merge.db"
+EXPORT_DIR = "export"  # export_store's files: beside, not over, OUT/trajectories
 
 
 def _frame(robot: str) -> str:
@@ -56,6 +59,9 @@ class DemoPlan:
     profile: Profile = Profile.COMPACT
     link: str = "zenoh"  # or "acoustic": through the simulated modem
     timeout_s: float = 120.0
+    # the `service` settings the service process reads (its settings file): the export of its
+    # store solves the graph with them (None: the defaults)
+    service: ServiceConfig | None = None
 
     @property
     def fleet(self) -> str:
@@ -108,7 +114,8 @@ def query_status(session: Any, fleet: str, timeout_s: float = 3.0) -> dict[str, 
 
 
 def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) -> DemoResult:
-    """Start everything, run the mission, score it, stop everything (always)."""
+    """Start everything, run the mission, score it, stop everything (always), then export the
+    service's store into OUT/export (solved with `plan.service`)."""
     import zenoh
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -194,11 +201,27 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
             _stop(p)
             if name == "service" and p.returncode not in (0, -signal.SIGINT, -signal.SIGTERM):
                 result.failures.append(f"service exited with {p.returncode} (see {logs[name]})")
+    if store.exists():
+        _export(store, out_dir / EXPORT_DIR, proj_path, plan.service, result)
     result.ok = not result.failures
     (out_dir / "summary.json").write_text(json.dumps(
         {"ok": result.ok, "failures": result.failures, **result.summary}, indent=1,
         default=float))
     return result
+
+
+def _export(store: Path, out: Path, proj_path: Path, config: ServiceConfig | None,
+            result: DemoResult) -> None:
+    """The stopped service's store as g2o and TUM files (their paths: summary["exports"])."""
+    from mergesvc.fleet.export import export_store
+
+    try:
+        res = export_store(store, out, config=config,
+                           projections=[Projection.load(proj_path)])
+    except (MergeError, OSError, ValueError) as exc:
+        result.failures.append(f"export: {type(exc).__name__}: {exc}")
+        return
+    result.summary["exports"] = [str(p) for p in res.files]
 
 
 def _stop(p: subprocess.Popen) -> None:

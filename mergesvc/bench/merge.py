@@ -1,0 +1,257 @@
+"""`mergesvc bench merge`: merged trajectories of whole fleets, in-process, against the truth.
+
+Worlds (each for `seeds` seeds):
+  - `pool`: the underwater pool with 3 vehicles (sim.fleet_world, as the demo);
+  - `kitti00`: 3 cars on overlapping stretches of the real KITTI-00 ground truth, odometry
+    drifting with the ORB-SLAM2 estimate's step errors (sim.drive_fleet), camera axes;
+  - `pool+acoustic`: the pool world with every submap sent through the simulated acoustic link
+    (compact codec, rate 5, 4.4 dB: some late, out of order or lost).
+
+The replay itself (agents' maps, the service, the link) is `replay`, a callable the caller
+passes in (cli/bench.py gives fleet/replay.py's `replay_world`: bench may not import fleet);
+this module plans the worlds, aggregates the seeds, checks the issue's targets and writes the
+table.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mergesvc.bench.scoring import check_count
+from mergesvc.errors import InputError
+from mergesvc.link.config import LinkConfig
+from mergesvc.link.modem import ModemRate
+from mergesvc.sim.drive_fleet import STRETCHES_FULL, STRETCHES_QUICK, drive_fleet
+from mergesvc.sim.fleet import fleet_world
+from mergesvc.sim.real_data import KITTI_GT, KITTI_ORB, data_available
+from mergesvc.sim.runs import image_s_dataset
+
+POOL_ROBOTS = ("auv1", "auv2", "auv3")
+KITTI_ROBOTS = ("car1", "car2", "car3")
+ROBOT_FIELDS = ("keyframes", "keyframes_merged", "ate_odometry_m", "ate_merged_m",
+                "final_rot_err_odometry_deg", "final_pos_err_m", "final_rot_err_deg",
+                "objects_own", "objects_merged", "object_rmse_own_m", "object_rmse_merged_m")
+WORLD_FIELDS = ("anchor", "robots", "submaps", "delivery", "factors_accepted",
+                "factors_retracted", "factors_correct", "retracted_correct",
+                "retracted_right_correspondences", "active_factors", "active_correct",
+                "correspondences_right", "correspondences_wrong", "precision",
+                "service_ms_median", "service_ms_p90", "factors")
+
+
+@dataclass
+class MergeBenchPlan:
+    seed: int = 0
+    seeds: int = 3
+    pool_laps: int = 2
+    pool_objects: int = 24
+    kitti_stretches: tuple[tuple[int, int], ...] = STRETCHES_FULL
+    kitti_step: int = 4
+    acoustic: bool = True
+    data_dir: Path | None = None
+    worlds: list[str] = field(default_factory=lambda: ["pool", "kitti00", "pool+acoustic"])
+
+    @classmethod
+    def quick(cls, seed: int = 0, seeds: int = 1, data_dir: Path | None = None
+              ) -> MergeBenchPlan:
+        return cls(seed=seed, seeds=seeds, pool_laps=1, kitti_stretches=STRETCHES_QUICK,
+                   data_dir=data_dir)
+
+
+def acoustic_link(base: LinkConfig) -> LinkConfig:
+    """Rate 5 at 4.4 dB on top of `base`: the lossy end of rate 5's published curve (the demo's
+    5.0 dB delivered every pool submap, in order), so that some arrive late, out of order or
+    not at all."""
+    cfg = base.model_copy(deep=True)
+    cfg.channel.rate = ModemRate.RATE5
+    cfg.channel.snr.mean_db = 4.4
+    return cfg
+
+
+def _fit_projection(seed: int) -> Any:
+    """The fleet-shared projection, learned from earlier survey data of the world (as the demo
+    does: not from this mission's submaps)."""
+    from mergesvc.wire import Projection
+
+    y, _, _ = image_s_dataset(4000, seed + 1000)
+    return Projection.fit(y)
+
+
+def run_merge_bench(
+    plan: MergeBenchPlan,
+    *,
+    replay: Callable[..., dict[str, Any]],
+    service: Any,
+    agent: Callable[[str], Any],
+    link_config: LinkConfig,
+    echo: Callable[[str], Any] = print,
+) -> dict[str, Any]:
+    """Every world for every seed through `replay(world, service=, agent=, link=, projection=,
+    seed=)`; returns {"runs": [...], "summary": {...}, "targets": {...}, "markdown": str}."""
+    check_count("seeds", plan.seeds)
+    t0 = time.monotonic()
+    worlds = list(plan.worlds)
+    if "kitti00" in worlds and not data_available(plan.data_dir, KITTI_GT, KITTI_ORB):
+        echo("KITTI-00 poses not found (../shared/data/kitti00): the kitti00 world is skipped")
+        worlds.remove("kitti00")
+    if not plan.acoustic and "pool+acoustic" in worlds:
+        worlds.remove("pool+acoustic")
+    unknown = set(worlds) - {"pool", "kitti00", "pool+acoustic"}
+    if unknown:
+        raise InputError(f"unknown worlds {sorted(unknown)}")
+    runs = []
+    for s in range(plan.seed, plan.seed + plan.seeds):
+        for name in worlds:
+            t1 = time.monotonic()
+            if name == "kitti00":
+                world = drive_fleet(s, KITTI_ROBOTS, plan.kitti_stretches, plan.kitti_step,
+                                    data_dir=plan.data_dir)
+
+                def car(robot: str, world: Any = world) -> Any:
+                    # a car, not a pool vehicle: tracks live ~10 s at 8 m/s, and the odometry
+                    # noise per step is what the ORB-SLAM2 steps show (set it to your vehicle's)
+                    return agent(robot).model_copy(update={
+                        "tracking": world.cfg.tracking,
+                        "odometry_sigma": world.odometry_step_sigma,
+                        "cut_every_objects": 8, "window_objects": 12, "cut_every_m": 40.0})
+
+                res = replay(world, service=service, agent=car, link=None, projection=None,
+                             seed=s)
+                res["odometry_step_sigma"] = list(world.odometry_step_sigma)
+            else:
+                world = fleet_world(s, POOL_ROBOTS, plan.pool_laps, plan.pool_objects)
+                acoustic = name == "pool+acoustic"
+                res = replay(world, service=service, agent=agent,
+                             link=acoustic_link(link_config) if acoustic else None,
+                             projection=_fit_projection(s) if acoustic else None, seed=s)
+            res.update(world=name, seed=s, elapsed_s=round(time.monotonic() - t1, 2))
+            runs.append(res)
+            echo(_run_line(res))
+    summary = summarize(runs)
+    report = {"plan": _plan_dict(plan), "runs": runs, "summary": summary,
+              "targets": targets(runs), "elapsed_s": round(time.monotonic() - t0, 1)}
+    report["markdown"] = markdown(report)
+    return report
+
+
+def _plan_dict(plan: MergeBenchPlan) -> dict[str, Any]:
+    return {"seed": plan.seed, "seeds": plan.seeds, "pool_laps": plan.pool_laps,
+            "pool_objects": plan.pool_objects,
+            "kitti_stretches": [list(x) for x in plan.kitti_stretches],
+            "kitti_step": plan.kitti_step, "worlds": plan.worlds,
+            "data_dir": str(plan.data_dir) if plan.data_dir else None}
+
+
+def _run_line(r: dict[str, Any]) -> str:
+    ate = ", ".join(f"{k} {v['ate_odometry_m']:.2f}->{v['ate_merged_m']:.2f} m"
+                    for k, v in r["robots"].items())
+    return (f"{r['world']} seed {r['seed']}: ATE {ate}; factors {r['factors_accepted']} "
+            f"(retracted {r['factors_retracted']}, {r['retracted_correct']} of them correct), "
+            f"precision {r['precision']:.2f}, {r['service_ms_median']:.0f} ms/submap, "
+            f"{r['elapsed_s']:.0f} s")
+
+
+def _spread(values: list[float]) -> dict[str, float]:
+    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+    if not a.size:
+        return {"median": float("nan"), "min": float("nan"), "max": float("nan"), "n": 0}
+    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max()),
+            "n": int(a.size)}
+
+
+def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per world and robot: median and min-max over seeds of each number."""
+    out: dict[str, Any] = {}
+    for w in dict.fromkeys(r["world"] for r in runs):
+        rs = [r for r in runs if r["world"] == w]
+        robots = {}
+        for name in rs[0]["robots"]:
+            robots[name] = {f: _spread([r["robots"][name][f] for r in rs])
+                            for f in ROBOT_FIELDS}
+        out[w] = {"robots": robots, **{f: _spread([r[f] for r in rs]) for f in (
+            "factors_accepted", "factors_retracted", "retracted_correct", "active_factors",
+            "active_correct", "precision", "service_ms_median", "submaps")},
+            "delivered": _spread([r["delivery"]["delivered"] for r in rs]),
+            "lost": _spread([r["delivery"]["lost"] for r in rs]),
+            "out_of_order": _spread([r["delivery"]["out_of_order"] for r in rs])}
+    return out
+
+
+def targets(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The issue's targets, per world: met (every seed, every robot) or not, with the worst."""
+    out: dict[str, dict[str, Any]] = {}
+    for w in dict.fromkeys(r["world"] for r in runs):
+        rs = [r for r in runs if r["world"] == w]
+        rows = [v for r in rs for v in r["robots"].values()]
+        ratio = [v["ate_merged_m"] / v["ate_odometry_m"] for v in rows
+                 if v["ate_odometry_m"] > 0]
+        rot = [v["final_rot_err_deg"] for v in rows]
+        obj = [v["object_rmse_merged_m"] - v["object_rmse_own_m"] for v in rows]
+        out[w] = {
+            "ate_merged_le_half_odometry": {"met": all(np.isfinite(x) and x <= 0.5
+                                                       for x in ratio) and bool(ratio),
+                                            "worst_ratio": _worst(ratio, max)},
+            "final_rot_err_le_1deg": {"met": all(np.isfinite(x) and x <= 1.0 for x in rot),
+                                      "worst_deg": _worst(rot, max)},
+            "no_correct_factor_retracted": {
+                "met": all(r["retracted_correct"] == 0 for r in rs),
+                "worst": max(r["retracted_correct"] for r in rs)},
+            "precision_1": {"met": all(r["precision"] == 1.0 for r in rs),
+                            "worst": _worst([r["precision"] for r in rs], min)},
+            "object_rmse_merged_le_own": {"met": all(np.isfinite(x) and x <= 1e-9
+                                                     for x in obj),
+                                          "worst_excess_m": _worst(obj, max)},
+        }
+    return out
+
+
+def _worst(values: list[float], pick: Callable[..., float]) -> float:
+    v = [x for x in values if np.isfinite(x)]
+    return float(pick(v)) if v else float("nan")
+
+
+def _fmt(s: dict[str, float], digits: int = 2) -> str:
+    if not s["n"]:
+        return "-"
+    med = f"{s['median']:.{digits}f}"
+    if s["min"] == s["max"]:
+        return med
+    return f"{med} [{s['min']:.{digits}f}-{s['max']:.{digits}f}]"
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """Per world and robot: median [min-max] over seeds."""
+    head = ("| world | robot | keyframes (merged) | ATE odometry m | ATE merged m | final rot "
+            "merged deg (odometry) | object RMSE own m | object RMSE merged m | factors acc / "
+            "retracted (correct among retracted) | in force correct / all | precision | "
+            "service ms/submap | delivered / lost / out of order |")
+    lines = [head, "|" + "---|" * 13]
+    for w, s in report["summary"].items():
+        for name, r in s["robots"].items():
+            lines.append(
+                f"| {w} | {name} | {_fmt(r['keyframes'], 0)} ({_fmt(r['keyframes_merged'], 0)})"
+                f" | {_fmt(r['ate_odometry_m'])} | {_fmt(r['ate_merged_m'])} | "
+                f"{_fmt(r['final_rot_err_deg'])} ({_fmt(r['final_rot_err_odometry_deg'])}) | "
+                f"{_fmt(r['object_rmse_own_m'])} | {_fmt(r['object_rmse_merged_m'])} | "
+                f"{_fmt(s['factors_accepted'], 0)} / {_fmt(s['factors_retracted'], 0)} "
+                f"({_fmt(s['retracted_correct'], 0)}) | {_fmt(s['active_correct'], 0)} / "
+                f"{_fmt(s['active_factors'], 0)} | {_fmt(s['precision'])} | "
+                f"{_fmt(s['service_ms_median'], 1)} | {_fmt(s['delivered'], 0)} / "
+                f"{_fmt(s['lost'], 0)} / {_fmt(s['out_of_order'], 0)} |")
+    lines.append("")
+    lines.append("Targets (every seed, every robot):")
+    for w, t in report["targets"].items():
+        parts = [f"{k} {'met' if v['met'] else 'NOT met'} ("
+                 + ", ".join(f"{a} {b:.2f}" for a, b in v.items() if a != "met") + ")"
+                 for k, v in t.items()]
+        lines.append(f"- {w}: " + "; ".join(parts))
+    return "\n".join(lines)
+
+
+__all__ = ["MergeBenchPlan", "acoustic_link", "markdown", "run_merge_bench", "summarize",
+           "targets"]

@@ -1,0 +1,310 @@
+"""The merge service's state as files other tools read (issue 11): the global pose graph in g2o
+and every session's keyframe trajectory in TUM, from odometry alone and as merged.
+
+`export_store` copies the service's SQLite store (an SQLite online backup of a read-only
+connection, so a running service may keep writing and the file is never changed), rebuilds
+the service from the copy the way a restart does (`MergeService.restore`: the processed
+submaps, the accepted factors, the graph solved once; submaps still pending are not in it)
+and writes into `out_dir`:
+
+  graph.g2o         every keyframe node of the pose graph (VERTEX_SE3:QUAT) and every factor
+                    in force (EDGE_SE3:QUAT): the odometry edges and the inter-robot factors,
+                    with their covariances (wire.formats.write_g2o: information matrix in
+                    g2o's order). Vertex ids are the nodes' indices in the service's pose graph
+                    (insertion order; its gtsam key is symbol('f', id)); edges are written in
+                    the graph's factor order, i -> j being the factor's node a -> node b with
+                    the measurement T_a_b.
+  graph_nodes.json  vertex id (a string, JSON keys are) -> node "robot/session#k".
+  export.json       the manifest: the anchor, each node's frame and stamp, each edge's factor
+                    id and kind, the files written, submaps left out (pending).
+  trajectories/{robot}_{session}_odometry.tum
+                    the session's keyframes composed from its stored odometry alone
+                    (SessionState.propagate from keyframe 0), in the session frame (keyframe
+                    0 at the identity); keyframes not joined to keyframe 0 by odometry (a lost
+                    submap broke the chain) are left out.
+  trajectories/{robot}_{session}_merged.tum
+                    the optimized keyframe poses in the anchor frame (the anchor session's
+                    keyframe 0): what the status query's `keyframe_poses` says. Only sessions
+                    in the anchor's component have one.
+
+Vertex poses: the nodes of the anchor's component carry their optimized pose in the anchor
+frame (the service's solution; solved here when the store holds no factor, so the service
+never solved). The nodes of any other component (a session no factor joins to the anchor's
+yet) are solved on their own, their pose in the frame of the component's first node (its
+first session's keyframe 0): export.json names that frame per node. g2o has no frames, so a
+tool reading graph.g2o sees those components overlap the anchor's; the edges are exact.
+
+TUM stamps (one rule per session, the same in both files): when every keyframe after 0 has a
+submap cut there with a `stamp` (what mergesvc agent sends), the stamps are those submaps'
+`stamp` in seconds and keyframe 0 (no submap is cut at the session origin) is written only if
+a submap cut there has a stamp; otherwise every keyframe is written with its index as the
+stamp (export.json says which: "submap" or "keyframe"). File names keep [A-Za-z0-9._-] of the
+robot and session ids, anything else becomes "_".
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sqlite3
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from mergesvc.core.factors import factor_nodes
+from mergesvc.core.frames import FrameId
+from mergesvc.core.graph import pose3_from_model
+from mergesvc.core.model import Submap
+from mergesvc.errors import InputError, MergeError, StoreError, one_line
+from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.wire import Projection, decode_message
+from mergesvc.wire.formats import write_g2o, write_tum
+
+GRAPH_FILE = "graph.g2o"
+NODES_FILE = "graph_nodes.json"
+MANIFEST_FILE = "export.json"
+TRAJECTORY_DIR = "trajectories"
+# the submaps restore() takes in (the others are pending or failed)
+_PROCESSED = ("processed", "no_match")
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What export_store wrote. trajectories: "robot/session" -> {"odometry": path, "merged":
+    path} (merged only for sessions in the anchor's component); stamps: "robot/session" ->
+    "submap" or "keyframe" (see the module docstring)."""
+
+    out_dir: Path
+    anchor: str | None
+    graph: Path
+    nodes: Path
+    manifest: Path
+    vertices: int
+    edges: int
+    trajectories: dict[str, dict[str, Path]] = field(default_factory=dict)
+    stamps: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def files(self) -> list[Path]:
+        """Every file written: the graph, its node names, each trajectory, the manifest."""
+        return [self.graph, self.nodes,
+                *(p for kinds in self.trajectories.values() for p in kinds.values()),
+                self.manifest]
+
+
+def snapshot_store(store_path: str | Path, copy_path: str | Path) -> Path:
+    """A consistent copy of a store (SQLite online backup through a read-only connection: the
+    source is never written, a service may be running on it). InputError: no such file;
+    StoreError: not an SQLite file, or unreadable."""
+    src_path = Path(store_path)
+    if not src_path.is_file():
+        raise InputError(f"no store file {src_path}")
+    dst_path = Path(copy_path)
+    try:
+        src = sqlite3.connect(f"{src_path.resolve().as_uri()}?mode=ro", uri=True)
+        try:
+            dst = sqlite3.connect(dst_path)
+            try:
+                src.backup(dst)
+            finally:
+                dst.close()
+        finally:
+            src.close()
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot read store {src_path}: {one_line(exc)}") from exc
+    return dst_path
+
+
+def _write_json(path: Path, data: Any) -> Path:
+    try:
+        path.write_text(json.dumps(data, indent=1) + "\n")
+    except OSError as exc:
+        raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+    return path
+
+
+def _file_part(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]", "_", name)
+
+
+def _stamped_submaps(svc: MergeService, projections: Sequence[Projection]) -> dict[str, dict[int,
+                                                                                         float]]:
+    """"robot/session" -> keyframe -> the `stamp` of the processed submap cut at that keyframe
+    (the lowest seq if several; submaps without keyframe or stamp give none)."""
+    out: dict[str, dict[int, tuple[int, float]]] = {}
+    for row in svc.store.submaps():
+        if row.status not in _PROCESSED:
+            continue
+        _, sub = decode_message(row.payload, list(projections))
+        if not isinstance(sub, Submap) or sub.keyframe is None or sub.stamp is None:
+            continue
+        seen = out.setdefault(str(FrameId(sub.robot_id, sub.session_id)), {})
+        seq = sub.seq if sub.seq is not None else -1
+        if sub.keyframe not in seen or seq < seen[sub.keyframe][0]:
+            seen[sub.keyframe] = (seq, float(sub.stamp))
+    return {name: {k: s for k, (_, s) in ks.items()} for name, ks in out.items()}
+
+
+def _graph_edges(svc: MergeService, ids: dict[str, int]) -> tuple[list[tuple[int, int, np.ndarray,
+                                                                              np.ndarray]],
+                                                                 list[dict[str, Any]]]:
+    """Every factor of the service's graph, in its order, with its measurement and covariance
+    from the service's own state: its sessions' odometry edges and its factors in force."""
+    graph = svc.graph
+    odometry = {e.edge_id: e for st in svc.sessions.values() for e in st.edges.values()}
+    edges, listed = [], []
+    for fid in graph.factor_ids:
+        a, b, known = graph.factor_nodes(fid)
+        if fid in svc.factors:
+            f = svc.factors[fid]
+            if tuple(str(x) for x in factor_nodes(f)) != (a, b):
+                raise MergeError(f"factor {fid}: the graph ties {a} -> {b}, the factor "
+                                 f"{' -> '.join(str(x) for x in factor_nodes(f))}")
+            T, C, kind = pose3_from_model(f.T_a_b), np.asarray(f.covariance), "inter_robot"
+        elif fid in odometry:
+            e = odometry[fid]
+            T, C, kind = e.T_from_to, np.asarray(e.covariance), "odometry"
+        else:
+            raise MergeError(f"factor {fid} of the pose graph is neither an odometry edge nor "
+                             "a factor in force")
+        edges.append((ids[a], ids[b], np.asarray(T.matrix()), C))
+        listed.append({"factor_id": fid, "kind": kind, "i": ids[a], "j": ids[b],
+                       "known_inlier": bool(known)})
+    return edges, listed
+
+
+def _node_poses(svc: MergeService) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """(4, 4) pose of every graph node and the node whose frame it is in (the anchor for the
+    anchor's component, else the component's first node): see the module docstring."""
+    graph = svc.graph
+    poses: dict[str, np.ndarray] = {}
+    frame_of: dict[str, str] = {}
+    anchor = graph.anchor
+    for name, by_k in svc.keyframe_poses().items():  # what the status query says
+        st = svc.sessions[name]
+        for k, T in by_k.items():
+            poses[st.node(k)] = np.asarray(T, dtype=np.float64)
+            frame_of[st.node(k)] = str(anchor)
+    for comp in graph.components():
+        todo = [n for n in comp if n not in poses]
+        if not todo:
+            continue
+        root = anchor if anchor in comp else comp[0]
+        sol = graph.optimize(root, marginals=False)
+        for n in todo:
+            poses[n] = np.asarray(sol.T_anchor_frame[n].matrix())
+            frame_of[n] = str(root)
+    return poses, frame_of
+
+
+def export_store(
+    store_path: str | Path,
+    out_dir: str | Path,
+    *,
+    config: ServiceConfig | None = None,
+    projections: Sequence[Projection] = (),
+) -> ExportResult:
+    """Write the g2o graph and the TUM trajectories of the service state a store holds into
+    `out_dir` (see the module docstring). `config`: the service's settings (its `graph`
+    section solves; its `store` is ignored, `store_path` is read); `projections`: the fleet
+    projections compact submaps need (as `serve --projection`).
+
+    InputError: no such store, or a store without any processed submap; StoreError: not a
+    mergesvc store; SolverError: the pose graph cannot be solved."""
+    out = Path(out_dir)
+    cfg = config or ServiceConfig()
+    with tempfile.TemporaryDirectory(prefix="mergesvc-export-") as tmp:
+        copy = snapshot_store(store_path, Path(tmp) / "store.db")
+        svc = MergeService(cfg.model_copy(update={"store": str(copy)}), None, list(projections))
+        try:
+            svc.restore()
+            return _write(svc, out, Path(store_path), list(projections))
+        finally:
+            svc.close()
+
+
+def _write(svc: MergeService, out: Path, store_path: Path,
+           projections: list[Projection]) -> ExportResult:
+    graph = svc.graph
+    if not graph.nodes:
+        raise InputError(f"store {store_path} holds no processed submap: nothing to export")
+    ids = {n: i for i, n in enumerate(graph.nodes)}
+    poses, frame_of = _node_poses(svc)
+    edges, listed = _graph_edges(svc, ids)
+    stamped = _stamped_submaps(svc, projections)
+    anchor = graph.anchor
+    anchor_session = next((name for name, st in svc.sessions.items() if st.node(0) == anchor),
+                          None)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / TRAJECTORY_DIR).mkdir(exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot write to {out}: {exc.strerror or exc}") from exc
+
+    g2o = write_g2o(out / GRAPH_FILE, {ids[n]: poses[n] for n in graph.nodes}, edges)
+    node_file = _write_json(out / NODES_FILE, {str(i): n for n, i in ids.items()})
+
+    trajectories: dict[str, dict[str, Path]] = {}
+    stamp_kind: dict[str, str] = {}
+    node_stamp: dict[str, float | None] = {}
+    used: set[str] = set()
+    for name, st in svc.sessions.items():
+        stamps = stamped.get(name, {})
+        later = [k for k in st.keyframes if k != 0]
+        kind = "submap" if later and all(k in stamps for k in later) else "keyframe"
+        stamp_kind[name] = kind
+        for k in st.keyframes:
+            node_stamp[st.node(k)] = stamps.get(k) if kind == "submap" else float(k)
+        base = f"{_file_part(st.frame.robot)}_{_file_part(st.frame.session)}"
+        stem, n = base, 1
+        while stem in used:  # two ids that differ only in characters a file name drops
+            n += 1
+            stem = f"{base}_{n}"
+        used.add(stem)
+        odometry = {k: np.asarray(T.matrix()) for k, T in
+                    st.propagate({0: gtsam.Pose3()}).items()}
+        merged = {k: poses[st.node(k)] for k in st.keyframes
+                  if frame_of.get(st.node(k)) == anchor}
+        files: dict[str, Path] = {}
+        for label, traj in (("odometry", odometry), ("merged", merged)):
+            ks = [k for k in sorted(traj) if node_stamp[st.node(k)] is not None]
+            if not ks:
+                continue
+            files[label] = write_tum(
+                out / TRAJECTORY_DIR / f"{stem}_{label}.tum",
+                np.array([node_stamp[st.node(k)] for k in ks], dtype=np.float64),
+                np.stack([traj[k] for k in ks]),
+            )
+        trajectories[name] = files
+
+    pending = len(svc.store.unprocessed_submaps())
+    manifest = _write_json(out / MANIFEST_FILE, {
+        "store": str(store_path),
+        "anchor": anchor,
+        "anchor_session": anchor_session,
+        "nodes": [{"id": ids[n], "node": n, "frame": frame_of[n], "stamp": node_stamp.get(n)}
+                  for n in graph.nodes],
+        "edges": listed,
+        "stamps": stamp_kind,
+        "trajectories": {s: {k: str(p) for k, p in f.items()} for s, f in trajectories.items()},
+        "pending_submaps": pending,
+    })
+    return ExportResult(out_dir=out, anchor=anchor, graph=g2o, nodes=node_file,
+                        manifest=manifest, vertices=len(ids), edges=len(edges),
+                        trajectories=trajectories, stamps=stamp_kind)
+
+
+__all__ = [
+    "GRAPH_FILE",
+    "MANIFEST_FILE",
+    "NODES_FILE",
+    "TRAJECTORY_DIR",
+    "ExportResult",
+    "export_store",
+    "snapshot_store",
+]

@@ -1,0 +1,251 @@
+"""A fleet replayed in-process, scored against its ground truth: each vehicle's frames through
+its LocalMap (`build_submaps`), the submaps into a MergeService without Zenoh (session None,
+store ':memory:', `ingest` in the calling thread), delivered in time order or through the
+simulated acoustic link (late, out of order, lost), then every number `bench merge` reports.
+
+This is the driver of `mergesvc bench merge`: it lives in fleet (it runs the service and the
+agents' maps), bench/merge.py only plans, aggregates and tabulates (bench may not import
+fleet); cli/bench.py hands `replay_world` to `run_merge_bench`.
+
+A world is anything with `robots` (each with `.name`), `frames(name)`, `session_start(name)`
+(true world pose of the vehicle's odometry frame), `objects_xyz_m` and `object_ids`:
+sim.fleet.FleetWorld and sim.drive_fleet.DriveFleet.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mergesvc.core.frames import FrameId
+from mergesvc.core.model import Factor, Submap
+from mergesvc.core.trajectory import ate_rmse, final_pose_error, rotation_error_deg
+from mergesvc.errors import MergeError
+from mergesvc.fleet.agent import AgentConfig, L, LocalMap, build_submaps
+from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.link.config import LinkConfig
+from mergesvc.link.simulator import Delivery, LinkSimulator
+from mergesvc.wire import Profile, Projection, decode_message, encode_message
+
+SESSION = "s0"
+TOPSIDE = "topside"
+
+
+@dataclass(frozen=True)
+class FactorTolerance:
+    """A factor is correct when its transform is within these of the truth relative pose."""
+
+    metres: float = 1.0
+    degrees: float = 5.0
+
+
+def _deliver_in_order(subs: list[Submap]) -> tuple[list[Submap], dict[str, Any]]:
+    order = sorted(subs, key=lambda s: (s.stamp or 0.0, s.robot_id))
+    return order, {"offered": len(subs), "delivered": len(subs), "lost": 0,
+                   "out_of_order": 0, "latency_p50_s": 0.0, "latency_max_s": 0.0}
+
+
+def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projection,
+                      profile: Profile, seed: int) -> tuple[list[Submap], dict[str, Any]]:
+    """Each submap offered at its stamp from its vehicle to the topside; delivered ones come
+    back decoded, in arrival order."""
+    robots = sorted({s.robot_id for s in subs})
+    cfg = link.model_copy(deep=True)
+    cfg.tdma.slot_order = [TOPSIDE, *robots]
+    got: list[Delivery] = []
+    sim = LinkSimulator(cfg, rng=np.random.default_rng([seed, 17]), on_deliver=got.append)
+    for s in sorted(subs, key=lambda s: s.stamp or 0.0):
+        payload = encode_message(s, profile, s.robot_id, s.seq or 0, projection=projection)
+        sim.offer(s.robot_id, TOPSIDE, payload, at_s=float(s.stamp or 0.0))
+    end = max((s.stamp or 0.0) for s in subs) if subs else 0.0
+    sim.run_until(end)
+    step_s = cfg.tdma.slot_s * len(cfg.tdma.slot_order)
+    while sim.pending() and sim.now_s < end + cfg.arq.message_timeout_s + step_s:
+        sim.run_until(sim.now_s + step_s)
+    out: list[Submap] = []
+    last_seq: dict[str, int] = {}
+    out_of_order = 0
+    for d in got:
+        _, sub = decode_message(d.payload, [projection])
+        if not isinstance(sub, Submap):
+            continue
+        seq = sub.seq or 0
+        if seq < last_seq.get(sub.robot_id, -1):
+            out_of_order += 1
+        last_seq[sub.robot_id] = max(seq, last_seq.get(sub.robot_id, -1))
+        out.append(sub)
+    lat = [d.latency_s for d in got]
+    return out, {"offered": len(subs), "delivered": len(out), "lost": len(subs) - len(out),
+                 "out_of_order": out_of_order,
+                 "latency_p50_s": float(np.median(lat)) if lat else float("nan"),
+                 "latency_max_s": float(max(lat)) if lat else float("nan")}
+
+
+def replay_world(
+    world: Any,
+    *,
+    service: ServiceConfig,
+    agent: Callable[[str], AgentConfig],
+    link: LinkConfig | None = None,
+    projection: Projection | None = None,
+    profile: Profile = Profile.COMPACT,
+    seed: int = 0,
+    tolerance: FactorTolerance = FactorTolerance(),
+) -> dict[str, Any]:
+    """Replay one world and score it: per robot the keyframe ATE (odometry only and merged),
+    the merged final-pose errors, object position RMSE (own map and merged); per world the
+    factors (accepted, retracted, correct, retracted while correct), the precision of the
+    correspondences in force, the service's cost per submap and the delivery."""
+    names = [r.name for r in world.robots]
+    frames = {r: list(world.frames(r)) for r in names}
+    local: dict[str, LocalMap] = {}
+    subs: list[Submap] = []
+    for r in names:
+        cfg = agent(r).model_copy(update={"robot": r, "session": SESSION})
+        local[r], own = build_submaps(cfg, frames[r])
+        subs += own
+    if link is None:
+        order, delivery = _deliver_in_order(subs)
+    else:
+        if projection is None:
+            raise MergeError("the acoustic link needs the fleet projection")
+        order, delivery = _deliver_acoustic(subs, link, projection, profile, seed)
+    svc = MergeService(service.model_copy(update={"store": ":memory:"}), session=None)
+    try:
+        for s in order:
+            svc.ingest(s)
+        status = svc.status()
+        all_factors = [Factor.model_validate_json(f.payload) for f in svc.store.factors()]
+        retracted_ids = {f.factor_id for f in svc.store.factors() if f.status == "retracted"}
+        held = {name: {oid: (h.keyframe, np.asarray(h.node.position, dtype=np.float64))
+                       for oid, h in st.objects.items()} for name, st in svc.sessions.items()}
+        latency = list(svc.stats.latency_ms)
+    finally:
+        svc.close()
+
+    anchor = status.get("anchor") or str(FrameId(names[0], SESSION))
+    T_aw = np.linalg.inv(world.session_start(FrameId.parse(anchor).robot))
+    truth_T = {r: np.stack([T_aw @ f.T_true for f in frames[r]]) for r in names}
+    obj_world = {oid: p for oid, p in zip(world.object_ids, world.objects_xyz_m)}
+
+    def truth_of(robot: str, oid: str) -> str | None:
+        try:
+            return local[robot].tracker.track(oid).truth_id
+        except (KeyError, MergeError):
+            return None
+
+    # factors: correct by transform against the truth relative pose of their two keyframes
+    factor_rows = []
+    for f in all_factors:
+        ka, kb = f.keyframe_a or 0, f.keyframe_b or 0
+        Ta, Tb = truth_T.get(f.robot_a), truth_T.get(f.robot_b)
+        ok_T, err_m, err_deg = None, float("nan"), float("nan")
+        if Ta is not None and Tb is not None and ka < len(Ta) and kb < len(Tb):
+            T_true = np.linalg.inv(Ta[ka]) @ Tb[kb]
+            w, x, y, z = f.T_a_b.quaternion_wxyz
+            T_est = np.eye(4)
+            T_est[:3, :3] = _quat_to_R(w, x, y, z)
+            T_est[:3, 3] = f.T_a_b.translation
+            err_m = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+            err_deg = rotation_error_deg(T_est, T_true)
+            ok_T = err_m <= tolerance.metres and err_deg <= tolerance.degrees
+        pairs = [(truth_of(f.robot_a, c.object_a), truth_of(f.robot_b, c.object_b))
+                 for c in f.correspondences]
+        right = sum(a is not None and a == b for a, b in pairs)
+        factor_rows.append({"id": f.factor_id, "retracted": f.factor_id in retracted_ids,
+                            "correct": bool(ok_T), "err_m": err_m, "err_deg": err_deg,
+                            "keyframes": [ka, kb], "corr_right": right,
+                            "corr_wrong": len(pairs) - right})
+    active = [r for r in factor_rows if not r["retracted"]]
+    retracted = [r for r in factor_rows if r["retracted"]]
+    right = sum(r["corr_right"] for r in active)
+    wrong = sum(r["corr_wrong"] for r in active)
+
+    merged_all = status.get("keyframe_poses") or {}
+    robots: dict[str, dict[str, Any]] = {}
+    for r in names:
+        fr = frames[r]
+        T_rw = np.linalg.inv(world.session_start(r))
+        keys_odo = sorted({0, *local[r].keyframes})
+        odo = np.stack([fr[k].T_est for k in keys_odo])
+        raw = merged_all.get(str(FrameId(r, SESSION))) or {}
+        keys_m = sorted(int(k) for k in raw if 0 <= int(k) < len(fr))
+        row: dict[str, Any] = {"keyframes": len(keys_odo), "keyframes_merged": len(keys_m),
+                               "ate_odometry_m": float("nan"), "ate_merged_m": float("nan"),
+                               "final_rot_err_odometry_deg": float("nan"),
+                               "final_pos_err_m": float("nan"),
+                               "final_rot_err_deg": float("nan")}
+        with contextlib.suppress(MergeError):
+            row["ate_odometry_m"] = ate_rmse(odo, truth_T[r][keys_odo])
+            row["final_rot_err_odometry_deg"] = final_pose_error(odo, truth_T[r][keys_odo])[1]
+        if keys_m:
+            merged = np.stack([np.asarray(raw[str(k)], dtype=np.float64) for k in keys_m])
+            with contextlib.suppress(MergeError):
+                row["ate_merged_m"] = ate_rmse(merged, truth_T[r][keys_m])
+                m, deg = final_pose_error(merged, truth_T[r][keys_m])
+                row["final_pos_err_m"], row["final_rot_err_deg"] = m, deg
+        # objects: the robot's own map (ISAM2 landmarks, own frame) and the same objects as
+        # the service places them (its keyframe's merged pose, anchor frame), against the
+        # truth in each frame; objects with a truth id only
+        own_err, merged_err = [], []
+        est = local[r].isam.calculateEstimate()
+        placed = {int(k): np.asarray(T, dtype=np.float64) for k, T in raw.items()}
+        for oid, (k, p_k) in held.get(str(FrameId(r, SESSION)), {}).items():
+            tid = truth_of(r, oid)
+            if tid is None or tid not in obj_world:
+                continue
+            p_w = obj_world[tid]
+            lkey = L(local[r].landmark_of[oid]) if oid in local[r].landmark_of else None
+            if lkey is not None and est.exists(lkey):
+                p_own = np.asarray(est.atPoint3(lkey), dtype=np.float64)
+                own_err.append(np.linalg.norm(p_own - (T_rw[:3, :3] @ p_w + T_rw[:3, 3])))
+            if k in placed:
+                T = placed[k]
+                p_m = T[:3, :3] @ p_k + T[:3, 3]
+                merged_err.append(np.linalg.norm(p_m - (T_aw[:3, :3] @ p_w + T_aw[:3, 3])))
+        row["objects_own"] = len(own_err)
+        row["objects_merged"] = len(merged_err)
+        row["object_rmse_own_m"] = _rms(own_err)
+        row["object_rmse_merged_m"] = _rms(merged_err)
+        robots[r] = row
+    lat = np.asarray(latency, dtype=np.float64)
+    return {
+        "anchor": anchor,
+        "robots": robots,
+        "submaps": len(subs),
+        "delivery": delivery,
+        "factors_accepted": len(factor_rows),
+        "factors_retracted": len(retracted),
+        "factors_correct": sum(r["correct"] for r in factor_rows),
+        "retracted_correct": sum(r["correct"] for r in retracted),
+        "retracted_right_correspondences": sum(r["corr_wrong"] == 0 for r in retracted),
+        "active_factors": len(active),
+        "active_correct": sum(r["correct"] for r in active),
+        "correspondences_right": right,
+        "correspondences_wrong": wrong,
+        "precision": right / (right + wrong) if right + wrong else float("nan"),
+        "service_ms_median": float(np.median(lat)) if lat.size else float("nan"),
+        "service_ms_p90": float(np.percentile(lat, 90)) if lat.size else float("nan"),
+        "factors": factor_rows,
+    }
+
+
+def _rms(x: list[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
+
+
+def _quat_to_R(w: float, x: float, y: float, z: float) -> np.ndarray:
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+__all__ = ["FactorTolerance", "replay_world"]

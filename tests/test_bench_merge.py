@@ -1,0 +1,79 @@
+"""`mergesvc bench merge --quick`: the pool fleet, a short KITTI-00 stretch (when ../shared/data
+has it) and the pool through the acoustic link, replayed in-process and scored against the
+truth: every field present and finite, and the pool's merged trajectories within what was
+measured (with margin), no correct factor retracted."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from mergesvc.bench.merge import ROBOT_FIELDS, WORLD_FIELDS
+from mergesvc.cli import app
+from mergesvc.sim.real_data import KITTI_GT, KITTI_ORB, data_available
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("merge") / "merge.json"
+    r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.with_suffix(".md").is_file()
+    assert out.with_suffix(".settings.json").is_file()
+    return json.loads(out.read_text())
+
+
+def test_every_field_is_there_and_finite(report: dict) -> None:
+    worlds = {r["world"] for r in report["runs"]}
+    expected = {"pool", "pool+acoustic"}
+    if data_available(None, KITTI_GT, KITTI_ORB):
+        expected.add("kitti00")
+    assert worlds == expected
+    for run in report["runs"]:
+        assert set(WORLD_FIELDS) <= set(run), set(WORLD_FIELDS) - set(run)
+        for name, row in run["robots"].items():
+            assert set(ROBOT_FIELDS) <= set(row)
+            for f in ROBOT_FIELDS:
+                assert math.isfinite(row[f]), (run["world"], name, f, row[f])
+        for f in ("precision", "service_ms_median"):
+            assert math.isfinite(run[f]), (run["world"], f)
+        assert run["factors_accepted"] > 0
+    assert set(report["targets"]) == worlds
+    assert "| pool | auv1 |" in report["markdown"]
+
+
+def test_pool_merged_trajectories_against_the_truth(report: dict) -> None:
+    """Measured (seed 0, 1 lap): merged ATE 0.08-0.13 m, precision 0.98-1.00, no correct factor
+    among the retracted ones."""
+    pool = next(r for r in report["runs"] if r["world"] == "pool")
+    for name, row in pool["robots"].items():
+        assert row["keyframes_merged"] == row["keyframes"], name
+        assert row["ate_merged_m"] < 0.3, (name, row["ate_merged_m"])
+    assert pool["retracted_correct"] == 0
+    assert pool["precision"] >= 0.95
+    # a retracted factor counted correct would have to be within 1 m / 5 deg of the truth
+    for f in pool["factors"]:
+        if f["correct"]:
+            assert f["err_m"] <= 1.0 and f["err_deg"] <= 5.0
+
+
+def test_the_acoustic_world_went_through_the_link(report: dict) -> None:
+    ac = next(r for r in report["runs"] if r["world"] == "pool+acoustic")
+    d = ac["delivery"]
+    assert d["offered"] == ac["submaps"] and d["delivered"] + d["lost"] == d["offered"]
+    assert d["latency_p50_s"] > 0.0
+
+
+def test_no_file_is_written_without_out(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import mergesvc.bench
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(mergesvc.bench, "run_merge_bench", lambda *a, **kw: {
+        "markdown": "table", "elapsed_s": 0.0})
+    r = CliRunner().invoke(app, ["bench", "merge", "--quick"])
+    assert r.exit_code == 0, r.output
+    assert list(tmp_path.iterdir()) == []
