@@ -155,6 +155,7 @@ def _candidates(annotation: Any, default: Any) -> list[Any]:
 EXPLICIT: dict[Path_, Any] = {
     ("link", "channel", "link_snr"): {"topside->v1": {"mean_db": 3.0, "spread_db": 1.0}},
     ("link", "channel", "link_range_m"): {"topside->v2": 500.0},
+    ("agent", "up"): (0.0, -1.0, 0.0),
 }
 
 DEFAULTS = Settings()

@@ -389,3 +389,29 @@ def test_an_outlier_that_leaves_two_consistent_pairs_still_fits_about_the_vertic
     fit = _fit(sub, map_, np.arange(3), 0.2, MatchConfig(), rel)
     assert fit.accepted and list(fit.inliers) == [True, True, False]
     assert np.allclose(fit.T_map_submap.rotation().matrix(), Rz, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_gravity_aligned_fit_keeps_declared_up_and_is_not_worse(seed: int) -> None:
+    """Both verticals declared (an IMU) and `verify.gravity_aligned`: the transform turns the
+    submap's up onto the map's (within the tilt prior), the matches are the same, and the
+    rotation error against the truth is no worse than the 6-DoF fit's by more than noise."""
+    sc = make_scenario(Family.UNDERWATER, seed)
+    ned = np.diag([1.0, -1.0, -1.0])
+    conv = _convert(sc, np.eye(3), ned, declare=True)
+    six = match(conv.map, conv.submap, _verify_config(gravity_aligned=False))
+    four = match(conv.map, conv.submap, _verify_config(gravity_aligned=True))
+    if not six.result.accepted:
+        return
+    assert four.result.accepted
+    q = four.result.transform.quaternion_wxyz
+    R = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+    up_map, up_sub = np.asarray(conv.map.up), np.asarray(conv.submap.up)
+    tilt = np.degrees(np.arccos(np.clip(up_map @ (R @ up_sub), -1.0, 1.0)))
+    assert tilt < 0.5
+    assert score_case(conv, four)["wrong"] == 0
+    assert score_case(conv, four)["rot_err_deg"] <= score_case(conv, six)["rot_err_deg"] + 1.0
+
+
+def _verify_config(**verify: object) -> MatchConfig:
+    return MatchConfig.model_validate({"verify": verify})

@@ -33,6 +33,7 @@ from mergesvc.sim.real_data import KITTI_GT, KITTI_ORB, data_available
 from mergesvc.sim.runs import image_s_dataset
 
 POOL_ROBOTS = ("auv1", "auv2", "auv3")
+POOL_UP = (0.0, 0.0, 1.0)  # the pool world is z up
 KITTI_ROBOTS = ("car1", "car2", "car3")
 ROBOT_FIELDS = ("keyframes", "keyframes_merged", "ate_odometry_m", "ate_merged_m",
                 "final_rot_err_odometry_deg", "final_pos_err_m", "final_rot_err_deg",
@@ -126,7 +127,14 @@ def run_merge_bench(
             else:
                 world = fleet_world(s, POOL_ROBOTS, plan.pool_laps, plan.pool_objects)
                 acoustic = name == "pool+acoustic"
-                res = replay(world, service=service, agent=agent,
+
+                def auv(robot: str) -> Any:
+                    # the pool's vehicles know gravity (an AHRS): z up in their odometry frame,
+                    # unless the settings say otherwise
+                    cfg = agent(robot)
+                    return cfg if cfg.up is not None else cfg.model_copy(update={"up": POOL_UP})
+
+                res = replay(world, service=service, agent=auv,
                              link=acoustic_link(link_config) if acoustic else None,
                              projection=_fit_projection(s) if acoustic else None, seed=s)
             res.update(world=name, seed=s, elapsed_s=round(time.monotonic() - t1, 2))

@@ -235,6 +235,8 @@ def demo(
             "service": {"fleet": plan.fleet, "store": str(out / STORE_FILE)},
             "agent": {"fleet": plan.fleet, "session": SESSION},
         })
+        if tree.agent.up is None:  # the demo's vehicles know gravity: the pool is z up
+            tree = tree.merged({"agent": {"up": [0.0, 0.0, 1.0]}})
     plan = dataclasses.replace(plan, service=tree.service)  # the export solves with them
     with exit_on_error(OSError):
         written = write_settings_beside(tree, out, folder=True)

@@ -143,6 +143,11 @@ class VerifyConfig(_Section):
         "where the verticals are known (declared or inferred): distances alone cannot tell a "
         "flat set of objects from its mirror image (a 180 deg flip). None: no tilt test"
     )
+    gravity_aligned: bool = Field(
+        False, description="when both files declare `up` (an IMU's gravity), fit about it: "
+        "yaw + translation (4-DoF, with the tilt prior) instead of a 6-DoF fit whose roll and "
+        "pitch few, nearly coplanar objects hardly fix. The service turns it on"
+    )
 
 
 class MatchConfig(_Section):

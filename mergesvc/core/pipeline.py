@@ -321,9 +321,19 @@ def _upright(
     the noise, which the vertical pins down. No vertical, no test.
     """
     v = config.verify
-    if v.max_tilt_deg is None or fit.T_map_submap is None or rel is None:
+    if fit.T_map_submap is None or rel is None:
         return fit
     inl = fit.inliers
+    if v.gravity_aligned and rel.declared and rel.signed:
+        # both verticals come from the sensors: fit about them, dropping outliers down to a
+        # majority as a declared vertical may (falls back to the 6-DoF fit's tilt test)
+        keep = max(v.min_matches_vertical, int(inl.sum()) // 2 + 1)
+        four = _fit_vertical(sub_xyz[inl], map_xyz[inl], tolerance_m[inl], sigma_m, rel, config,
+                             min_matches=keep)
+        if four.accepted:
+            return _widen(four, inl)
+    if v.max_tilt_deg is None:
+        return fit
     R = fit.T_map_submap.rotation().matrix()
     flat = rel.declared or _mirror_fits(sub_xyz[inl], map_xyz[inl], tolerance_m[inl])
     judged = rel if flat else VerticalRelation(rel.up_map, rel.up_sub, False, False)

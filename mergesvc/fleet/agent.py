@@ -53,6 +53,14 @@ class AgentConfig(BaseModel):
         "odometry alone in the pool demo)",
     )
     tracking: TrackingConfig = TrackingConfig(cos_min=0.6, window_s=60.0)
+    up: tuple[float, float, float] | None = Field(
+        None,
+        description="the direction opposite to gravity in the vehicle's odometry frame, when "
+        "its IMU or attitude sensor gives it (e.g. [0, 0, 1] for z up, [0, -1, 0] for a "
+        "camera's y down). Each submap then declares `up` in its keyframe frame, so the "
+        "service fits inter-robot factors about gravity (4-DoF) instead of guessing the tilt "
+        "from a few nearly coplanar objects. None: not known, nothing declared",
+    )
 
 
 @dataclass
@@ -166,8 +174,12 @@ class LocalMap:
         self._last_cut_m = self.distance_m
         self._new_since_cut = 0
         self.keyframes.append(k)
+        up = None
+        if self.config.up is not None:  # gravity in the keyframe's body frame: R_k^T up
+            up_k = T_k_inv[:3, :3] @ np.asarray(self.config.up, dtype=np.float64)
+            up = tuple(float(x) for x in up_k / np.linalg.norm(up_k))
         return Submap(robot_id=self.config.robot, session_id=self.config.session, seq=seq,
-                      stamp=stamp_s, objects=nodes, keyframe=k,
+                      stamp=stamp_s, objects=nodes, keyframe=k, up=up,
                       odometry=self.odometry(prev, k) if k > prev else None)
 
     def odometry(self, from_keyframe: int, to_keyframe: int) -> Odometry:

@@ -99,7 +99,7 @@ class ServiceConfig(BaseModel):
     )
     match: MatchConfig = Field(
         default_factory=lambda: MatchConfig.model_validate(
-            {"verify": {"min_matches": 4, "min_matches_vertical": 4}}
+            {"verify": {"min_matches": 4, "min_matches_vertical": 4, "gravity_aligned": True}}
         ),
         description="verified matching; an inter-robot factor needs 4 matched objects by "
         "default, with or without a known vertical (3 points admit coincidental fits in a "
@@ -169,6 +169,7 @@ class SessionState:
     keyframes: set[int] = field(default_factory=lambda: {0})
     edges: dict[tuple[int, int], OdometryEdge] = field(default_factory=dict)
     objects: dict[str, HeldObject] = field(default_factory=dict)
+    up: dict[int, np.ndarray] = field(default_factory=dict)  # declared up per keyframe frame
     version: int = 0  # bumped by every submap
     _adjacent: dict[int, list[tuple[int, gtsam.Pose3]]] = field(
         default_factory=lambda: defaultdict(list), repr=False
@@ -187,6 +188,8 @@ class SessionState:
         k = 0 if sub.keyframe is None else sub.keyframe
         seq = sub.seq if sub.seq is not None else -1
         self.keyframes.add(k)
+        if sub.up is not None:
+            self.up[k] = np.asarray(sub.up, dtype=np.float64)
         for o in sub.objects:  # the latest submap holding an object gives its estimate
             held = self.objects.get(o.id)
             if held is None or held.seq <= seq:
@@ -231,6 +234,17 @@ class SessionMap:
     keyframe_of: dict[str, int]
     poses: dict[int, gtsam.Pose3]
 
+
+
+def _session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[float, ...] | None:
+    """The session frame's up, from the latest keyframe that declared one (its up rotated by
+    that keyframe's pose in the session frame); None when no placed keyframe declared it."""
+    for k in sorted(st.up, reverse=True):
+        T = poses.get(k)
+        if T is not None:
+            u = np.asarray(T.rotation().matrix()) @ st.up[k]
+            return tuple(float(x) for x in u / np.linalg.norm(u))
+    return None
 
 class MergeService:
     """The merge service. `start()` opens everything, `close()` stops it (idempotent)."""
@@ -555,7 +569,8 @@ class MergeService:
         sm = None
         if len(placed) >= self.config.min_map_objects:
             sm = SessionMap(ObjectMap(robot_id=st.frame.robot, session_id=st.frame.session,
-                                      objects=placed), keyframe_of, poses)
+                                      objects=placed, up=_session_up(st, poses)),
+                            keyframe_of, poses)
         self._session_maps[name] = (key, sm)
         return sm
 
