@@ -198,3 +198,22 @@ def test_frame_level_factor_is_anchored_at_keyframe_0(frames) -> None:
     # factors between two other sessions, or two of mine, are not for this map
     h = f.model_copy(update={"factor_id": "x", "robot_b": "auv9"})
     assert "ignored" in lm.add_inter_robot(h)
+
+
+def test_submaps_declare_the_ahrs_gravity_of_their_keyframe(frames) -> None:
+    """A frame with an AHRS reading (up_body) makes the submap cut there declare it as `up`;
+    without one and without `agent.up`, nothing is declared; with `agent.up` only, the
+    vehicle rotates it into the keyframe with its own estimate."""
+    fr = frames["auv1"]
+    _, subs = build_submaps(AgentConfig(robot="auv1"), fr)
+    for s in subs:
+        R_true = fr[s.keyframe].T_true[:3, :3]
+        assert np.allclose(s.up, R_true.T @ np.array([0.0, 0.0, 1.0]), atol=1e-9)
+    bare = [f.__class__(f.k, f.stamp_s, f.T_est, f.T_true, f.detections) for f in fr]
+    _, subs = build_submaps(AgentConfig(robot="auv1"), bare)
+    assert subs and all(s.up is None for s in subs)
+    lm, subs = build_submaps(AgentConfig(robot="auv1", up=(0.0, 0.0, 1.0)), bare)
+    est = lm.isam.calculateEstimate()  # smoothed since the cuts: close, not equal
+    for s in subs:
+        R_est = est.atPose3(gtsam.symbol("x", s.keyframe)).rotation().matrix()
+        assert np.allclose(s.up, R_est.T @ np.array([0.0, 0.0, 1.0]), atol=0.02)

@@ -334,13 +334,15 @@ class Frame:
     were placed (the run's estimated world frame, or the vehicle's own odometry frame).
 
     T_est / T_true: (4, 4) body poses; body_T_detections: the detections' raw body-frame
-    positions are not kept, a vehicle only has them through T_est."""
+    positions are not kept, a vehicle only has them through T_est. up_body: the direction
+    opposite to gravity in the body frame, as an IMU / AHRS measures it (None: not measured)."""
 
     k: int
     stamp_s: float
     T_est: np.ndarray
     T_true: np.ndarray
     detections: list[Detection]
+    up_body: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)

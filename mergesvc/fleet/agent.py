@@ -96,6 +96,7 @@ class LocalMap:
     other_keys: dict[tuple[str, int], int] = field(default_factory=dict)
     path_xyz_m: list[np.ndarray] = field(default_factory=list)  # odometry estimate per frame
     poses_est: list[np.ndarray] = field(default_factory=list)  # raw odometry pose per frame
+    up_body: list[np.ndarray | None] = field(default_factory=list)  # AHRS gravity per frame
     stamps_s: list[float] = field(default_factory=list)
     keyframes: list[int] = field(default_factory=list)  # the keyframe of every submap cut
     _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
@@ -140,6 +141,8 @@ class LocalMap:
         self._prev_pose = frame.T_est
         self.path_xyz_m.append(frame.T_est[:3, 3].copy())
         self.poses_est.append(np.array(frame.T_est, dtype=np.float64))
+        self.up_body.append(None if frame.up_body is None
+                            else np.asarray(frame.up_body, dtype=np.float64))
         self.stamps_s.append(float(frame.stamp_s))
         self.frames_seen += 1
         for t in self.tracker.tracks:
@@ -175,8 +178,13 @@ class LocalMap:
         self._new_since_cut = 0
         self.keyframes.append(k)
         up = None
-        if self.config.up is not None:  # gravity in the keyframe's body frame: R_k^T up
+        if self.up_body[k] is not None:  # the AHRS measured gravity in this keyframe's body
+            up_k = self.up_body[k]
+        elif self.config.up is not None:  # gravity in the keyframe's body frame: R_k^T up
             up_k = T_k_inv[:3, :3] @ np.asarray(self.config.up, dtype=np.float64)
+        else:
+            up_k = None
+        if up_k is not None and np.linalg.norm(up_k) > 0:
             up = tuple(float(x) for x in up_k / np.linalg.norm(up_k))
         return Submap(robot_id=self.config.robot, session_id=self.config.session, seq=seq,
                       stamp=stamp_s, objects=nodes, keyframe=k, up=up,

@@ -117,7 +117,8 @@ class DriveFleet:
             dets = [Detection(d.embedding_d, d.uncertainty_s, C @ d.position_xyz_m,
                               C @ d.position_cov_33 @ C.T, d.stamp_s, d.truth_id)
                     for d in fr.detections]
-            yield Frame(fr.k, fr.stamp_s, car.T_est[fr.k], car.T_true[fr.k], dets)
+            up = None if fr.up_body is None else C @ fr.up_body  # the IMU, in camera axes
+            yield Frame(fr.k, fr.stamp_s, car.T_est[fr.k], car.T_true[fr.k], dets, up_body=up)
 
 
 def _to_camera(T_grav: np.ndarray) -> np.ndarray:

@@ -26,6 +26,8 @@ from mergesvc.sim.scenario import (
     Scenario,
 )
 
+_E_Z = np.array([0.0, 0.0, 1.0])  # up in the gravity-aligned worlds
+
 log = logging.getLogger(__name__)
 
 
@@ -318,7 +320,8 @@ def _frames(
             cov = Te[:3, :3] @ np.diag(np.full(3, sigma[j] ** 2)) @ Te[:3, :3].T
             dets.append(Detection(emb[j], float(s_img[j]), p_est, cov, float(stamps[k]),
                                   truths[j]))
-        yield Frame(k, float(stamps[k]), Te, Tt, dets)
+        # the vehicle's AHRS: gravity in its body frame (the world here is z up)
+        yield Frame(k, float(stamps[k]), Te, Tt, dets, up_body=Tt[:3, :3].T @ _E_Z)
 
 
 def _simulate(
