@@ -4,6 +4,7 @@ tests: production code never calls them."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -106,3 +107,17 @@ def astar_crosscheck(problem: AssignmentProblem) -> np.ndarray:
     )
     X = np.asarray(X[0].detach().cpu().numpy())
     return np.where(X.max(axis=1) > 0.5, X.argmax(axis=1), UNMATCHED).astype(np.int64)
+
+
+def brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> float:
+    """Objective of the solution minus the best feasible assignment giving row i another
+    candidate (-inf alternatives: the margin is inf). Enumerates every assignment."""
+    best = problem.score(assignment)
+    alt = -np.inf
+    options = [[UNMATCHED, *problem.cols[problem.rows == r].tolist()] for r in range(problem.n1)]
+    for combo in itertools.product(*options):
+        a = np.array(combo)
+        if a[i] in (UNMATCHED, assignment[i]) or not problem.is_feasible(a):
+            continue
+        alt = max(alt, problem.score(a))
+    return best - alt

@@ -217,3 +217,13 @@ def test_submaps_declare_the_ahrs_gravity_of_their_keyframe(frames) -> None:
     for s in subs:
         R_est = est.atPose3(gtsam.symbol("x", s.keyframe)).rotation().matrix()
         assert np.allclose(s.up, R_est.T @ np.array([0.0, 0.0, 1.0]), atol=0.02)
+
+
+@pytest.mark.parametrize(
+    "up", [(0.0, 0.0, 0.0), (float("nan"), 0.0, 1.0), (0.0, float("inf"), 0.0)]
+)
+def test_agent_up_must_be_a_direction(up) -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="finite, non-zero direction"):
+        AgentConfig(robot="auv1", up=up)

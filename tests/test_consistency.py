@@ -3,13 +3,11 @@ presolve and margins against brute force on problems with conflicts."""
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from oracles import brute_force
+from oracles import brute_force, brute_margin
 
 from mergesvc.core.solvers.consistency import pairwise_conflicts, repair_conflicts
 from mergesvc.core.solvers.exact import ExactResult, dominated, solve_exact
@@ -291,18 +289,6 @@ def test_dominated_with_conflicts_is_never_needed() -> None:
     assert removed > 50
 
 
-def _brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> float:
-    best = problem.score(assignment)
-    alt = -np.inf
-    options = [[UNMATCHED, *problem.cols[problem.rows == r].tolist()] for r in range(problem.n1)]
-    for combo in itertools.product(*options):
-        a = np.array(combo)
-        if a[i] in (UNMATCHED, assignment[i]) or not problem.is_feasible(a):
-            continue
-        alt = max(alt, problem.score(a))
-    return best - alt
-
-
 def test_row_margins_with_conflicts_against_brute_force() -> None:
     rng = np.random.default_rng(93)
     needed, checked, settled = 0.5, 0, 0
@@ -314,7 +300,7 @@ def test_row_margins_with_conflicts_against_brute_force() -> None:
             if assignment[i] == UNMATCHED:
                 assert np.isnan(margins[i])
                 continue
-            true = _brute_margin(problem, assignment, i)
+            true = brute_margin(problem, assignment, i)
             checked += 1
             if not np.isfinite(true):
                 assert margins[i] == np.inf

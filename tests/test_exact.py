@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from oracles import astar_crosscheck, brute_force
+from oracles import astar_crosscheck, brute_force, brute_margin
 
 from mergesvc.core.solvers.exact import ExactResult, dominated, solve_exact
 from mergesvc.core.solvers.margin import row_margins
@@ -546,22 +546,6 @@ def test_cutoff_finds_the_optimum_above_it_and_bounds_it_below() -> None:
         solve_exact(random_problem(rng), allow_unmatched=False, cutoff=0.0)
 
 
-def _brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> float:
-    """Objective of the solution minus the best assignment giving row i another candidate."""
-    best = problem.score(assignment)
-    alt = -np.inf
-    n1 = problem.n1
-    options = [
-        [UNMATCHED, *problem.cols[problem.rows == r].tolist()] for r in range(n1)
-    ]
-    for combo in itertools.product(*options):
-        a = np.array(combo)
-        if a[i] in (UNMATCHED, assignment[i]) or not problem.is_feasible(a):
-            continue
-        alt = max(alt, problem.score(a))
-    return best - alt
-
-
 def test_row_margins_against_brute_force() -> None:
     rng = np.random.default_rng(79)
     needed, checked, settled = 0.5, 0, 0
@@ -573,7 +557,7 @@ def test_row_margins_against_brute_force() -> None:
             if assignment[i] == UNMATCHED:
                 assert np.isnan(margins[i])
                 continue
-            true = _brute_margin(problem, assignment, i)
+            true = brute_margin(problem, assignment, i)
             checked += 1
             if not np.isfinite(true):
                 assert margins[i] == np.inf

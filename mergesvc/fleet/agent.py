@@ -18,7 +18,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
@@ -61,6 +61,14 @@ class AgentConfig(BaseModel):
         "service fits inter-robot factors about gravity (4-DoF) instead of guessing the tilt "
         "from a few nearly coplanar objects. None: not known, nothing declared",
     )
+
+    @field_validator("up")
+    @classmethod
+    def _up_is_a_direction(cls, v: tuple[float, float, float] | None
+                           ) -> tuple[float, float, float] | None:
+        if v is not None and not (np.all(np.isfinite(v)) and np.linalg.norm(v) > 0):
+            raise ValueError(f"up must be a finite, non-zero direction, got {list(v)}")
+        return v
 
 
 @dataclass
@@ -184,7 +192,7 @@ class LocalMap:
             up_k = T_k_inv[:3, :3] @ np.asarray(self.config.up, dtype=np.float64)
         else:
             up_k = None
-        if up_k is not None and np.linalg.norm(up_k) > 0:
+        if up_k is not None and np.all(np.isfinite(up_k)) and np.linalg.norm(up_k) > 0:
             up = tuple(float(x) for x in up_k / np.linalg.norm(up_k))
         return Submap(robot_id=self.config.robot, session_id=self.config.session, seq=seq,
                       stamp=stamp_s, objects=nodes, keyframe=k, up=up,
