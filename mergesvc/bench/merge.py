@@ -35,6 +35,11 @@ from mergesvc.sim.runs import image_s_dataset
 POOL_ROBOTS = ("auv1", "auv2", "auv3")
 POOL_UP = (0.0, 0.0, 1.0)  # the pool world is z up
 KITTI_ROBOTS = ("car1", "car2", "car3")
+# pool: the demo's world (2 laps); pool-long: the same vehicles for 6 laps (drift grows);
+# kitti00: the cars' odometry drifts as the ORB-SLAM2 estimate (loop-closed); kitti00-vo: as
+# visual odometry without loop closures (sim/drive_fleet.py, drift="vo")
+WORLDS = ("pool", "pool-long", "kitti00", "kitti00-vo", "pool+acoustic")
+KITTI_WORLDS = {"kitti00": "orbslam", "kitti00-vo": "vo"}
 ROBOT_FIELDS = ("keyframes", "keyframes_merged", "ate_odometry_m", "ate_merged_m",
                 "final_rot_err_odometry_deg", "final_pos_err_m", "final_rot_err_deg",
                 "objects_own", "objects_merged", "object_rmse_own_m", "object_rmse_merged_m")
@@ -50,18 +55,19 @@ class MergeBenchPlan:
     seed: int = 0
     seeds: int = 3
     pool_laps: int = 2
+    pool_long_laps: int = 6
     pool_objects: int = 24
     kitti_stretches: tuple[tuple[int, int], ...] = STRETCHES_FULL
     kitti_step: int = 4
     acoustic: bool = True
     data_dir: Path | None = None
-    worlds: list[str] = field(default_factory=lambda: ["pool", "kitti00", "pool+acoustic"])
+    worlds: list[str] = field(default_factory=lambda: list(WORLDS))
 
     @classmethod
     def quick(cls, seed: int = 0, seeds: int = 1, data_dir: Path | None = None
               ) -> MergeBenchPlan:
-        return cls(seed=seed, seeds=seeds, pool_laps=1, kitti_stretches=STRETCHES_QUICK,
-                   data_dir=data_dir)
+        return cls(seed=seed, seeds=seeds, pool_laps=1, pool_long_laps=3,
+                   kitti_stretches=STRETCHES_QUICK, data_dir=data_dir)
 
 
 def acoustic_link(base: LinkConfig) -> LinkConfig:
@@ -97,21 +103,22 @@ def run_merge_bench(
     check_count("seeds", plan.seeds)
     t0 = time.monotonic()
     worlds = list(plan.worlds)
-    if "kitti00" in worlds and not data_available(plan.data_dir, KITTI_GT, KITTI_ORB):
-        echo("KITTI-00 poses not found (../shared/data/kitti00): the kitti00 world is skipped")
-        worlds.remove("kitti00")
+    if set(KITTI_WORLDS) & set(worlds) and not data_available(plan.data_dir, KITTI_GT,
+                                                                  KITTI_ORB):
+        echo("KITTI-00 poses not found (../shared/data/kitti00): the kitti00 worlds are skipped")
+        worlds = [w for w in worlds if w not in KITTI_WORLDS]
     if not plan.acoustic and "pool+acoustic" in worlds:
         worlds.remove("pool+acoustic")
-    unknown = set(worlds) - {"pool", "kitti00", "pool+acoustic"}
+    unknown = set(worlds) - set(WORLDS)
     if unknown:
         raise InputError(f"unknown worlds {sorted(unknown)}")
     runs = []
     for s in range(plan.seed, plan.seed + plan.seeds):
         for name in worlds:
             t1 = time.monotonic()
-            if name == "kitti00":
+            if name in KITTI_WORLDS:
                 world = drive_fleet(s, KITTI_ROBOTS, plan.kitti_stretches, plan.kitti_step,
-                                    data_dir=plan.data_dir)
+                                    data_dir=plan.data_dir, drift=KITTI_WORLDS[name])
 
                 def car(robot: str, world: Any = world) -> Any:
                     # a car, not a pool vehicle: tracks live ~10 s at 8 m/s, and the odometry
@@ -125,7 +132,8 @@ def run_merge_bench(
                              seed=s)
                 res["odometry_step_sigma"] = list(world.odometry_step_sigma)
             else:
-                world = fleet_world(s, POOL_ROBOTS, plan.pool_laps, plan.pool_objects)
+                laps = plan.pool_long_laps if name == "pool-long" else plan.pool_laps
+                world = fleet_world(s, POOL_ROBOTS, laps, plan.pool_objects)
                 acoustic = name == "pool+acoustic"
 
                 def auv(robot: str) -> Any:
@@ -184,10 +192,18 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
         out[w] = {"robots": robots, **{f: _spread([r[f] for r in rs]) for f in (
             "factors_accepted", "factors_retracted", "retracted_correct", "active_factors",
             "active_correct", "precision", "service_ms_median", "submaps")},
+            "nees_median": _spread([_nees_median(r) for r in rs]),
             "delivered": _spread([r["delivery"]["delivered"] for r in rs]),
             "lost": _spread([r["delivery"]["lost"] for r in rs]),
             "out_of_order": _spread([r["delivery"]["out_of_order"] for r in rs])}
     return out
+
+
+def _nees_median(run: dict[str, Any]) -> float:
+    """Median NEES of the factors in force (chi2 with 6 dof, median 5.35 when the covariances
+    are honest; below: conservative)."""
+    v = [f["nees"] for f in run["factors"] if not f["retracted"] and np.isfinite(f["nees"])]
+    return float(np.median(v)) if v else float("nan")
 
 
 def targets(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -236,9 +252,9 @@ def markdown(report: dict[str, Any]) -> str:
     """Per world and robot: median [min-max] over seeds."""
     head = ("| world | robot | keyframes (merged) | ATE odometry m | ATE merged m | final rot "
             "merged deg (odometry) | object RMSE own m | object RMSE merged m | factors acc / "
-            "retracted (correct among retracted) | in force correct / all | precision | "
-            "service ms/submap | delivered / lost / out of order |")
-    lines = [head, "|" + "---|" * 13]
+            "retracted (correct among retracted) | in force correct / all | factor NEES "
+            "median | precision | service ms/submap | delivered / lost / out of order |")
+    lines = [head, "|" + "---|" * 14]
     for w, s in report["summary"].items():
         for name, r in s["robots"].items():
             lines.append(
@@ -248,7 +264,8 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{_fmt(r['object_rmse_own_m'])} | {_fmt(r['object_rmse_merged_m'])} | "
                 f"{_fmt(s['factors_accepted'], 0)} / {_fmt(s['factors_retracted'], 0)} "
                 f"({_fmt(s['retracted_correct'], 0)}) | {_fmt(s['active_correct'], 0)} / "
-                f"{_fmt(s['active_factors'], 0)} | {_fmt(s['precision'])} | "
+                f"{_fmt(s['active_factors'], 0)} | {_fmt(s['nees_median'], 1)} | "
+                f"{_fmt(s['precision'])} | "
                 f"{_fmt(s['service_ms_median'], 1)} | {_fmt(s['delivered'], 0)} / "
                 f"{_fmt(s['lost'], 0)} / {_fmt(s['out_of_order'], 0)} |")
     lines.append("")

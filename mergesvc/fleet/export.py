@@ -15,6 +15,12 @@ and writes into `out_dir`:
                     the graph's factor order, i -> j being the factor's node a -> node b with
                     the measurement T_a_b.
   graph_nodes.json  vertex id (a string, JSON keys are) -> node "robot/session#k".
+  factors.json      every inter-robot factor the store holds, accepted or retracted (its
+                    `status`), as schemas/factor.schema.json objects, in the order accepted:
+                    what a vehicle received (clients/gtsam_factors.py adds them to a graph).
+  map.json          the fused global map in the anchor frame (schemas/object_map.schema.json;
+                    robot_id/session_id name the anchor session), absent before the first
+                    solve joins any session to the anchor.
   export.json       the manifest: the anchor, each node's frame and stamp, each edge's factor
                     id and kind, the files written, submaps left out (pending).
   trajectories/{robot}_{session}_odometry.tum
@@ -59,7 +65,7 @@ import numpy as np
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId
 from mergesvc.core.graph import pose3_from_model
-from mergesvc.core.model import Submap
+from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.errors import InputError, MergeError, StoreError, one_line
 from mergesvc.fleet.service import MergeService, ServiceConfig
 from mergesvc.wire import Projection, decode_message
@@ -68,6 +74,8 @@ from mergesvc.wire.formats import write_g2o, write_tum
 GRAPH_FILE = "graph.g2o"
 NODES_FILE = "graph_nodes.json"
 MANIFEST_FILE = "export.json"
+FACTORS_FILE = "factors.json"
+MAP_FILE = "map.json"
 TRAJECTORY_DIR = "trajectories"
 # the submaps restore() takes in (the others are pending or failed)
 _PROCESSED = ("processed", "no_match")
@@ -282,6 +290,17 @@ def _write(svc: MergeService, out: Path, store_path: Path,
             )
         trajectories[name] = files
 
+    factors = []
+    for row in svc.store.factors():
+        f = Factor.model_validate_json(row.payload)
+        factors.append(f.model_copy(update={"status": FactorStatus(row.status)}).model_dump(
+            mode="json"))
+    factors_file = _write_json(out / FACTORS_FILE, factors)
+    global_map, _ = svc.global_map()
+    map_file = None
+    if global_map is not None:
+        map_file = _write_json(out / MAP_FILE, global_map.model_dump(mode="json",
+                                                                      exclude_none=True))
     pending = len(svc.store.unprocessed_submaps())
     manifest = _write_json(out / MANIFEST_FILE, {
         "store": str(store_path),
@@ -292,6 +311,8 @@ def _write(svc: MergeService, out: Path, store_path: Path,
         "edges": listed,
         "stamps": stamp_kind,
         "trajectories": {s: {k: str(p) for k, p in f.items()} for s, f in trajectories.items()},
+        "factors": str(factors_file),
+        "map": str(map_file) if map_file is not None else None,
         "pending_submaps": pending,
     })
     return ExportResult(out_dir=out, anchor=anchor, graph=g2o, nodes=node_file,
@@ -300,8 +321,10 @@ def _write(svc: MergeService, out: Path, store_path: Path,
 
 
 __all__ = [
+    "FACTORS_FILE",
     "GRAPH_FILE",
     "MANIFEST_FILE",
+    "MAP_FILE",
     "NODES_FILE",
     "TRAJECTORY_DIR",
     "ExportResult",

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from mergesvc.core.frames import FrameId
@@ -143,7 +144,7 @@ def replay_world(
     for f in all_factors:
         ka, kb = f.keyframe_a or 0, f.keyframe_b or 0
         Ta, Tb = truth_T.get(f.robot_a), truth_T.get(f.robot_b)
-        ok_T, err_m, err_deg = None, float("nan"), float("nan")
+        ok_T, err_m, err_deg, nees = None, float("nan"), float("nan"), float("nan")
         if Ta is not None and Tb is not None and ka < len(Ta) and kb < len(Tb):
             T_true = np.linalg.inv(Ta[ka]) @ Tb[kb]
             w, x, y, z = f.T_a_b.quaternion_wxyz
@@ -153,11 +154,13 @@ def replay_world(
             err_m = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
             err_deg = rotation_error_deg(T_est, T_true)
             ok_T = err_m <= tolerance.metres and err_deg <= tolerance.degrees
+            nees = _nees(T_est, T_true, np.asarray(f.covariance, dtype=np.float64))
         pairs = [(truth_of(f.robot_a, c.object_a), truth_of(f.robot_b, c.object_b))
                  for c in f.correspondences]
         right = sum(a is not None and a == b for a, b in pairs)
         factor_rows.append({"id": f.factor_id, "retracted": f.factor_id in retracted_ids,
                             "correct": bool(ok_T), "err_m": err_m, "err_deg": err_deg,
+                            "nees": nees,
                             "keyframes": [ka, kb], "corr_right": right,
                             "corr_wrong": len(pairs) - right})
     active = [r for r in factor_rows if not r["retracted"]]
@@ -232,6 +235,17 @@ def replay_world(
         "service_ms_p90": float(np.percentile(lat, 90)) if lat.size else float("nan"),
         "factors": factor_rows,
     }
+
+
+def _nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> float:
+    """The factor's error under its own covariance: e' inv(cov) e with e = Log(inv(T_est)
+    T_true) in GTSAM's Pose3 tangent order (rotation, translation); chi2 with 6 degrees of
+    freedom (mean 6) when the covariance is honest."""
+    e = gtsam.Pose3.Logmap(gtsam.Pose3(T_est).between(gtsam.Pose3(T_true)))
+    try:
+        return float(e @ np.linalg.solve(cov, e))
+    except np.linalg.LinAlgError:
+        return float("nan")
 
 
 def _rms(x: list[float]) -> float:
