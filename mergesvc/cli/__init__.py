@@ -10,6 +10,7 @@ acoustic link). Known errors become exit codes in `errors`; shared options (the 
 from __future__ import annotations
 
 import logging
+import re
 import sys
 from typing import Annotated
 
@@ -50,5 +51,18 @@ app.add_typer(files.uncertainty_app, name="uncertainty")
 app.add_typer(fleet.link_app, name="link")
 
 
+def hoist_verbose(argv: list[str]) -> list[str]:
+    """`-v`, `-vv` and `--verbose` anywhere before `--` moved to the front, so that
+    `mergesvc serve -v` works as `mergesvc -v serve` does (the flag is the tree's, not each
+    command's). No command has an option of its own spelled so."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    verbose = [a for a in argv[:end] if a == "--verbose" or _VERBOSE.fullmatch(a)]
+    rest = [a for a in argv[:end] if not (a == "--verbose" or _VERBOSE.fullmatch(a))]
+    return verbose + rest + argv[end:]
+
+
+_VERBOSE = re.compile(r"-v+")
+
+
 def main() -> None:
-    app()
+    app(args=hoist_verbose(sys.argv[1:]))
