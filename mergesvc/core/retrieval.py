@@ -1,0 +1,107 @@
+"""Which frames a submap is worth matching against: one index over the whole fleet's objects.
+
+The service used to match every submap against every other frame (robot session) in turn, so
+its cost per submap grew with the fleet: 2 matches at 3 robots, 19 at 20, 41 when one robot
+opened 40 sessions. `FleetIndex` holds the unit embeddings of every frame's objects in one
+matrix per embedding size; `rank` scores each frame for a submap with one matrix product and
+the service matches only the best few (`ServiceConfig.max_frames_per_submap`), so the matching
+cost per submap is bounded whatever the fleet size. Frames of another embedding size are never
+candidates (their objects come from another model; issue 14).
+
+Score of frame f for a submap with objects i: sum_i max(0, best_i(f) - typical_i), where
+best_i(f) is the cosine of object i to its most similar object of f and typical_i the median
+over the frames of the fleet of best_i (the level any frame reaches for object i: a generic
+object that resembles everything adds nothing). A frame that saw the submap's objects scores
+about one per object seen; frames of an unrelated place near zero. Ties keep the frames' order
+of arrival. A fleet of at most `keep` candidate frames needs no ranking: `rank` returns them
+all (the scores still computed, for the log).
+
+Pure numpy; no frame is ever dropped from the index (a frame's row block is replaced when its
+objects change).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mergesvc.errors import InputError
+
+
+@dataclass(frozen=True)
+class FrameScore:
+    frame: str
+    score: float
+
+
+class FleetIndex:
+    """Unit embeddings of every frame's objects, grouped by embedding size."""
+
+    def __init__(self) -> None:
+        self._frames: dict[str, np.ndarray] = {}  # frame -> (n, d) unit rows, arrival order
+        self._stacked: dict[int, tuple[list[str], np.ndarray, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __contains__(self, frame: object) -> bool:
+        return frame in self._frames
+
+    def update(self, frame: str, embeddings: np.ndarray) -> None:
+        """Set (or replace) a frame's objects: (n, d) embeddings, n >= 0, finite."""
+        e = _unit_rows(embeddings, f"frame {frame}")
+        old = self._frames.get(frame)
+        if old is not None:
+            self._stacked.pop(old.shape[1], None)
+        self._frames[frame] = e  # a replaced frame keeps its place in the order
+        self._stacked.pop(e.shape[1], None)
+
+    def remove(self, frame: str) -> None:
+        old = self._frames.pop(frame, None)
+        if old is not None:
+            self._stacked.pop(old.shape[1], None)
+
+    def _stack(self, dim: int) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """(frames of this size with objects, (N, dim) rows, (k,) start row of each frame)."""
+        got = self._stacked.get(dim)
+        if got is None:
+            names = [f for f, e in self._frames.items() if e.shape[1] == dim and len(e)]
+            blocks = [self._frames[f] for f in names]
+            rows = np.vstack(blocks) if blocks else np.zeros((0, dim))
+            starts = np.cumsum([0] + [len(b) for b in blocks[:-1]]).astype(np.int64)
+            got = (names, rows, starts)
+            self._stacked[dim] = got
+        return got
+
+    def rank(self, embeddings: np.ndarray, *, exclude: str | None = None,
+             keep: int | None = None) -> list[FrameScore]:
+        """The frames of the submap's embedding size (but `exclude`, its own), best first;
+        at most `keep` of them (None: all). (m, d) embeddings of the submap's objects."""
+        if keep is not None and keep < 0:
+            raise InputError(f"keep must be >= 0, got {keep}")
+        q = _unit_rows(embeddings, "submap")
+        names, rows, starts = self._stack(q.shape[1])
+        pick = [i for i, f in enumerate(names) if f != exclude]
+        if not pick or not len(q):
+            return [FrameScore(names[i], 0.0) for i in pick][:keep]
+        sim = q @ rows.T  # (m, N)
+        best = np.maximum.reduceat(sim, starts, axis=1)[:, pick]  # (m, frames)
+        typical = np.median(best, axis=1, keepdims=True)
+        score = np.maximum(best - typical, 0.0).sum(axis=0)
+        order = np.argsort(-score, kind="stable")
+        out = [FrameScore(names[pick[i]], float(score[i])) for i in order]
+        return out if keep is None else out[:keep]
+
+
+def _unit_rows(e: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(e, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] < 1:
+        raise InputError(f"{what}: embeddings must be (n, d) with d >= 1, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise InputError(f"{what}: embeddings must be finite")
+    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    return a / np.where(norm > 0, norm, 1.0)
+
+
+__all__ = ["FleetIndex", "FrameScore"]
