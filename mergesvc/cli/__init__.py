@@ -18,7 +18,7 @@ import typer
 
 from mergesvc.cli import bench, files, fleet
 
-__all__ = ["app", "main"]
+__all__ = ["app", "hoist_verbose", "main"]
 
 app = typer.Typer(
     add_completion=False,
