@@ -26,7 +26,10 @@ ALLOWED: dict[str, set[str]] = {
     "fleet": {"fleet", "link", "wire", "sim", "core", "errors"},
     "bench": {"bench", "link", "wire", "sim", "core", "errors"},
     "settings": {"settings", "fleet", "link", "wire", "sim", "core", "errors"},
-    "cli": {"cli", "settings", "fleet", "bench", "link", "wire", "sim", "core", "errors", "api"},
+    "ros2": {"ros2", "fleet", "link", "wire", "sim", "core", "errors"},
+    "view": {"view", "fleet", "link", "wire", "sim", "core", "errors"},
+    "cli": {"cli", "settings", "ros2", "view", "fleet", "bench", "link", "wire", "sim", "core",
+            "errors", "api"},
     "api": {"core", "wire", "errors"},
 }
 # Third-party and stdlib modules that mean I/O beyond computation, forbidden in these layers.

@@ -210,6 +210,29 @@ def codec_decode(
                + (f", {n} objects, {env.n_bytes / n:.1f} bytes/object" if n else ""))
 
 
+@codec_app.command("golden")
+def codec_golden(
+    out: Annotated[Path, typer.Option(help="folder of the golden vectors")] = Path("tests/golden"),
+    check: Annotated[
+        bool, typer.Option(help="fail if the folder differs from what this build writes")
+    ] = False,
+) -> None:
+    """Write (or --check) the wire protocol's golden vectors: small messages of every type and
+    profile as NAME.bin with the decoded NAME.json (docs/wire.md)."""
+    from mergesvc.wire.golden import check_golden, write_golden
+
+    with exit_on_error():
+        if check:
+            stale = check_golden(out)
+            if stale:
+                fail(MergeError(f"golden vectors out of date in {out}: {', '.join(stale)}; "
+                                f"run mergesvc codec golden --out {out}"), EXIT_FAILED)
+            typer.echo(f"golden vectors up to date in {out}")
+            return
+        paths = write_golden(out)
+    typer.echo(f"wrote {len(paths)} golden files in {out}")
+
+
 def _write_scenarios(out_dir: Path, run, cases) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "map.json").write_text(run.map.model_dump_json())

@@ -36,6 +36,28 @@ MAX_FILE_BYTES = 2 * 1024**3
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
+# JSON Schema only (validation is the models' own): what the schemas say beyond the types
+SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+SCHEMA_ID = "urn:mergesvc:schemas:v{version}:{name}"  # $id of schemas/<name>
+_VERSION_SCHEMA: dict[str, Any] = {"const": SCHEMA_VERSION}
+_ROW6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
+_COV6_SCHEMA: dict[str, Any] = {"items": _ROW6, "minItems": 6, "maxItems": 6}
+
+
+def _in_array_branch(extra: dict[str, Any]) -> Any:
+    """json_schema_extra of an optional array field: `extra` goes into the array branch of
+    its anyOf, so strict validators (ajv) see array keywords only where the type is array."""
+
+    def update(schema: dict[str, Any]) -> None:
+        for branch in schema.get("anyOf", [schema]):
+            if branch.get("type") == "array":
+                branch.update(extra)
+
+    return update
+
+
+_NONZERO3_SCHEMA = _in_array_branch({"not": {"const": [0, 0, 0]}})
+
 Identifier = Annotated[str, Field(min_length=1, max_length=MAX_ID_LENGTH)]
 
 
@@ -81,7 +103,9 @@ class ObjectMap(BaseModel):
 
     model_config = _STRICT
 
-    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    schema_version: int = Field(
+        default=SCHEMA_VERSION, description="must be 1", json_schema_extra=_VERSION_SCHEMA
+    )
     robot_id: Identifier
     session_id: Identifier
     objects: list[ObjectNode] = Field(min_length=1, max_length=MAX_OBJECTS)
@@ -91,6 +115,7 @@ class ObjectMap(BaseModel):
         "[0, 0, 1] for ENU, [0, 0, -1] for NED, [0, -1, 0] for a camera frame (y down); any "
         "non-zero length. Without it the vertical is inferred from the object layout where "
         "that is reliable, and nothing is assumed otherwise",
+        json_schema_extra=_NONZERO3_SCHEMA,
     )
     _arrays: ObjectArrays | None = PrivateAttr(default=None)
 
@@ -188,7 +213,8 @@ class Odometry(BaseModel):
     from_keyframe: int = Field(ge=0, description="the earlier keyframe (the previous submap's)")
     T_from_to: Pose = Field(description="pose of the submap's keyframe in from_keyframe")
     covariance: Covariance6 = Field(
-        description="6x6 SPD covariance of T_from_to, GTSAM Pose3 order (rotation, translation)"
+        description="6x6 SPD covariance of T_from_to, GTSAM Pose3 order (rotation, translation)",
+        json_schema_extra=_COV6_SCHEMA,
     )
 
 
@@ -252,13 +278,14 @@ class MatchResult(BaseModel):
 
     model_config = _STRICT
 
-    schema_version: int = SCHEMA_VERSION
+    schema_version: int = Field(default=SCHEMA_VERSION, json_schema_extra=_VERSION_SCHEMA)
     accepted: bool
     reason: RejectReason
     matches: list[Match]
     transform: Transform | None
     covariance: list[list[float]] | None = Field(
-        description="6x6 covariance of the transform, GTSAM order (rotation, translation)"
+        description="6x6 covariance of the transform, GTSAM order (rotation, translation)",
+        json_schema_extra=_in_array_branch(_COV6_SCHEMA),
     )
     timings_ms: dict[str, float]
 
@@ -420,13 +447,83 @@ def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -
 
 
 def json_schemas() -> dict[str, dict[str, Any]]:
-    """JSON Schema of every file model, keyed by file name under schemas/."""
-    return {
+    """JSON Schema (2020-12) of every file model, keyed by file name under schemas/.
+
+    They refuse what the models refuse where JSON Schema can say it (types, ranges, lengths,
+    `schema_version` 1, a 6x6 covariance, a non-zero `up`, keyframe_a with keyframe_b,
+    odometry with keyframe). What it cannot say, the models still check: every object's
+    embedding of one length and a per-dimension variance of that length, unique object ids,
+    a unit quaternion, a symmetric positive definite covariance, odometry.from_keyframe
+    before keyframe, truth matches naming objects of the files.
+    """
+    schemas = {
         "object_map.schema.json": ObjectMap.model_json_schema(),
         "submap.schema.json": Submap.model_json_schema(),
         "match_result.schema.json": MatchResult.model_json_schema(),
         "factor.schema.json": Factor.model_json_schema(),
         "error_message.schema.json": ErrorMessage.model_json_schema(),
+        "truth.schema.json": _truth_schema(),
+    }
+    schemas["submap.schema.json"]["allOf"] = [_needs("odometry", "keyframe")]
+    schemas["factor.schema.json"]["allOf"] = [
+        _needs("keyframe_a", "keyframe_b"), _needs("keyframe_b", "keyframe_a")
+    ]
+    return {
+        name: {"$schema": SCHEMA_DIALECT,
+               "$id": SCHEMA_ID.format(version=SCHEMA_VERSION, name=name), **schema}
+        for name, schema in schemas.items()
+    }
+
+
+def _needs(field: str, other: str) -> dict[str, Any]:
+    """JSON Schema: when `field` is given (not null), `other` must be given (not null)."""
+    return {
+        "if": {"required": [field], "properties": {field: {"not": {"type": "null"}}}},
+        "then": {"required": [other], "properties": {other: {"not": {"type": "null"}}}},
+    }
+
+
+def _truth_schema() -> dict[str, Any]:
+    """The ground truth `mergesvc example` and `mergesvc scenario` write beside a submap
+    (truth.json, NAME.truth.json; mergesvc.sim.Scenario.truth_dict)."""
+    ident = {"type": "string", "minLength": 1, "maxLength": MAX_ID_LENGTH}
+    number = {"type": "number"}
+    return {
+        "title": "Truth",
+        "description": "Ground truth of a generated submap against its map.",
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["matches", "equivalent", "transform"],
+        "properties": {
+            "matches": {
+                "description": "submap object id -> the map object it is, or null (an object "
+                "the map does not have: a false detection or one outside the map)",
+                "type": "object",
+                "propertyNames": ident,
+                "additionalProperties": {"anyOf": [ident, {"type": "null"}]},
+            },
+            "equivalent": {
+                "description": "submap object id -> every map object that is an equally right "
+                "answer (look-alikes at one place); only ids with more than one",
+                "type": "object",
+                "propertyNames": ident,
+                "additionalProperties": {
+                    "type": "array", "items": ident, "minItems": 2, "uniqueItems": True
+                },
+            },
+            "transform": {
+                "description": "T_map_submap: p_map = R p_submap + t",
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["translation", "quaternion_wxyz"],
+                "properties": {
+                    "translation": {"type": "array", "prefixItems": [number] * 3,
+                                    "items": False, "minItems": 3, "maxItems": 3},
+                    "quaternion_wxyz": {"type": "array", "prefixItems": [number] * 4,
+                                        "items": False, "minItems": 4, "maxItems": 4},
+                },
+            },
+        },
     }
 
 
@@ -486,7 +583,9 @@ class Factor(BaseModel):
 
     model_config = _STRICT
 
-    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    schema_version: int = Field(
+        default=SCHEMA_VERSION, description="must be 1", json_schema_extra=_VERSION_SCHEMA
+    )
     factor_id: Identifier
     robot_a: Identifier
     session_a: Identifier
@@ -494,7 +593,8 @@ class Factor(BaseModel):
     session_b: Identifier
     T_a_b: Pose = Field(description="pose of frame b in frame a: p_a = R p_b + t")
     covariance: Covariance6 = Field(
-        description="6x6 SPD covariance of T_a_b, GTSAM Pose3 order (rotation, translation)"
+        description="6x6 SPD covariance of T_a_b, GTSAM Pose3 order (rotation, translation)",
+        json_schema_extra=_COV6_SCHEMA,
     )
     correspondences: list[Correspondence] = Field(
         default_factory=list, max_length=MAX_CORRESPONDENCES
@@ -524,7 +624,9 @@ class ErrorMessage(BaseModel):
 
     model_config = _STRICT
 
-    schema_version: int = Field(default=SCHEMA_VERSION, description="must be 1")
+    schema_version: int = Field(
+        default=SCHEMA_VERSION, description="must be 1", json_schema_extra=_VERSION_SCHEMA
+    )
     code: str = Field(min_length=1, max_length=64, description="short machine-readable code")
     detail: str = Field(default="", max_length=1024, description="one line for people")
     about_seq: int | None = Field(default=None, ge=0, description="seq of the message at fault")

@@ -20,10 +20,19 @@ from mergesvc.errors import DecodeError, MergeError, SchemaError
 # frame per line:
 #   {"stamp_s": 12.0,
 #    "pose": {"translation": [x, y, z], "quaternion_wxyz": [w, x, y, z]},   odometry estimate
+#    "up_body": [x, y, z],                          optional: gravity's opposite, body frame
 #    "detections": [{"embedding": [d floats], "uncertainty": s,             image uncertainty
 #                    "position_body_m": [x, y, z], "position_sigma_m": 0.3}, ...]}
-# The pose is the vehicle's own estimate in its odometry frame; detection positions are relative
-# to the vehicle (body frame) with an isotropic standard deviation.
+# The pose is the vehicle's own estimate in its odometry frame: p_odom = R p_body + t, with R
+# from quaternion_wxyz (Hamilton, scalar first) and t = translation. Its body frame is whatever
+# axes the vehicle's odometry uses (x forward / z up, or a camera's x right / y down / z
+# forward): nothing is assumed about them. position_body_m is a detection's centre in that body
+# frame at that stamp (p_odom = R position_body_m + t), in metres, with an isotropic standard
+# deviation position_sigma_m. up_body, when the vehicle has an attitude sensor (AHRS, IMU), is
+# the measured upward direction in the same body frame (any length > 0; normalised on reading):
+# the agent declares it on every submap cut at that frame, and the service then fits factors
+# about gravity (yaw and translation only). Without it, `agent.up` in the settings (one
+# direction in the odometry frame) is used, else no vertical is declared.
 
 
 def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path | str) -> int:
@@ -43,12 +52,15 @@ def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path 
                     "position_body_m": body.tolist(),
                     "position_sigma_m": float(np.sqrt(np.trace(d.position_cov_33) / 3.0)),
                 })
-            fh.write(json.dumps({
+            rec = {
                 "stamp_s": fr.stamp_s,
                 "pose": {"translation": T[:3, 3].tolist(),
                          "quaternion_wxyz": [q[3], q[0], q[1], q[2]]},
-                "detections": dets,
-            }) + "\n")
+            }
+            if fr.up_body is not None:
+                rec["up_body"] = np.asarray(fr.up_body, dtype=np.float64).tolist()
+            rec["detections"] = dets
+            fh.write(json.dumps(rec) + "\n")
             n += 1
     return n
 
@@ -69,11 +81,17 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                 T[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
                 T[:3, 3] = t
                 stamp = float(rec["stamp_s"])
+                up = rec.get("up_body")
+                if up is not None:
+                    up = np.asarray(up, dtype=np.float64)
+                    if up.shape != (3,) or not np.all(np.isfinite(up)) or not np.any(up):
+                        raise ValueError("up_body must be 3 finite numbers, not all zero")
+                    up = up / np.linalg.norm(up)
                 dets = []
                 for d in rec.get("detections", []):
                     body = np.asarray(d["position_body_m"], dtype=np.float64)
-                    if body.shape != (3,):
-                        raise ValueError("position_body_m must be 3 numbers")
+                    if body.shape != (3,) or not np.all(np.isfinite(body)):
+                        raise ValueError("position_body_m must be 3 finite numbers")
                     sigma = float(d["position_sigma_m"])
                     if not sigma > 0:
                         raise ValueError("position_sigma_m must be > 0")
@@ -87,7 +105,7 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                 raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
             except MergeError as exc:  # tracking.py's InputError for bad values
                 raise SchemaError(f"{path}:{k}: {exc}") from exc
-            yield Frame(k - 1, stamp, T, T, dets)
+            yield Frame(k - 1, stamp, T, T, dets, up_body=up)
 
 
 __all__ = ["read_observation_log", "write_observation_log"]

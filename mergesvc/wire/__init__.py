@@ -6,8 +6,8 @@ packer), `fields` (small field codecs and decoder checks), `projection` (the fle
 of embeddings), `profiles` (Profile, MessageType, CodecSettings, CodecLimits, Envelope),
 `objects` (map / submap payloads), `factors` (the compact factor codec), `envelope`
 (encode_message / decode_message), `files` (encode_file / decode_file, load_model for
-`match`'s JSON files); `keys` holds every Zenoh key expression; `session` builds a Zenoh config
-from the shared flags.
+`match`'s JSON files), `golden` (the protocol's golden test vectors, docs/wire.md); `keys`
+holds every Zenoh key expression; `session` builds a Zenoh config from the shared flags.
 
 May import: mergesvc.core, mergesvc.errors. No sockets here beyond building a Zenoh config.
 """

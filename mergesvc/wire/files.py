@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,7 +68,26 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
         data = p.read_bytes()
     except OSError as exc:
         raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
-    return parse_model(model, data, what=str(p))
+    try:
+        loaded = parse_model(model, data, what=str(p))
+    except RecursionError as exc:  # the json module's own limit on nesting
+        raise DecodeError(f"{p} is not usable JSON: nested too deeply") from exc
+    except ValueError as exc:  # not JSON or pydantic errors (parse_model maps those): the
+        # json module's refusal of integers beyond Python's digit limit (4300 digits)
+        raise DecodeError(f"{p} is not usable JSON: {_json_limit(exc)}") from exc
+    try:
+        loaded.arrays()  # numbers the model takes but arrays cannot hold (n_obs >= 2^63)
+    except (OverflowError, ValueError) as exc:
+        raise SchemaError(f"invalid {p}: a number too large ({one_line(exc)})") from exc
+    return loaded
+
+
+def _json_limit(exc: ValueError) -> str:
+    """The json module's ValueError in words that fit any reader of the file."""
+    text = one_line(exc)
+    if "integer string conversion" in text:
+        return f"an integer longer than {sys.get_int_max_str_digits()} digits"
+    return text
 
 
 def _read_json_model(path: Path) -> AnyMessage:
@@ -79,6 +99,10 @@ def _read_json_model(path: Path) -> AnyMessage:
         raise DecodeError(f"cannot read {path}: {exc.strerror or exc}") from exc
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DecodeError(f"{path} is not valid JSON: {one_line(exc)}") from exc
+    except RecursionError as exc:
+        raise DecodeError(f"{path} is not usable JSON: nested too deeply") from exc
+    except ValueError as exc:  # an integer beyond Python's digit limit (4300 digits)
+        raise DecodeError(f"{path} is not usable JSON: {_json_limit(exc)}") from exc
     if not isinstance(raw, dict):
         raise SchemaError(f"invalid {path}: expected a JSON object")
     if "objects" in raw:
