@@ -12,7 +12,7 @@ May import: mergesvc.core, mergesvc.wire, mergesvc.link, mergesvc.sim, mergesvc.
 from mergesvc.bench.generalize import METHODS, GeneralizePlan, run_generalize
 from mergesvc.bench.link import run_link_bench
 from mergesvc.bench.match import run_match_bench
-from mergesvc.bench.merge import MergeBenchPlan, run_merge_bench
+from mergesvc.bench.merge import MergeBenchPlan, run_merge_bench, run_scale_bench
 from mergesvc.bench.paper import PaperBenchPlan, run_paper_bench
 from mergesvc.bench.scoring import score_case
 from mergesvc.bench.uncertainty import (
@@ -35,6 +35,7 @@ __all__ = [
     "run_match_bench",
     "run_merge_bench",
     "run_paper_bench",
+    "run_scale_bench",
     "run_uncertainty_bench",
     "score_case",
 ]

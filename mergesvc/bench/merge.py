@@ -16,7 +16,7 @@ table.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -155,6 +155,56 @@ def run_merge_bench(
     return report
 
 
+def run_scale_bench(
+    sizes: Sequence[int],
+    *,
+    replay: Callable[..., dict[str, Any]],
+    service: Any,
+    agent: Callable[[str], Any],
+    seed: int = 0,
+    laps: int = 1,
+    echo: Callable[[str], Any] = print,
+) -> dict[str, Any]:
+    """The service's cost per submap against fleet size: the pool world with n vehicles (the
+    patterns of `fleet_world` repeat every 4 vehicles, so every vehicle overlaps several
+    others), each replayed in-process in time order. Per n: submaps, median / p90 service ms
+    per submap, matches tried per submap, factors accepted; and the ratio of each median to
+    the one at 3 vehicles (issue 11's target: <= 3 at 20)."""
+    for n in sizes:
+        check_count("fleet size", n)
+    rows = []
+    for n in sizes:
+        robots = tuple(f"auv{i + 1}" for i in range(n))
+        world = fleet_world(seed, robots, laps, 24)
+
+        def auv(robot: str) -> Any:
+            cfg = agent(robot)
+            return cfg if cfg.up is not None else cfg.model_copy(update={"up": POOL_UP})
+
+        t0 = time.monotonic()
+        res = replay(world, service=service, agent=auv, link=None, projection=None, seed=seed)
+        row = {"robots": n, "submaps": res["submaps"],
+               "service_ms_median": res["service_ms_median"],
+               "service_ms_p90": res["service_ms_p90"],
+               "matches_per_submap": res["matches_tried"] / max(res["submaps"], 1),
+               "factors_accepted": res["factors_accepted"], "precision": res["precision"],
+               "elapsed_s": round(time.monotonic() - t0, 1)}
+        rows.append(row)
+        echo(f"{n} vehicles: {row['submaps']} submaps, {row['service_ms_median']:.1f} ms median "
+             f"({row['service_ms_p90']:.1f} p90), {row['matches_per_submap']:.1f} matches per "
+             f"submap, {row['factors_accepted']} factors, {row['elapsed_s']:.0f} s")
+    base = next((r["service_ms_median"] for r in rows if r["robots"] == 3), None)
+    for r in rows:
+        r["ratio_to_3"] = r["service_ms_median"] / base if base else float("nan")
+    lines = ["| vehicles | submaps | service ms/submap median (p90) | matches per submap | "
+             "factors | precision | median / median at 3 |", "|" + "---|" * 7]
+    lines += [f"| {r['robots']} | {r['submaps']} | {r['service_ms_median']:.1f} "
+              f"({r['service_ms_p90']:.1f}) | {r['matches_per_submap']:.1f} | "
+              f"{r['factors_accepted']} | {r['precision']:.2f} | {r['ratio_to_3']:.2f} |"
+              for r in rows]
+    return {"rows": rows, "markdown": "\n".join(lines)}
+
+
 def _plan_dict(plan: MergeBenchPlan) -> dict[str, Any]:
     return {"seed": plan.seed, "seeds": plan.seeds, "pool_laps": plan.pool_laps,
             "pool_objects": plan.pool_objects,
@@ -278,5 +328,5 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["MergeBenchPlan", "acoustic_link", "markdown", "run_merge_bench", "summarize",
-           "targets"]
+__all__ = ["MergeBenchPlan", "acoustic_link", "markdown", "run_merge_bench", "run_scale_bench",
+           "summarize", "targets"]

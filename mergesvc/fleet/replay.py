@@ -125,6 +125,7 @@ def replay_world(
         held = {name: {oid: (h.keyframe, np.asarray(h.node.position, dtype=np.float64))
                        for oid, h in st.objects.items()} for name, st in svc.sessions.items()}
         latency = list(svc.stats.latency_ms)
+        matches_tried = svc.stats.matches_tried
     finally:
         svc.close()
 
@@ -233,6 +234,7 @@ def replay_world(
         "precision": right / (right + wrong) if right + wrong else float("nan"),
         "service_ms_median": float(np.median(lat)) if lat.size else float("nan"),
         "service_ms_p90": float(np.percentile(lat, 90)) if lat.size else float("nan"),
+        "matches_tried": matches_tried,
         "factors": factor_rows,
     }
 
