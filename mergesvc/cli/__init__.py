@@ -1,10 +1,11 @@
 """Command line: `mergesvc match`, `example`, `schemas`, `config`, `serve`, `agent`, `demo`,
-`export`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+`export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
-`config --dump`), `bench` (benchmarks) and `fleet` (the service, vehicles, the demo and the
-acoustic link). Known errors become exit codes in `errors`; shared options (the Zenoh flags,
-`--settings` and how the settings tree is resolved) are in `options`.
+`config --dump`), `bench` (benchmarks), `fleet` (the service, vehicles, the demo and the
+acoustic link) and `view` (the live view in Rerun). Known errors become exit codes in
+`errors`; shared options (the Zenoh flags, `--settings` and how the settings tree is resolved)
+are in `options`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli import bench, files, fleet
+from mergesvc.cli import bench, files, fleet, view
 
 __all__ = ["app", "hoist_verbose", "main"]
 
@@ -41,7 +42,7 @@ def _main(
 
 for _command in (
     files.match, files.example, files.schemas, files.config, fleet.serve, fleet.agent, fleet.demo,
-    fleet.export,
+    fleet.export, view.view,
 ):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")

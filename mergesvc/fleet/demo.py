@@ -113,9 +113,12 @@ def query_status(session: Any, fleet: str, timeout_s: float = 3.0) -> dict[str, 
     return None
 
 
-def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) -> DemoResult:
+def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
+             attach: Callable[[Any, str, Path], Callable[[], None]] | None = None) -> DemoResult:
     """Start everything, run the mission, score it, stop everything (always), then export the
-    service's store into OUT/export (solved with `plan.service`)."""
+    service's store into OUT/export (solved with `plan.service`). `attach(session, fleet,
+    projection_file)` joins an observer (the live view) to the demo's session once the service
+    answers, before the vehicles start; what it returns detaches it when the service is idle."""
     import zenoh
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -141,11 +144,14 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
     result = DemoResult(ok=False)
     t_start = time.monotonic()
     session = None
+    detach: Callable[[], None] | None = None
     factors: dict[str, Factor] = {}
     try:
         spawn("service", ["serve", "--fleet", fleet, "--store", str(store), "--mode", "router",
                           "--listen", endpoint, "--projection", str(proj_path)])
         session = _wait_for_service(endpoint, fleet, procs["service"], deadline_s=30.0)
+        if attach is not None:
+            detach = attach(session, fleet, proj_path)
 
         def on_factor(sample: Any) -> None:
             try:
@@ -176,6 +182,9 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
             if code != 0:
                 result.failures.append(f"{r} exited with {code} (see {logs[r]})")
         status = _wait_until_idle(session, fleet, deadline, procs)
+        if detach is not None:
+            detach, d = None, detach
+            d()
         sub.undeclare()
         if status is None:
             result.failures.append("the service did not answer its status query")
@@ -194,6 +203,8 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print) 
     except (DemoError, zenoh.ZError, OSError, MergeError) as exc:
         result.failures.append(f"{type(exc).__name__}: {exc}")
     finally:
+        if detach is not None:
+            detach()
         if session is not None:
             with contextlib.suppress(zenoh.ZError):
                 session.close()
