@@ -183,6 +183,7 @@ def test_stats(tmp_path: Path) -> None:
             "submap_conflicts": 0,
             "factors": 1,
             "frames": 1,
+            "meta": 0,
         }
         assert st["journal_mode"] == "wal"
         assert st["synchronous"] == "FULL"
@@ -375,3 +376,87 @@ def test_unopenable_path_and_closed_store(tmp_path: Path) -> None:
     assert s.closed
     with pytest.raises(StoreError, match="closed"):
         s.submaps()
+
+
+# -- issue 14: the worker's queue, fleet facts, read-only files --------------------------------
+
+
+def test_pending_ids_are_the_oldest_pending_rows(store: Store) -> None:
+    ids = [store.put_submap("r", "s", seq, payload(seq), 0.0)[0] for seq in range(5)]
+    store.mark_processed(ids[1], "processed")
+    assert store.pending_ids(limit=2) == [ids[0], ids[2]]
+    assert store.pending_ids() == [ids[0], ids[2], ids[3], ids[4]]
+
+
+def test_meta_is_set_once_and_survives_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    with Store(path) as s:
+        assert s.meta("embedding_dim") is None
+        assert s.set_meta_once("embedding_dim", "384") == "384"
+        assert s.set_meta_once("embedding_dim", "128") == "384"  # the first one stays
+    with Store(path) as s:
+        assert s.meta("embedding_dim") == "384"
+
+
+def test_version_1_file_without_meta_gets_it(tmp_path: Path) -> None:
+    """A store written before the meta table existed opens and gains the table."""
+    path = tmp_path / "old.db"
+    with Store(path) as s:
+        s.put_submap("r", "s", 0, payload(0), 0.0)
+    with sqlite3.connect(path) as c:
+        c.execute("DROP TABLE meta")
+    with Store(path) as s:
+        assert s.meta("embedding_dim") is None
+        assert s.set_meta_once("embedding_dim", "64") == "64"
+        assert len(s.submaps()) == 1
+
+
+def _open_as_nobody(path: Path) -> str:
+    """Open `path` as a Store in a forked child running as uid 65534 (root may write any file):
+    the error text, or 'opened'."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: no exec (the venv may not be readable by nobody), only sqlite
+        try:
+            os.close(r)
+            os.setgid(65534)
+            os.setuid(65534)
+            try:
+                Store(path).close()
+                msg = "opened"
+            except StoreError as exc:
+                msg = str(exc)
+            os.write(w, msg.encode())
+        finally:
+            os._exit(0)
+    os.close(w)
+    with os.fdopen(r, "rb") as f:
+        out = f.read().decode()
+    os.waitpid(pid, 0)
+    return out
+
+
+def test_read_only_store_is_reported_as_read_only(tmp_path: Path) -> None:
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp(prefix="ro-store-"))  # tmp_path is not reachable by nobody
+    try:
+        path = folder / "ro.db"
+        with Store(path) as s:
+            s.put_submap("r", "s", 0, payload(0), 0.0)
+        if os.geteuid() == 0:
+            folder.chmod(0o755)
+            msg = _open_as_nobody(path)
+        else:
+            path.chmod(0o444)
+            folder.chmod(0o555)
+            with pytest.raises(StoreError) as info:
+                Store(path)
+            msg = str(info.value)
+        assert "read-only" in msg and "corrupt" not in msg, msg
+    finally:
+        folder.chmod(0o755)
+        for p in folder.iterdir():
+            p.chmod(0o644)
+            p.unlink()
+        folder.rmdir()

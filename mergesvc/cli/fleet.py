@@ -8,12 +8,13 @@ and `workload`; `link bridge` builds its link from its flags."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -58,6 +59,33 @@ DemoSettings = settings_file(
 LinkSimSettings = settings_file("`link` and `workload`")
 ExportSettings = settings_file("`service` (its `graph` solves, its `store` is the default "
                                "--store)", bare="MatchConfig (its service.match)")
+# --ros2 and its options, the same on serve and agent (docs/ros2.md)
+Ros2 = Annotated[bool, typer.Option("--ros2", help="also publish ROS 2 topics for rmw_zenoh "
+                                                   "(docs/ros2.md; needs mergesvc[ros2])")]
+Ros2Domain = Annotated[int, typer.Option(help="ROS_DOMAIN_ID of the ROS 2 topics")]
+Ros2Namespace = Annotated[str, typer.Option(help="ROS 2 namespace of the topics (a vehicle's "
+                                                 "get /<robot> below it)")]
+
+
+@contextlib.contextmanager
+def _ros2_bridge(on: bool, session: Any, fleet: str, domain_id: int, namespace: str,
+                 service: Any = None, robot: str | None = None,
+                 root: str | None = None) -> Iterator[None]:
+    """With --ros2: a Ros2Bridge for the block (the service's outputs, or one vehicle's)."""
+    if not on:
+        yield
+        return
+    from mergesvc.ros2 import Ros2Bridge
+    from mergesvc.ros2.names import join_topic, name_token
+
+    if robot is not None:
+        namespace, node = join_topic(namespace, name_token(robot)), "agent"
+    else:
+        node = "merge_service"
+    with Ros2Bridge(session, fleet=fleet, service=service, root=root,
+                    robots=None if robot is None else [robot], domain_id=domain_id,
+                    namespace=namespace, node_name=node):
+        yield
 
 
 def serve(
@@ -73,6 +101,9 @@ def serve(
     ] = None,
     settings: ServeSettings = None,
     seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+    ros2: Ros2 = False,
+    ros2_domain: Ros2Domain = 0,
+    ros2_namespace: Ros2Namespace = "/mergesvc",
 ) -> None:
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
 
@@ -97,7 +128,8 @@ def serve(
         cfg = cfg.service
         zconf = zenoh_config(mode, connect, listen, config)
         projections = [Projection.load(p) for p in projection or []]
-        with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc:
+        with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc, \
+                _ros2_bridge(ros2, session, cfg.fleet, ros2_domain, ros2_namespace, service=svc):
             typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
                        f"store {cfg.store}")
             start = time.monotonic()
@@ -175,6 +207,9 @@ def agent(
     config: ZenohConfigFile = None,
     linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
     settings: AgentSettingsFile = None,
+    ros2: Ros2 = False,
+    ros2_domain: Ros2Domain = 0,
+    ros2_namespace: Ros2Namespace = "/mergesvc",
 ) -> None:
     """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
 
@@ -200,7 +235,17 @@ def agent(
     with exit_on_error(ValueError, OSError):
         frames = _agent_frames(robot, acfg.session, seed, laps, objects, log_file)
         zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,))
-        stats = run_agent(run, zconf, frames)
+        with contextlib.ExitStack() as ros:
+            if ros2:  # a session of its own beside the vehicle's (run_agent opens that one)
+                import zenoh
+
+                from mergesvc.wire import keys
+
+                root = keys.uw_root(acfg.fleet) if acoustic else keys.fleet_root(acfg.fleet)
+                ros_session = ros.enter_context(zenoh.open(zconf))
+                ros.enter_context(_ros2_bridge(True, ros_session, acfg.fleet, ros2_domain,
+                                               ros2_namespace, robot=robot, root=root))
+            stats = run_agent(run, zconf, frames)
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
                            "bytes_sent": stats.bytes_sent,
@@ -220,6 +265,10 @@ def demo(
         Profile.COMPACT
     ),
     settings: DemoSettings = None,
+    view: Annotated[bool, typer.Option(help="show the merged map live in Rerun (the view "
+                                            "extra)")] = False,
+    view_save: Annotated[Path | None, typer.Option(help="record the live view into this "
+                                                        ".rrd file")] = None,
 ) -> None:
     """Service + 3 vehicles as processes on loopback; summary against the ground truth.
 
@@ -240,8 +289,14 @@ def demo(
     plan = dataclasses.replace(plan, service=tree.service)  # the export solves with them
     with exit_on_error(OSError):
         written = write_settings_beside(tree, out, folder=True)
+    attach = None
+    if view or view_save is not None:
+        from mergesvc.view import LiveView, ViewSink, observer
+
+        with exit_on_error():
+            attach = observer(LiveView.open(ViewSink(save=view_save)))
     with exit_on_error(), settings_env(written):
-        res = run_demo(plan, out, echo=typer.echo)
+        res = run_demo(plan, out, echo=typer.echo, attach=attach)
     s = res.summary
     if s:
         typer.echo(f"submaps sent {s['submaps_sent']} ({s['bytes_on_wire']} bytes, "

@@ -52,10 +52,10 @@ def view(
     ] = 1.0,
 ) -> None:
     """Show a fleet's merged map live in Rerun: trajectories (odometry and merged), objects
-    coloured by robot, correspondences, factors accepted and retracted, latency.
+    coloured by robot, correspondences, factors accepted and retracted, latency. Joins as a
+    Zenoh client of tcp/127.0.0.1:7447 unless told otherwise.
 
-    Needs rerun-sdk, the optional extra `view` of mergesvc. Joins as a Zenoh client of
-    tcp/127.0.0.1:7447 unless told otherwise; prints one JSON line of counts when it stops."""
+    Needs pip install 'mergesvc[view]'. Prints one JSON line of counts when it stops."""
     import signal
     import threading
 

@@ -90,8 +90,26 @@ CREATE TABLE frames (
     first_seen_s REAL NOT NULL,
     last_seen_s REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS meta (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
 """
-_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames")
+# `meta` (fleet-wide facts fixed once, e.g. the embedding dimension) came after version 1 was
+# out: a version-1 file without it gets it when opened writable (an added table, nothing else
+# changes); opened read-only, `meta()` answers None.
+_META = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)"
+_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames", "meta")
+#: Meta key of the fleet's embedding dimension (fixed by the first accepted submap or the
+#: service's setting).
+META_EMBEDDING_DIM = "embedding_dim"
+
+
+def _read_only(exc: sqlite3.Error) -> bool:
+    """Whether SQLite refused a write because the file (or its folder: WAL needs its -wal and
+    -shm files beside it) is read-only."""
+    name = str(getattr(exc, "sqlite_errorname", ""))
+    return name.startswith("SQLITE_READONLY") or "readonly database" in str(exc)
 
 
 class Synchronous(str, Enum):
@@ -212,6 +230,11 @@ class Store:
         except sqlite3.DatabaseError as exc:
             self._conn.close()
             self._conn = None
+            if _read_only(exc):
+                raise StoreError(
+                    f"store {self.path} is read-only (the service needs to write the file and "
+                    f"its -wal and -shm files beside it): {one_line(exc)}"
+                ) from exc
             raise StoreError(
                 f"store {self.path} is unreadable or corrupt: {one_line(exc)}"
             ) from exc
@@ -254,6 +277,9 @@ class Store:
             )
         if version < STORE_SCHEMA_VERSION:  # no older versions exist yet: nothing to migrate
             raise StoreError(f"store {self.path} has unknown old schema version {version}")
+        if "meta" not in tables:
+            with self._transaction() as c:
+                c.execute(_META)
 
     def _create(self, c: sqlite3.Connection) -> None:
         c.execute(f"PRAGMA application_id={APPLICATION_ID}")
@@ -406,6 +432,24 @@ class Store:
                 (PENDING,),
             ).fetchall()
         return [self._submap(r) for r in rows]
+
+    def has_submap(self, robot_id: str, session_id: str, seq: int) -> bool:
+        """Whether the submap (robot, session, seq) is stored."""
+        with self._transaction(write=False) as c:
+            row = c.execute(
+                "SELECT 1 FROM submaps WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                (robot_id, session_id, int(seq)),
+            ).fetchone()
+        return row is not None
+
+    def pending_ids(self, limit: int = 64) -> list[int]:
+        """Row ids of up to `limit` PENDING submaps, oldest first (the worker's queue)."""
+        with self._transaction(write=False) as c:
+            rows = c.execute(
+                "SELECT id FROM submaps WHERE status = ? ORDER BY id LIMIT ?",
+                (PENDING, int(limit)),
+            ).fetchall()
+        return [int(r[0]) for r in rows]
 
     def submap(self, submap_row_id: int) -> StoredSubmap:
         with self._transaction(write=False) as c:
@@ -561,6 +605,27 @@ class Store:
             ).fetchall()
         return [StoredFrame(r[0], r[1], r[2], float(r[3]), float(r[4])) for r in rows]
 
+    # -- meta ------------------------------------------------------------------------------------
+
+    def meta(self, key: str) -> str | None:
+        """A fleet-wide fact stored once (e.g. META_EMBEDDING_DIM), None if not set."""
+        with self._transaction(write=False) as c:
+            try:
+                row = c.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+            except sqlite3.OperationalError:  # a version-1 file opened read-only: no table
+                return None
+        return None if row is None else str(row[0])
+
+    def set_meta_once(self, key: str, value: str) -> str:
+        """Store `value` under `key` unless a value is there; returns the stored value (the
+        first writer wins, atomically)."""
+        key = _check_id(key, "meta key")
+        if not isinstance(value, str):
+            raise InputError("meta value must be a string")
+        with self._transaction() as c:
+            c.execute("INSERT OR IGNORE INTO meta (key, value) VALUES (?, ?)", (key, value))
+            return str(c.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()[0])
+
     # -- status ----------------------------------------------------------------------------------
 
     def counts(self) -> dict[str, Any]:
@@ -581,7 +646,11 @@ class Store:
     def stats(self) -> dict[str, Any]:
         """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical)."""
         with self._transaction(write=False) as c:
-            rows = {t: int(c.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0]) for t in _TABLES}
+            present = {
+                r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+            }
+            rows = {t: int(c.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0])
+                    for t in _TABLES if t in present}
             page_bytes = int(c.execute("PRAGMA page_count").fetchone()[0]) * int(
                 c.execute("PRAGMA page_size").fetchone()[0]
             )
@@ -605,6 +674,7 @@ class Store:
 
 __all__ = [
     "APPLICATION_ID",
+    "META_EMBEDDING_DIM",
     "PENDING",
     "STORE_SCHEMA_VERSION",
     "Store",

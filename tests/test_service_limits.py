@@ -1,0 +1,392 @@
+"""The merge service under hostile and heavy fleets (issue 14), over real Zenoh sessions on
+127.0.0.1 (scouting off) or the service's in-process `ingest` where the network adds nothing:
+one robot's embedding model never makes another's submaps fail, the store is the worker's
+queue (nothing stored is forgotten), per-robot limits on sessions and rate, a capped number of
+candidate frames per submap, keys checked against the payload, strict-JSON status."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import threading
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from helpers import Inbox, free_port, wait_for, zenoh_config
+
+from mergesvc.core.model import ErrorMessage, ObjectNode, Submap
+from mergesvc.errors import SchemaError, StoreError
+from mergesvc.fleet.demo import query_status
+from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.store import Store
+from mergesvc.wire import Profile, decode_message, encode_message, keys
+
+FLEET = "lim"
+ROOT = keys.fleet_root(FLEET)
+BLOCK = zenoh.CongestionControl.BLOCK
+
+
+def make_submap(robot: str, session: str, seq: int, dim: int = 384, n: int = 6,
+                seed: int = 0) -> Submap:
+    """n objects with random unit embeddings of `dim` dimensions, spread over 20 m."""
+    rng = np.random.default_rng(seed * 1000 + seq)
+    objs = []
+    for i in range(n):
+        e = rng.normal(size=dim)
+        objs.append(ObjectNode(id=f"{robot}-{session}-{seq}-{i}",
+                               position=tuple(float(x) for x in rng.uniform(-10, 10, 3)),
+                               embedding=[float(x) for x in e / np.linalg.norm(e)],
+                               variance=0.01, n_obs=2))
+    return Submap(robot_id=robot, session_id=session, seq=seq, objects=objs)
+
+
+def payload(sub: Submap) -> bytes:
+    return encode_message(sub, Profile.FULL, sub.robot_id, sub.seq or 0)
+
+
+def errors_of(inbox: Inbox) -> list[tuple[str, ErrorMessage]]:
+    """(robot, error) of every error message received."""
+    out = []
+    for key, data in inbox.snapshot():
+        msg = decode_message(data)[1]
+        assert isinstance(msg, ErrorMessage)
+        out.append((key.rsplit("/", 1)[-1], msg))
+    return out
+
+
+class Net:
+    """A service on a router session and one client session, with an inbox of errors."""
+
+    def __init__(self, cfg: ServiceConfig, **kw) -> None:
+        self.ep = f"tcp/127.0.0.1:{free_port()}"
+        self.cfg, self.kw = cfg, kw
+
+    def __enter__(self) -> Net:
+        self.rs = zenoh.open(zenoh_config("router", listen=self.ep))
+        self.svc = MergeService(self.cfg, self.rs, **self.kw).start()
+        self.cs = zenoh.open(zenoh_config("client", connect=self.ep))
+        self.errors = Inbox()
+        self._sub = self.cs.declare_subscriber(keys.all_errors(ROOT), self.errors.handler)
+        return self
+
+    def put(self, sub: Submap, key: str | None = None) -> None:
+        key = key or keys.submap_key(ROOT, sub.robot_id, sub.session_id)
+        self.cs.put(key, payload(sub), congestion_control=BLOCK)
+
+    def __exit__(self, *exc: object) -> None:
+        self._sub.undeclare()
+        self.cs.close()
+        self.svc.close()
+        self.rs.close()
+
+
+def statuses(store: Store) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in store.submaps():
+        out[r.status] = out.get(r.status, 0) + 1
+    return out
+
+
+# -- 1. embedding dimension ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("declared", [None, 384])
+def test_another_embedding_model_is_refused_and_fails_nobody(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, declared: int | None
+) -> None:
+    """A 128-d robot among 384-d ones: refused at the boundary with an error to it, counted; the
+    others' submaps are all processed (none failed), no traceback. Declared, the fleet's
+    dimension holds even when the 128-d robot comes first; undeclared, the first accepted
+    submap fixes it (and a restart keeps it)."""
+    caplog.set_level(logging.INFO)
+    store = tmp_path / "dim.db"
+    cfg = ServiceConfig(fleet=FLEET, store=str(store), embedding_dim=declared)
+    first = [make_submap("odd", "s0", 0, dim=128)] if declared else [make_submap("auv1", "s0", 0)]
+    with Net(cfg) as net:
+        for sub in first:
+            net.put(sub)
+        assert wait_for(lambda: net.svc.stats.submaps_received >= 1)
+        net.put(make_submap("odd", "s0", 1, dim=128))
+        for seq in range(1, 4):
+            for robot in ("auv1", "auv2"):
+                net.put(make_submap(robot, "s0", seq, seed=hash(robot) % 97))
+        n_good = 6 + (0 if declared else 1)
+        assert wait_for(lambda: net.svc.stats.submaps_processed == n_good)
+        assert wait_for(lambda: len(errors_of(net.errors)) == len(first) + 1 - (not declared))
+        errs = errors_of(net.errors)
+        assert {robot for robot, _ in errs} == {"odd"}
+        assert {e.code for _, e in errs} == {"embedding_dim"}
+        assert "128-d" in errs[0][1].detail and "384-d" in errs[0][1].detail
+        assert net.svc.stats.errors.get("embedding_dim") == len(errs)
+        assert net.svc.status()["embedding_dim"] == 384
+        with Store(store) as db:
+            st = statuses(db)
+            assert "failed" not in st and sum(st.values()) == n_good, st
+            assert not db.submaps(robot_id="odd")
+    assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
+    # a restart keeps the fleet's dimension: the 128-d robot is still refused
+    with Net(ServiceConfig(fleet=FLEET, store=str(store))) as net:
+        assert net.svc.status()["embedding_dim"] == 384
+        net.put(make_submap("odd", "s1", 0, dim=128))
+        assert wait_for(lambda: len(errors_of(net.errors)) == 1)
+
+
+def test_ingest_refuses_another_dimension() -> None:
+    svc = MergeService(ServiceConfig(fleet=FLEET, store=":memory:"), None)  # offline
+    try:
+        svc.ingest(make_submap("auv1", "s0", 0))
+        with pytest.raises(SchemaError, match="128-d"):
+            svc.ingest(make_submap("auv2", "s0", 0, dim=128))
+        svc.ingest(make_submap("auv2", "s0", 1))
+        assert svc.stats.submaps_processed == 2
+        assert "failed" not in svc.store.counts()["submaps"]
+    finally:
+        svc.close()
+
+
+# -- 2. the store is the queue -----------------------------------------------------------------
+
+
+def test_stored_submaps_are_all_processed_through_a_full_queue_and_a_store_failure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A restart finds 12 rows pending (stored, never processed: a crash) with queue_size 1:
+    more rows than one batch (the old bounded queue's "deferred" path). Then one read of the
+    store fails while the worker is idle (SQLite busy: a backup or an admin shell holding the
+    file) - the fault is injected into the real store's transaction, the one place every read
+    goes through. The worker must survive it: it used to read the store outside its try and
+    die, leaving every later submap stored but never processed. Every stored row ends
+    processed."""
+    store = tmp_path / "q.db"
+    cfg = ServiceConfig(fleet=FLEET, store=str(store), queue_size=1)
+    with Store(store) as db:  # what a service killed after persisting left behind
+        for seq in range(12):
+            db.put_submap("auv1", "s0", seq, payload(make_submap("auv1", "s0", seq, n=4)), 1.0)
+    with Net(cfg) as net:
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 12)
+        real = net.svc.store._transaction
+        fired = threading.Event()
+
+        @contextlib.contextmanager
+        def busy_once(write: bool = True):
+            if not write and not fired.is_set():
+                fired.set()
+                raise StoreError(f"store {store}: database is locked")
+            with real(write) as c:
+                yield c
+
+        monkeypatch.setattr(net.svc.store, "_transaction", busy_once)
+        assert fired.wait(10.0)  # the idle worker's next look at the store failed
+        monkeypatch.setattr(net.svc.store, "_transaction", real)
+        for seq in range(12, 20):
+            net.put(make_submap("auv1", "s0", seq, n=4))
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 20, 30.0)
+        assert net.svc.status()["submaps"]["queued"] == 0
+    with Store(store) as db:
+        assert len(db.submaps()) == 20 and not db.unprocessed_submaps()
+
+
+def test_a_burst_larger_than_the_queue_is_processed_in_arrival_order() -> None:
+    """Rows stored while the worker is busy are taken oldest first, none left behind."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", queue_size=2)
+    with Net(cfg) as net:
+        for seq in range(30):
+            net.put(make_submap(f"r{seq % 3}", "s0", seq, n=4))
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 30, 40.0)
+        rows = net.svc.store.submaps()
+        done = sorted(rows, key=lambda r: r.processed_at_s or 0.0)
+        assert [r.row_id for r in done] == sorted(r.row_id for r in rows)
+        assert not net.svc.store.unprocessed_submaps()
+
+
+# -- 3. per-robot limits, candidate frames -----------------------------------------------------
+
+
+def test_sessions_per_robot_are_limited() -> None:
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", max_open_sessions_per_robot=2)
+    with Net(cfg) as net:
+        for s in ("s0", "s1", "s2", "s3"):
+            net.put(make_submap("greedy", s, 0, n=4))
+        net.put(make_submap("greedy", "s0", 1, n=4))  # an open session goes on
+        net.put(make_submap("calm", "s0", 0, n=4))  # another robot is not affected
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 4)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 2)
+        assert {(r, e.code) for r, e in errors_of(net.errors)} == {
+            ("greedy", "too_many_sessions")}
+        assert sorted(net.svc.sessions) == ["calm/s0", "greedy/s0", "greedy/s1"]
+
+
+def test_submap_rate_per_robot_is_limited() -> None:
+    """A token bucket per robot on a frozen clock: `submap_burst` new submaps, then refusals;
+    a replay of a stored submap costs nothing; another robot has its own bucket."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", submap_rate_hz=1.0, submap_burst=3)
+    with Net(cfg, clock=lambda: 1000.0) as net:
+        subs = [make_submap("fast", "s0", seq, n=4) for seq in range(5)]
+        for sub in subs:
+            net.put(sub)
+        net.put(subs[0])  # a replay: no token, no error
+        net.put(make_submap("slow", "s0", 0, n=4))
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 4)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 2)
+        errs = errors_of(net.errors)
+        assert {(r, e.code) for r, e in errs} == {("fast", "rate_limited")}
+        assert sorted(e.about_seq for _, e in errs) == [3, 4]
+        assert net.svc.stats.submaps_duplicate == 1
+
+
+def test_candidate_frames_are_capped_and_shared_between_robots() -> None:
+    """40 sessions of one robot that all look like a victim's submap: the victim's submap is
+    matched against at most max_candidate_frames sessions, at most max_frames_per_robot of
+    them the greedy robot's, and the other robot's session (as alike) gets its slot."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", max_open_sessions_per_robot=100)
+    svc = MergeService(cfg, None)  # offline
+    try:
+        victim = make_submap("victim", "s0", 0, n=5, seed=3)
+        look_alike = [o.embedding for o in victim.objects]
+
+        def alike(sub):
+            return sub.model_copy(update={"objects": [
+                o.model_copy(update={"embedding": e}) for o, e in zip(sub.objects, look_alike)]})
+
+        svc.ingest(alike(make_submap("other", "s0", 0, n=5, seed=7)))
+        for s in range(40):
+            svc.ingest(alike(make_submap("greedy", f"s{s}", 0, n=5, seed=s + 100)))
+        before = svc.stats.matches_tried
+        tried = svc._candidate_frames("victim/s0", victim)
+        svc.ingest(victim)
+        assert svc.stats.matches_tried - before == len(tried) == 3
+        names = [n for n, _ in tried]
+        assert "other/s0" in names
+        assert sum(n.startswith("greedy/") for n in names) == cfg.max_frames_per_robot == 2
+        assert cfg.max_candidate_frames == 4
+    finally:
+        svc.close()
+
+
+def test_candidate_frames_are_the_most_alike() -> None:
+    """Of 12 robots' sessions, the one whose objects the submap saw again ranks first, and
+    no more than max_candidate_frames are tried."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", max_candidate_frames=3)
+    svc = MergeService(cfg, None)
+    try:
+        seen = make_submap("seen", "s0", 0, n=6, seed=5)
+        svc.ingest(seen)
+        for r in range(11):
+            svc.ingest(make_submap(f"r{r}", "s0", 0, n=6, seed=200 + r))
+        again = make_submap("victim", "s0", 0, n=6, seed=9)
+        again = again.model_copy(update={"objects": [
+            o.model_copy(update={"embedding": s.embedding})
+            for o, s in zip(again.objects, seen.objects)]})
+        tried = [n for n, _ in svc._candidate_frames("victim/s0", again)]
+        assert len(tried) == 3 and tried[0] == "seen/s0", tried
+    finally:
+        svc.close()
+
+
+# -- 4. keys -------------------------------------------------------------------------------------
+
+
+def test_key_must_name_the_payloads_robot_and_session() -> None:
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:")
+    with Net(cfg) as net:
+        sub = make_submap("auv2", "s1", 0, n=4)
+        net.put(sub, key=f"{ROOT}/submap/auv2/s1/extra/deep")  # extra levels
+        net.put(sub, key=f"{ROOT}/submap/auv2/s0")  # another session
+        net.put(sub)  # right
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 2)
+        errs = errors_of(net.errors)
+        assert {(r, e.code) for r, e in errs} == {("auv2", "bad_submap")}
+        assert all("does not match" in e.detail for _, e in errs)
+        assert len(net.svc.store.submaps()) == 1
+
+
+# -- 5. status -----------------------------------------------------------------------------------
+
+
+def _strict(text: str | bytes) -> dict:
+    def refuse(name: str) -> None:
+        raise ValueError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_status_is_strict_json_before_any_submap() -> None:
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "Mean of empty slice" & co. fail the test
+        with Net(cfg) as net:
+            st = _strict(json.dumps(net.svc.status()))
+            assert st["latency_ms"] == {"p50": None, "p90": None, "p99": None}
+            reply = None
+            for r in net.cs.get(keys.status_key(ROOT), timeout=5.0):
+                reply = r.ok.payload.to_bytes()
+            assert reply is not None
+            assert _strict(reply)["submaps"]["processed"] == 0
+            net.put(make_submap("auv1", "s0", 0, n=4))
+            assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+            st = _strict(json.dumps(query_status(net.cs, FLEET)))
+            assert st["latency_ms"]["p50"] > 0 and st["submaps"]["stored"] == {"no_match": 1}
+
+
+def test_callbacks_from_many_threads_count_every_submap() -> None:
+    """Several client sessions publish at once: received = processed + refused (the counters
+    are shared by Zenoh's callback threads)."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:")
+    with Net(cfg) as net:
+        sessions = [zenoh.open(zenoh_config("client", connect=net.ep)) for _ in range(3)]
+        try:
+            def send(i: int, s: zenoh.Session) -> None:
+                for seq in range(10):
+                    sub = make_submap(f"m{i}", "s0", seq, n=4)
+                    s.put(keys.submap_key(ROOT, sub.robot_id, "s0"), payload(sub),
+                          congestion_control=BLOCK)
+
+            threads = [threading.Thread(target=send, args=(i, s)) for i, s in enumerate(sessions)]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join(timeout=30)
+            assert wait_for(lambda: net.svc.stats.submaps_processed == 30, 40.0)
+            assert net.svc.stats.submaps_received == 30
+        finally:
+            for s in sessions:
+                s.close()
+
+
+# -- 6. the pose graph is solved per batch, not per submap -------------------------------------
+
+
+def _keyframe_submap(seq: int, keyframe: int, from_keyframe: int | None) -> Submap:
+    from mergesvc.core.model import Odometry
+
+    base = make_submap("auv1", "s0", seq, n=4)
+    odo = None if from_keyframe is None else Odometry(
+        from_keyframe=from_keyframe,
+        T_from_to={"translation": [float(keyframe - from_keyframe), 0.0, 0.0],
+                   "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
+        covariance=(np.eye(6) * 1e-3).tolist())
+    return base.model_copy(update={"keyframe": keyframe, "odometry": odo})
+
+
+def test_a_backlog_is_solved_once_per_batch(tmp_path: Path) -> None:
+    """12 pending submaps whose odometry closes a loop each (every one changes the graph): the
+    worker solves the graph once for the batch, not 12 times (a solve costs as much as the
+    graph is large: solving per submap made each submap slower with every factor)."""
+    store = tmp_path / "b.db"
+    chain = [_keyframe_submap(k, k, k - 1 if k else None) for k in range(6)]
+    loops = [_keyframe_submap(6 + j, 5, j % 4) for j in range(4)] + [
+        _keyframe_submap(10 + j, 4, j) for j in range(2)]
+    with Store(store) as db:
+        for sub in chain + loops:
+            db.put_submap("auv1", "s0", sub.seq, payload(sub), 1.0)
+    with Net(ServiceConfig(fleet=FLEET, store=str(store))) as net:
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 12)
+        assert wait_for(lambda: not net.svc._dirty and net.svc.stats.optimizations >= 1)
+        assert net.svc.stats.optimizations == 1
+        assert len(net.svc.keyframe_poses()["auv1/s0"]) == 6  # the solution holds them all
+
