@@ -90,3 +90,22 @@ def test_no_file_is_written_without_out(tmp_path: Path, monkeypatch: pytest.Monk
     r = CliRunner().invoke(app, ["bench", "merge", "--quick"])
     assert r.exit_code == 0, r.output
     assert list(tmp_path.iterdir()) == []
+
+
+def test_scale_reports_cost_per_submap_by_fleet_size(tmp_path: Path) -> None:
+    """`bench merge --scale`: one row per fleet size; matches per submap never above the
+    service's max_candidate_frames (the fleet index caps them), ratio 1 at 3 vehicles."""
+    from mergesvc.fleet.service import ServiceConfig
+
+    out = tmp_path / "scale.json"
+    r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--scale", "3,6", "--out",
+                                 str(out)])
+    assert r.exit_code == 0, r.output
+    rows = json.loads(out.read_text())["rows"]
+    assert [row["robots"] for row in rows] == [3, 6]
+    assert rows[0]["ratio_to_3"] == 1.0
+    for row in rows:
+        assert 0 < row["matches_per_submap"] <= ServiceConfig().max_candidate_frames
+        assert row["factors_accepted"] > 0 and math.isfinite(row["service_ms_median"])
+    bad = CliRunner().invoke(app, ["bench", "merge", "--scale", "3,x"])
+    assert bad.exit_code == 2

@@ -238,22 +238,44 @@ def bench_merge(
     ] = None,
     acoustic: Annotated[bool, typer.Option(help="also the pool through the acoustic link")
                         ] = True,
+    world: Annotated[list[str] | None, typer.Option(
+        help="only these worlds (pool, pool-long, kitti00, kitti00-vo, pool+acoustic)")] = None,
+    scale: Annotated[str | None, typer.Option(
+        help="instead: the service's cost per submap at these fleet sizes, e.g. 2,3,5,10,20 "
+             "(the pool world, in-process)")] = None,
     settings: MergeBenchSettings = None,
 ) -> None:
     """Merged trajectories in-process against the truth: the pool fleet, 3 cars on real
     KITTI-00 stretches, the pool through the acoustic link; per robot ATE odometry vs merged,
     final rotation error, object RMSE; factors accepted, retracted, correct; precision;
     service ms per submap."""
-    from mergesvc.bench import MergeBenchPlan, run_merge_bench
+    from mergesvc.bench import MergeBenchPlan, run_merge_bench, run_scale_bench
     from mergesvc.fleet.replay import replay_world
 
     if data is not None and not data.is_dir():
         raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
+    if scale is not None:
+        try:
+            sizes = [int(x) for x in scale.split(",")]
+        except ValueError:
+            raise typer.BadParameter(f"{scale!r}: fleet sizes like 2,3,5,10,20",
+                                     param_hint="--scale") from None
+        with exit_on_error():
+            tree = resolve_settings(settings)
+            report = run_scale_bench(sizes, replay=replay_world, service=tree.service,
+                                     agent=tree.agent_config, seed=seed,
+                                     laps=1 if quick else 2, echo=typer.echo)
+        typer.echo(report["markdown"])
+        if out is not None:
+            _write_report(report, out, tree)
+        return
     if quick:
         plan = MergeBenchPlan.quick(seed, seeds or 1, data)
     else:
         plan = MergeBenchPlan(seed=seed, seeds=seeds or 3, data_dir=data)
     plan.acoustic = acoustic
+    if world:
+        plan.worlds = list(world)
     with exit_on_error():
         tree = resolve_settings(settings)
         report = run_merge_bench(plan, replay=replay_world, service=tree.service,
