@@ -373,3 +373,24 @@ def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> No
         detach()
     last, _ = read_rrd(out)
     assert "/world" in last and not any(e.startswith("/world/robots") for e in last)
+
+
+def test_demo_view_save_records_the_demo(tmp_path) -> None:
+    """`mergesvc demo --quick --view-save FILE.rrd`: the demo runs as without it, and the
+    recording holds every vehicle's session (objects, odometry, merged trajectory) and the
+    factors the demo reports."""
+    rrd = tmp_path / "demo.rrd"
+    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "demo", "--quick", "--out",
+                        str(tmp_path / "demo"), "--view-save", str(rrd)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    last, _ = read_rrd(rrd)
+    for robot in ("auv1", "auv2", "auv3"):
+        base = f"/world/robots/{robot}/s0"
+        assert last[f"{base}/objects"]["Points3D:positions"], robot
+        assert last[f"{base}/odometry"]["LineStrips3D:strips"][0], robot
+        assert f"{base}/merged" in last, robot
+    accepted = last["/world/factors/accepted"]["LineStrips3D:strips"]
+    retracted = last.get("/world/factors/retracted", {}).get("LineStrips3D:strips", [])
+    assert len(accepted) + len(retracted) == summary["factors_accepted"]
