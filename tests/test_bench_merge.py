@@ -101,11 +101,13 @@ def test_scale_reports_cost_per_submap_by_fleet_size(tmp_path: Path) -> None:
     r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--scale", "3,6", "--out",
                                  str(out)])
     assert r.exit_code == 0, r.output
-    rows = json.loads(out.read_text())["rows"]
+    report = json.loads(out.read_text())
+    rows = report["rows"]
     assert [row["robots"] for row in rows] == [3, 6]
     assert rows[0]["ratio_to_3"] == 1.0
-    for row in rows:
-        assert 0 < row["matches_per_submap"] <= ServiceConfig().max_candidate_frames
-        assert row["factors_accepted"] > 0 and math.isfinite(row["service_ms_median"])
+    assert [(r["robots"], r["seed"]) for r in report["runs"]] == [(3, 0), (6, 0)]
+    for run in report["runs"]:
+        assert 0 < run["matches_per_submap"] <= ServiceConfig().max_candidate_frames
+        assert run["factors_accepted"] > 0 and math.isfinite(run["service_ms_median"])
     bad = CliRunner().invoke(app, ["bench", "merge", "--scale", "3,x"])
     assert bad.exit_code == 2
