@@ -227,3 +227,47 @@ def test_agent_up_must_be_a_direction(up) -> None:
 
     with pytest.raises(ValidationError, match="finite, non-zero direction"):
         AgentConfig(robot="auv1", up=up)
+
+
+def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames) -> None:
+    """Over real Zenoh (loopback, scouting off): the service may code factors full (`serve
+    --factor-profile full`) or compact; the agent takes both into its graph. The service's
+    result of each submap (JSON on result/{robot}) is counted per outcome."""
+    import json
+
+    import zenoh
+    from helpers import free_port, wait_for, zenoh_config
+
+    from mergesvc.fleet.agent import Agent, decode_factor
+    from mergesvc.wire import Profile, encode_message, keys
+
+    root = keys.fleet_root("ag")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    cov = (np.eye(6) * 0.01).tolist()
+    factors = [Factor(factor_id=f"auv2.s0-auv1.s0-{k}", robot_a="auv2", session_a="s0",
+                      robot_b="auv1", session_b="s0", keyframe_a=0, keyframe_b=k,
+                      T_a_b={"translation": [1.0, float(k), 0.0],
+                             "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]}, covariance=cov)
+                 for k in (3, 5)]
+    with zenoh.open(zenoh_config("router", listen=ep)) as rs, zenoh.open(
+        zenoh_config("client", connect=ep)
+    ) as cs, Agent(
+        AgentConfig(robot="auv1"), cs,
+        lambda sub, seq: encode_message(sub, Profile.INT8, "auv1", seq), decode_factor,
+        keys.submap_key(root, "auv1", "s0"), keys.robot_factors(root, "auv1"),
+        keys.alive_key(root, "auv1"), result_key=keys.result_key(root, "auv1"),
+    ) as ag:
+        ag.run(frames["auv1"][:20])
+        for f, profile in zip(factors, (Profile.FULL, Profile.COMPACT), strict=True):
+            rs.put(keys.factor_key(root, "auv1", f.factor_id),
+                   encode_message(f, profile, "mergesvc", 1))
+        for outcome in ("no_match", "processed", "no_match"):
+            doc = {"robot": "auv1", "session": "s0", "seq": 0, "outcome": outcome,
+                   "reason": "too_few_matches" if outcome == "no_match" else None,
+                   "factors": [] if outcome == "no_match" else [factors[0].factor_id]}
+            rs.put(keys.result_key(root, "auv1"), json.dumps(doc))
+        assert wait_for(lambda: ag.stats.factors_received == 2
+                        and sum(ag.stats.results.values()) == 3, 10.0)
+        assert ag.stats.bad_messages == 0
+        assert ag.stats.results == {"no_match": 2, "processed": 1}
+        assert set(ag.local._received) == {f.factor_id for f in factors}

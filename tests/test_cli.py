@@ -325,3 +325,55 @@ def test_zenoh_config_and_settings_are_two_flags() -> None:
                 ["link", "sim"], ["codec", "encode"], ["uncertainty", "train"]):
         assert "--settings" in run(*cmd, "--help", env=wide).stdout, cmd
     assert "--config" not in run("match", "--help", env=wide).stdout  # the alias is hidden
+
+
+def _tilted_files(out: Path) -> tuple[Path, Path]:
+    """A map and a submap of the same 8 objects, both declaring up = +z, the submap turned
+    90 degrees about x: the fit would turn the vertical over (`tilted`, rejected)."""
+    import numpy as np
+
+    from mergesvc.core.model import ObjectMap, ObjectNode, Submap
+
+    rng = np.random.default_rng(1)
+    emb = rng.normal(size=(8, 64))
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    pos = rng.uniform(-10, 10, (8, 3))
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+    def objs(p: np.ndarray, prefix: str) -> list[ObjectNode]:
+        return [ObjectNode(id=f"{prefix}{i}", position=tuple(float(x) for x in q),
+                           embedding=[float(x) for x in e], variance=0.01, n_obs=3)
+                for i, (q, e) in enumerate(zip(p, emb, strict=True))]
+
+    m, s = out / "tilted_map.json", out / "tilted_submap.json"
+    m.write_text(ObjectMap(robot_id="m", session_id="s", objects=objs(pos, "m"),
+                           up=(0, 0, 1)).model_dump_json())
+    s.write_text(Submap(robot_id="r", session_id="s", seq=0, objects=objs(pos @ R.T, "s"),
+                        up=(0, 0, 1)).model_dump_json())
+    return m, s
+
+
+def test_a_rejected_match_prints_no_transform(tmp_path: Path) -> None:
+    """README: `transform ... or null`: a rejected match (here `tilted`, whose fit exists
+    but turns the vertical over) prints null transform and covariance, the same keys."""
+    m, s = _tilted_files(tmp_path)
+    r = run("match", "--map", str(m), "--submap", str(s), "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert set(out) == {"accepted", "reason", "matches", "transform", "covariance", "timings_ms"}
+    assert (out["accepted"], out["reason"]) == (False, "tilted")
+    assert out["transform"] is None and out["covariance"] is None
+    assert len(out["matches"]) == 8  # what was matched is still said
+    text = run("match", "--map", str(m), "--submap", str(s))
+    assert text.returncode == 0 and "rejected (tilted)" in text.stdout
+    assert "T_map_submap" not in text.stdout
+
+
+def test_factors_are_coded_full_or_compact_only() -> None:
+    """docs/wire.md §2: no f16 or int8 factor; the service's setting refuses them."""
+    env = {"MERGESVC_SERVICE__FACTOR_PROFILE": "int8"}
+    r = run("config", "--dump", "--section", "service.factor_profile", env=env)
+    assert r.returncode == 1 and "full or compact" in r.stderr
+    r = run("config", "--dump", "--section", "service.factor_profile",
+            env={"MERGESVC_SERVICE__FACTOR_PROFILE": "full"})
+    assert r.returncode == 0 and json.loads(r.stdout) == "full"

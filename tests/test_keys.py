@@ -35,6 +35,8 @@ def test_every_key_under_either_root(root: str) -> None:
     assert keys.all_factors(root) == f"{root}/factor/**"
     assert keys.error_key(root, "auv1") == f"{root}/error/auv1"
     assert keys.all_errors(root) == f"{root}/error/**"
+    assert keys.result_key(root, "auv1") == f"{root}/result/auv1"
+    assert keys.all_results(root) == f"{root}/result/**"
     assert keys.relocalize_key(root) == f"{root}/relocalize"
     assert keys.status_key(root) == f"{root}/status"
     assert keys.alive_key(root, "auv3") == f"{root}/alive/auv3"
@@ -46,6 +48,9 @@ def test_the_literal_strings() -> None:
     assert keys.submap_key(TOP, "auv1", "s0") == "mergesvc/v1/fleet0/submap/auv1/s0"
     assert keys.factor_key(UW, "auv1", "f-1") == "mergesvc/v1/uw/fleet0/factor/auv1/f-1"
     assert keys.error_key(TOP, "auv1") == "mergesvc/v1/fleet0/error/auv1"
+    assert keys.result_key(TOP, "auv1") == "mergesvc/v1/fleet0/result/auv1"
+    assert (keys.MSGPACK_ENCODING, keys.JSON_ENCODING) == ("application/msgpack",
+                                                           "application/json")
     assert keys.relocalize_key(TOP) == "mergesvc/v1/fleet0/relocalize"
     assert keys.status_key(TOP) == "mergesvc/v1/fleet0/status"
     assert keys.alive_key(TOP, "auv1") == "mergesvc/v1/fleet0/alive/auv1"
@@ -105,6 +110,7 @@ def test_invalid_robot_names_are_refused(robot: str) -> None:
         lambda: keys.factor_key(TOP, robot, "f1"),
         lambda: keys.robot_factors(TOP, robot),
         lambda: keys.error_key(TOP, robot),
+        lambda: keys.result_key(TOP, robot),
         lambda: keys.alive_key(TOP, robot),
     ):
         with pytest.raises(ConfigError):
@@ -125,7 +131,7 @@ def test_invalid_sessions_and_factor_ids_are_refused(name: str) -> None:
 )
 def test_roots_of_another_shape_are_refused(root: str) -> None:
     for make in (keys.all_submaps, keys.all_factors, keys.status_key, keys.relocalize_key,
-                 keys.all_alive, keys.all_errors):
+                 keys.all_alive, keys.all_errors, keys.all_results):
         with pytest.raises(ConfigError):
             make(root)
 
@@ -134,8 +140,9 @@ def test_roots_of_another_shape_are_refused(root: str) -> None:
 # Keys are built only in keys.py
 # --------------------------------------------------------------------------------------------
 
-KEY_PARTS = ("/submap", "/factor", "/status", "/error", "/alive", "/relocalize",
-             "submap/", "factor/", "alive/", "error/", "/*")  # "/*": a wildcard subscription
+# "/*": a wildcard subscription
+KEY_PARTS = ("/submap", "/factor", "/status", "/error", "/result", "/alive", "/relocalize",
+             "submap/", "factor/", "alive/", "error/", "result/", "/*")
 
 
 def _docstrings(tree: ast.Module) -> set[int]:

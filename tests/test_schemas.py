@@ -13,12 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 
 from mergesvc.core.model import Factor, MatchResult, ObjectMap, Submap, json_schemas
 from mergesvc.core.pipeline import match
 from mergesvc.errors import SchemaError
+from mergesvc.fleet.replies import RelocalizeReply, SubmapResult, reply_schemas
 from mergesvc.sim import Family, make_scenario
 from mergesvc.wire.files import load_model
 
@@ -51,7 +53,10 @@ def example() -> dict[str, Any]:
 
 def test_every_schema_is_a_2020_12_schema_with_an_id() -> None:
     files = sorted(p.name for p in SCHEMAS.glob("*.schema.json"))
-    assert files == sorted(json_schemas())
+    # the files and messages (core), and what the service sends as JSON (fleet/replies.py)
+    assert files == sorted(json_schemas() | reply_schemas())
+    assert {"submap_result.schema.json", "status_reply.schema.json",
+            "relocalize_reply.schema.json"} <= set(files)
     ids = set()
     for name in files:
         schema = json.loads((SCHEMAS / name).read_text())
@@ -62,7 +67,8 @@ def test_every_schema_is_a_2020_12_schema_with_an_id() -> None:
 
 
 def test_schema_version_is_a_constant() -> None:
-    for name in ("object_map", "submap", "factor", "error_message", "match_result"):
+    for name in ("object_map", "submap", "factor", "error_message", "match_result",
+                 "submap_result", "status_reply", "relocalize_reply"):
         schema = json.loads((SCHEMAS / f"{name}.schema.json").read_text())
         assert schema["properties"]["schema_version"]["const"] == 1, name
 
@@ -252,3 +258,39 @@ def test_match_results_validate_and_their_schema_refuses_a_bad_covariance(
     assert errors("match_result.schema.json", bad)
     assert errors("object_map.schema.json", {**example["map"], "objects": "none"})
     ObjectMap.model_validate(example["map"])  # the map itself is fine
+
+
+def test_the_schemas_written_are_the_ones_the_build_makes(tmp_path: Path) -> None:
+    """`mergesvc schemas --check` on the repository's schemas/ passes; on a folder missing the
+    service's reply schemas it fails."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
+
+    def check(folder: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "mergesvc.cli", "schemas", str(folder),
+                               "--check"], capture_output=True, text=True, timeout=300,
+                              env=clean)
+
+    assert check(SCHEMAS).returncode == 0
+    for name in json_schemas():
+        (tmp_path / name).write_text((SCHEMAS / name).read_text())
+    r = check(tmp_path)
+    assert r.returncode != 0 and "status_reply.schema.json" in r.stderr
+
+
+def test_the_reply_schemas_refuse_what_the_models_refuse() -> None:
+    ok = json.loads(SubmapResult(robot="auv1", session="s0", seq=3, outcome="no_match",
+                                 reason="ambiguous").model_dump_json())
+    assert errors("submap_result.schema.json", ok) == []
+    for bad in ({**ok, "outcome": "lost"}, {**ok, "reason": "bad_luck"}, {**ok, "seq": -1},
+                {**ok, "schema_version": 2}, {**ok, "extra": 1}, {**ok, "code": "nope"}):
+        with pytest.raises(ValueError):
+            SubmapResult.model_validate(bad)
+        assert errors("submap_result.schema.json", bad), bad
+    reloc = {"schema_version": 1, "localized": True, "reason": "verified", "anchor": "a/s0",
+             "T_anchor_session": {"translation": [1, 2, 3], "quaternion_wxyz": [1, 0, 0, 0]},
+             "covariance": (np.eye(6) * 0.1).tolist(), "matches": 5, "keyframe": None}
+    assert errors("relocalize_reply.schema.json", reloc) == []
+    bad = {**reloc, "covariance": reloc["covariance"][:5]}
+    with pytest.raises(ValueError):
+        RelocalizeReply.model_validate(bad)
+    assert errors("relocalize_reply.schema.json", bad)

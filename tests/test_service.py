@@ -167,6 +167,10 @@ def test_garbage_is_answered_and_the_service_survives(world) -> None:
         # bad queries get an error reply, status still answers
         replies = list(cs.get(f"{ROOT}/relocalize", payload=b"junk", timeout=5.0))
         assert replies and replies[0].err is not None
+        # the one error shape (an ErrorMessage document), as JSON
+        err = ErrorMessage.model_validate_json(replies[0].err.payload.to_bytes())
+        assert err.code == "bad_request" and err.detail
+        assert str(replies[0].err.encoding) == "application/json"
         assert query_status(cs, FLEET)["submaps"]["processed"] == 1
         sub.undeclare()
 

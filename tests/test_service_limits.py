@@ -262,7 +262,7 @@ def test_candidate_frames_are_capped_and_shared_between_robots() -> None:
         names = [n for n, _ in tried]
         assert "other/s0" in names
         assert sum(n.startswith("greedy/") for n in names) == cfg.max_frames_per_robot == 2
-        assert cfg.max_candidate_frames == 4
+        assert cfg.max_candidate_frames == 3
     finally:
         svc.close()
 
@@ -390,3 +390,132 @@ def test_a_backlog_is_solved_once_per_batch(tmp_path: Path) -> None:
         assert net.svc.stats.optimizations == 1
         assert len(net.svc.keyframe_poses()["auv1/s0"]) == 6  # the solution holds them all
 
+
+
+# -- 7. every submap gets one answer, with its encoding ----------------------------------------
+
+
+class Recorder:
+    """(key, payload, encoding) of every sample of a subscription, with bounded waits."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.items: list[tuple[str, bytes, str]] = []
+        self._cond = threading.Condition()
+        self._sub = session.declare_subscriber(key, self)
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes(),
+                               str(sample.encoding)))
+            self._cond.notify_all()
+
+    def wait(self, n: int, timeout_s: float = 20.0) -> list[tuple[str, bytes, str]]:
+        with self._cond:
+            self._cond.wait_for(lambda: len(self.items) >= n, timeout_s)
+            return list(self.items)
+
+
+def moved(sub: Submap, robot: str, yaw: float = 0.5) -> Submap:
+    """The same objects (ids renamed) seen by `robot` from a frame turned by `yaw` and moved:
+    a verified match against `sub`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    objs = [o.model_copy(update={"id": f"{robot}-{i}", "position": tuple(
+        float(x) for x in (np.asarray(o.position) - [5.0, -3.0, 0.5]) @ R)})
+        for i, o in enumerate(sub.objects)]
+    return sub.model_copy(update={"robot_id": robot, "objects": objs})
+
+
+def test_every_submap_gets_one_result_and_status_counts_them() -> None:
+    """Processed, no match (no other frame yet; a look-alike frame's verdict), refused for each
+    admission rule: one result per submap on result/{robot} (JSON), the refusals also as coded
+    error messages (msgpack) with the same code and seq; a duplicate gets none. Status counts
+    the results by outcome, reason and code."""
+    from mergesvc.core.model import RejectReason
+    from mergesvc.fleet.replies import SubmapResult
+
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", embedding_dim=384,
+                        max_open_sessions_per_robot=1, max_payload_bytes=50_000)
+    with Net(cfg) as net:
+        results = Recorder(net.cs, keys.all_results(ROOT))
+        factors = Recorder(net.cs, keys.all_factors(ROOT))
+        error_samples = Recorder(net.cs, keys.all_errors(ROOT))
+        a = make_submap("a", "s0", 0, n=8, seed=1)
+        net.put(a)  # nothing to match yet: no_frames
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+        net.put(moved(a, "b"))  # the same objects: processed
+        net.put(make_submap("c", "s0", 0, n=8, seed=2))  # other objects: no match
+        net.put(make_submap("odd", "s0", 0, dim=128))  # embedding_dim
+        net.put(make_submap("b", "s1", 0, n=4))  # b's second open session: too_many_sessions
+        net.put(a)  # a duplicate: no result
+        net.cs.put(keys.submap_key(ROOT, "y", "s0"), b"x" * 60_000, congestion_control=BLOCK)
+        net.cs.put(keys.submap_key(ROOT, "z", "s0"), b"junk", congestion_control=BLOCK)
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 3)
+        got = results.wait(7)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 4)
+        status = _strict(json.dumps(query_status(net.cs, FLEET)))
+        for rec in (results, factors, error_samples):
+            rec._sub.undeclare()
+    assert len(got) == 7 and net.svc.stats.submaps_duplicate == 1
+    assert {enc for _, _, enc in got} == {"application/json"}
+    res = {(k.rsplit("/", 1)[-1], r.session): r
+           for k, data, _ in got if (r := SubmapResult.model_validate_json(data))}
+    assert res["a", "s0"].outcome.value == "no_match" and res["a", "s0"].reason == "no_frames"
+    b = res["b", "s0"]
+    assert b.outcome.value == "processed" and len(b.factors) == 1
+    assert [(t.frame, t.reason, t.factor_id) for t in b.tried] == [
+        ("a/s0", RejectReason.VERIFIED, b.factors[0])]
+    # the factor went to both robots before the result, coded msgpack
+    fac = factors.items
+    assert sorted(k for k, _, _ in fac) == sorted(keys.factor_key(ROOT, r, b.factors[0])
+                                                  for r in ("a", "b"))
+    assert {enc for _, _, enc in fac} == {"application/msgpack"}
+    c = res["c", "s0"]
+    assert c.outcome.value == "no_match" and c.tried and c.reason == c.tried[0].reason
+    assert {t.frame for t in c.tried} == {"a/s0", "b/s0"}
+    refused = {r.code.value: r for r in res.values() if r.outcome.value == "refused"}
+    assert set(refused) == {"embedding_dim", "too_many_sessions", "oversize", "bad_submap"}
+    assert (refused["too_many_sessions"].robot, refused["too_many_sessions"].seq) == ("b", 0)
+    assert refused["oversize"].session is None and refused["bad_submap"].seq is None
+    # the error messages say the same, coded msgpack
+    errs = {e.code: (r, e) for r, e in errors_of(net.errors)}
+    assert {code: (r.robot, r.seq) for code, r in refused.items()} == {
+        code: (robot, e.about_seq) for code, (robot, e) in errs.items()}
+    assert {enc for _, _, enc in error_samples.items} == {"application/msgpack"}
+    assert status["results"] == {
+        "processed": 1, "no_match": {"no_frames": 1, c.reason.value: 1},
+        "refused": {"embedding_dim": 1, "too_many_sessions": 1, "oversize": 1, "bad_submap": 1},
+        "failed": 0}
+
+
+def test_a_submap_whose_processing_fails_gets_a_failed_result(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A fault in the matching (injected into the service's call of the pipeline for one
+    robot) is answered: outcome failed, code processing; the next submap is processed."""
+    import mergesvc.fleet.service as service_module
+    from mergesvc.fleet.replies import SubmapResult
+
+    real = service_module.match
+
+    def fails_for_boom(map_, sub, config):
+        if sub.robot_id == "boom":
+            raise RuntimeError("solver blew up")
+        return real(map_, sub, config)
+
+    monkeypatch.setattr(service_module, "match", fails_for_boom)
+    with Net(ServiceConfig(fleet=FLEET, store=":memory:")) as net:
+        results = Recorder(net.cs, keys.all_results(ROOT))
+        net.put(make_submap("a", "s0", 0, n=4))
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+        net.put(make_submap("boom", "s0", 3, n=4))
+        net.put(make_submap("c", "s0", 0, n=4, seed=5))  # other objects than a's
+        got = [SubmapResult.model_validate_json(d) for _, d, _ in results.wait(3)]
+        results._sub.undeclare()
+        status = net.svc.status()
+    by_robot = {r.robot: r for r in got}
+    assert (by_robot["boom"].outcome.value, by_robot["boom"].code.value) == ("failed",
+                                                                             "processing")
+    assert by_robot["boom"].seq == 3 and "solver blew up" in by_robot["boom"].detail
+    assert by_robot["c"].outcome.value == "no_match"
+    assert status["results"]["failed"] == 1

@@ -329,6 +329,21 @@ def via_bench_merge(monkeypatch, tmp, pair, settings: list[str]) -> tuple[Any, L
     return _invoke(["bench", "merge", "--quick", *settings])
 
 
+def via_bench_soak(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
+    """The service settings the soak's `serve` subprocess resolves: its --settings file (what
+    the soak passes on) and the environment it inherits."""
+    from mergesvc.cli.options import SettingsCommand, bare_match_for
+
+    def fake(plan, serve_command=None, serve_args=(), **_kw):
+        args = list(serve_args)
+        path = args[args.index("--settings") + 1] if "--settings" in args else None
+        _reach(load_settings(path, environ=dict(os.environ),
+                             bare_match=bare_match_for(SettingsCommand.SERVE)).service)
+
+    monkeypatch.setattr(mergesvc.bench, "run_soak", fake)
+    return _invoke(["bench", "soak", "--quick", *settings])
+
+
 def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
     import zenoh
 
@@ -373,7 +388,8 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
         (via_bench_link, lambda got: got[0]),
         (via_bench_generalize, lambda got: got),
     ],
-    "service": [(via_serve, lambda got: got), (via_bench_merge, lambda got: got[0])],
+    "service": [(via_serve, lambda got: got), (via_bench_merge, lambda got: got[0]),
+                (via_bench_soak, lambda got: got)],
     "agent": [],  # see test_each_agent_field_reaches_the_vehicle_or_is_refused
     "codec": [(via_codec, lambda got: got)],
     "link": [(via_link_sim, lambda got: got[0]), (via_bench_link, lambda got: got[1]),
@@ -381,7 +397,7 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
     "workload": [(via_link_sim, lambda got: got[1])],
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
-BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge"}
+BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge", "soak"}
 
 
 def test_every_section_has_a_consumer_here() -> None:
@@ -700,7 +716,7 @@ def test_demo_hands_its_settings_to_the_processes_it_starts(
     f.write_text(json.dumps({"service": {"match": {"verify": {"min_matches": 5}}}}))
     seen = {}
 
-    def fake_run_demo(plan, out, echo):
+    def fake_run_demo(plan, out, echo, attach=None):
         seen["file"] = os.environ[SETTINGS_ENV]
         seen["child"] = load_settings(environ=dict(os.environ))  # what a child resolves
         raise Reached(plan)

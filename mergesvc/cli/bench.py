@@ -1,4 +1,4 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize|merge` (see docs/benchmarks.md).
+"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak` (see docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
 benchmarked configuration starts from (the benchmark sets its own axes on top), `bench link`
@@ -264,6 +264,7 @@ def bench_merge(
             tree = resolve_settings(settings)
             report = run_scale_bench(sizes, replay=replay_world, service=tree.service,
                                      agent=tree.agent_config, seed=seed,
+                                     seeds=seeds or (1 if quick else 3),
                                      laps=1 if quick else 2, echo=typer.echo)
         typer.echo(report["markdown"])
         if out is not None:
@@ -285,3 +286,81 @@ def bench_merge(
     typer.echo(f"{report['elapsed_s']:.0f} s")
     if out is not None:
         _write_report(report, out, tree)
+
+
+SoakSettings = settings_file(
+    "`service` (its limits: max_payload_bytes sizes the oversize payloads, submap_rate_hz caps "
+    "the robots' rates; the file is passed to the `serve` process)"
+)
+
+
+@app.command("soak")
+def bench_soak(
+    robots: Annotated[int, typer.Option(min=1, help="robots publishing valid submaps")] = 5,
+    minutes: Annotated[float | None, typer.Option(
+        min=0.0, help="how long the robots publish (default 2)")] = None,
+    seconds: Annotated[float | None, typer.Option(min=0.0, help="... in seconds instead")
+                       ] = None,
+    hostile: Annotated[float, typer.Option(min=0.0, max=0.95,
+                                           help="fraction of all traffic that is hostile")
+                       ] = 0.1,
+    mismatch_robots: Annotated[int, typer.Option(
+        min=0, help="robots whose submaps use another embedding size")] = 1,
+    restarts: Annotated[int, typer.Option(min=0, help="kill -9 restarts at random moments")
+                        ] = 2,
+    seed: Annotated[int, typer.Option(help="seed of the world, rates, payloads and kills")] = 0,
+    rate_hz: Annotated[str | None, typer.Option(
+        help="each robot's submap rate is drawn uniformly in LO,HI Hz (default 0.2,2); keep "
+             "the fleet's sum within what the service processes (20 robots: e.g. 0.05,0.3)")
+                       ] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="write the report as JSON here (the figure as .png beside it, the service's log "
+             "as .service.log)")] = None,
+    quick: Annotated[bool, typer.Option(
+        help="3 robots, 10 s, 1 restart, 1 robot of another model, 20 % hostile (for tests)")
+                     ] = False,
+    settings: SoakSettings = None,
+) -> None:
+    """A real `mergesvc serve` under N robots publishing at their own rates, hostile payloads,
+    robots of another embedding model and kill -9 restarts: throughput, latency and RSS over
+    time; valid submaps lost, duplicated, failed and pending at the end. Exit 1 when a target
+    is missed."""
+    import sys
+
+    from mergesvc.bench import SoakPlan, plot_soak, run_soak, soak_summary
+
+    if minutes is not None and seconds is not None:
+        raise typer.BadParameter("give --minutes or --seconds, not both", param_hint="--seconds")
+    if quick:
+        plan = SoakPlan.quick(seed)
+    else:
+        plan = SoakPlan(robots=robots, hostile_fraction=hostile,
+                        mismatch_robots=mismatch_robots, restarts=restarts, seed=seed)
+    if rate_hz is not None:
+        try:
+            lo, hi = (float(x) for x in rate_hz.split(","))
+        except ValueError:
+            raise typer.BadParameter(f"{rate_hz!r}: two rates like 0.2,2",
+                                     param_hint="--rate-hz") from None
+        plan.rate_hz = (lo, hi)
+    if minutes is not None:
+        plan.duration_s = minutes * 60.0
+    if seconds is not None:
+        plan.duration_s = seconds
+    with exit_on_error():
+        tree = resolve_settings(settings)
+        plan.max_payload_bytes = tree.service.max_payload_bytes
+        plan.max_rate_hz = tree.service.submap_rate_hz
+        log_path = out.with_suffix(".service.log") if out is not None else None
+        report = run_soak(plan, serve_command=[sys.executable, "-m", "mergesvc.cli"],
+                          serve_args=["--settings", str(settings)] if settings else (),
+                          echo=typer.echo, log_path=log_path)
+    typer.echo(soak_summary(report))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1, default=float))
+        write_settings_beside(tree, out, folder=False)
+        fig = plot_soak(report, out.with_suffix(".png"))
+        typer.echo(f"wrote {out}, {fig} and {log_path}")
+    if not report["ok"]:
+        raise typer.Exit(1)

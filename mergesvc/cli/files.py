@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -24,6 +24,9 @@ from mergesvc.cli.options import (
 from mergesvc.core.config import MatchMode, NodeAffinity, SolverName
 from mergesvc.errors import InputError, MergeError
 from mergesvc.wire import Profile
+
+if TYPE_CHECKING:
+    from mergesvc.core.model import MatchResult
 
 codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
 scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")
@@ -71,17 +74,27 @@ def match(
         outcome = run_match(map_, sub, cfg)
     result = outcome.result
     if as_json:
-        typer.echo(json.dumps(result.cli_dict()))
+        typer.echo(json.dumps(match_json(result)))
         return
     state = "accepted" if result.accepted else "rejected"
     typer.echo(f"{state} ({result.reason.value}): {len(result.matches)} matches")
     for m in result.matches:
         typer.echo(f"  {m.submap_object:>12} -> {m.map_object:<12} score {m.score:.3f}")
-    if result.transform is not None:
+    if result.accepted and result.transform is not None:
         t, q = result.transform.translation, result.transform.quaternion_wxyz
         typer.echo(f"  T_map_submap: t = [{t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}] m, "
                    f"q_wxyz = [{q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}]")
     typer.echo("  timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items()))
+
+
+def match_json(result: MatchResult) -> dict[str, Any]:
+    """The one JSON object `match --json` prints (README): the result's keys without
+    schema_version; `transform` and `covariance` are null when the match is rejected (a
+    rejected fit, e.g. one that would turn the vertical over, is no transform to use)."""
+    out = result.cli_dict()
+    if not result.accepted:
+        out["transform"] = out["covariance"] = None
+    return out
 
 
 def example(
@@ -110,11 +123,13 @@ def schemas(
     ),
     check: Annotated[bool, typer.Option(help="fail if the files differ from the models")] = False,
 ) -> None:
-    """Write (or --check) the JSON Schema files generated from the models."""
+    """Write (or --check) the JSON Schema files generated from the models: the files and
+    messages (core), and what the service sends as JSON (fleet/replies.py)."""
     from mergesvc.core.model import json_schemas
+    from mergesvc.fleet.replies import reply_schemas
 
     stale = []
-    for name, schema in json_schemas().items():
+    for name, schema in (json_schemas() | reply_schemas()).items():
         text = json.dumps(schema, indent=2, sort_keys=True) + "\n"
         path = out_dir / name
         if check:

@@ -13,6 +13,7 @@ import dataclasses
 import json
 import time
 from collections.abc import Iterable, Iterator
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -45,6 +46,14 @@ if TYPE_CHECKING:
     from mergesvc.core.tracking import Frame
 
 link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
+
+
+class FactorProfile(str, Enum):
+    """The profiles a factor can be coded in (docs/wire.md §6)."""
+
+    FULL = "full"
+    COMPACT = "compact"
+
 
 # the Zenoh flags with the help texts these commands have always shown
 ConnectTo = zenoh_connect("zenoh endpoint(s) to connect")
@@ -104,6 +113,11 @@ def serve(
     ros2: Ros2 = False,
     ros2_domain: Ros2Domain = 0,
     ros2_namespace: Ros2Namespace = "/mergesvc",
+    factor_profile: Annotated[
+        FactorProfile, typer.Option(help="how factors are coded: compact (a bit stream) or full "
+                                         "(a msgpack map, for clients that do not decode "
+                                         "compact) [default: the setting service.factor_profile]")
+    ] = FactorProfile.COMPACT,
 ) -> None:
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
 
@@ -122,7 +136,7 @@ def serve(
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with exit_on_error(ValueError, OSError):
-        flags = given(ctx, fleet=fleet, store=str(store))
+        flags = given(ctx, fleet=fleet, store=str(store), factor_profile=factor_profile)
         cfg = resolve_settings(settings, {"service": flags},
                                bare_match=bare_match_for(SettingsCommand.SERVE))
         cfg = cfg.service

@@ -2,7 +2,10 @@
 poses and landmarks in a GTSAM ISAM2 graph, submaps cut and published over Zenoh, inter-robot
 factors received and added to the graph.
 
-`LocalMap` is the vehicle's mapping core (no I/O, testable alone); `Agent` puts it on Zenoh.
+`LocalMap` is the vehicle's mapping core (no I/O, testable alone); `Agent` puts it on Zenoh:
+submaps out (msgpack, `application/msgpack`), factors in (either profile the service codes them
+in: full or compact), and the service's result of each submap (JSON on result/{robot}), counted
+and logged.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import ConfigError, InputError, MergeError
+from mergesvc.fleet.replies import Outcome, SubmapResult
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
@@ -392,6 +396,16 @@ class AgentStats:
     bytes_sent: int = 0
     factors_received: int = 0
     bad_messages: int = 0
+    results: dict[str, int] = field(default_factory=dict)  # the service's results per outcome
+
+
+def decode_factor(data: bytes) -> Factor:
+    """A factor message as the service sends it, coded full or compact (docs/wire.md §6);
+    MergeError for anything else."""
+    _, f = decode_message(data)
+    if not isinstance(f, Factor):
+        raise MergeError(f"expected a factor, got a {type(f).__name__}")
+    return f
 
 
 class Agent:
@@ -408,6 +422,7 @@ class Agent:
         factor_key: str,
         alive_key: str,
         cache_samples: int = 10_000,
+        result_key: str | None = None,
     ) -> None:
         import zenoh
         from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
@@ -423,8 +438,28 @@ class Agent:
             session, submap_key, cache=CacheConfig(max_samples=cache_samples),
             sample_miss_detection=MissDetectionConfig(heartbeat=0.5), publisher_detection=True,
             congestion_control=zenoh.CongestionControl.BLOCK,
+            encoding=zenoh.Encoding(keys.MSGPACK_ENCODING),
         )
         self._sub = session.declare_subscriber(factor_key, self._on_factor)
+        self._results = (None if result_key is None
+                         else session.declare_subscriber(result_key, self._on_result))
+
+    def _on_result(self, sample: object) -> None:
+        """The service's answer about one of this vehicle's submaps: counted, logged."""
+        try:
+            res = SubmapResult.model_validate_json(sample.payload.to_bytes())
+        except ValueError as exc:  # pydantic's ValidationError: not a result document
+            self.stats.bad_messages += 1
+            log.warning("%s: ignoring a bad result message: %s", self.config.robot, exc)
+            return
+        with self._lock:
+            self.stats.results[res.outcome.value] = self.stats.results.get(
+                res.outcome.value, 0) + 1
+        why = {Outcome.PROCESSED: f"factors {', '.join(res.factors)}",
+               Outcome.NO_MATCH: f"no match ({getattr(res.reason, 'value', res.reason)})"}.get(
+            res.outcome, f"{res.outcome.value} ({res.code.value if res.code else ''}: "
+                         f"{res.detail})")
+        log.info("%s: submap %s/%s: %s", self.config.robot, res.session, res.seq, why)
 
     def _on_factor(self, sample: object) -> None:
         try:
@@ -470,7 +505,9 @@ class Agent:
     def close(self) -> None:
         import zenoh
 
-        for ent in (self._sub, self._pub, self._token):
+        for ent in (self._results, self._sub, self._pub, self._token):
+            if ent is None:
+                continue
             with contextlib.suppress(zenoh.ZError):  # already gone with the session
                 ent.undeclare()
 
@@ -518,16 +555,11 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> Agen
     def encode(sub: Submap, seq: int) -> bytes:
         return encode_message(sub, run.profile, run.robot, seq, projection=proj)
 
-    def decode_factor(data: bytes) -> Factor:
-        _, f = decode_message(data)
-        if not isinstance(f, Factor):
-            raise MergeError("not a factor")
-        return f
-
     with zenoh.open(zenoh_config) as session, Agent(
         acfg, session, encode, decode_factor,
         submap_key=keys.submap_key(root, run.robot, run.session),
         factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),
+        result_key=keys.result_key(root, run.robot),
     ) as ag:
         stats = ag.run(frames, time_scale=run.time_scale)
         time.sleep(run.linger_s)
@@ -535,4 +567,4 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> Agen
 
 
 __all__ = ["Agent", "AgentConfig", "AgentRun", "AgentStats", "LocalMap", "build_submaps",
-           "odometry_covariance", "run_agent"]
+           "decode_factor", "odometry_covariance", "run_agent"]

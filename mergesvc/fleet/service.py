@@ -54,6 +54,14 @@ The store is the queue: the worker takes the oldest pending rows (`Store.pending
 nothing that was persisted can be forgotten by an in-memory queue, and memory stays bounded
 under a burst. The wake-up flag is cleared before the store is read and set after each commit,
 so a submap stored while the worker reads is seen on its next round.
+
+Answers (fleet/replies.py, docs/wire.md §7 and §11): every submap gets one result on
+result/{robot} (JSON, `SubmapResult`): processed with its factor ids, no_match with the verdict
+of each candidate frame tried, refused with the error code (also sent, as before, as a coded
+error message on error/{robot}), or failed (processing raised). A duplicate of a stored submap
+gets none (its first copy had one). Status counts the results by outcome, reason and code.
+Encodings: coded messages `application/msgpack`, JSON documents `application/json`
+(keys.MSGPACK_ENCODING, keys.JSON_ENCODING); a query's error reply is an ErrorMessage as JSON.
 """
 
 from __future__ import annotations
@@ -71,7 +79,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mergesvc.core.config import MatchConfig
 from mergesvc.core.factors import (
@@ -93,11 +101,19 @@ from mergesvc.core.model import (
     ObjectMap,
     ObjectNode,
     Submap,
-    Transform,
 )
 from mergesvc.core.pipeline import match
 from mergesvc.core.retrieval import FleetIndex
 from mergesvc.errors import ConfigError, MergeError, SchemaError
+from mergesvc.fleet.replies import (
+    NO_FRAMES,
+    FrameTried,
+    Outcome,
+    RefusalCode,
+    RelocalizeReply,
+    StatusReply,
+    SubmapResult,
+)
 from mergesvc.fleet.store import META_EMBEDDING_DIM, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
@@ -111,7 +127,11 @@ class ServiceConfig(BaseModel):
 
     fleet: str = Field("fleet0", min_length=1, max_length=64)
     store: str = Field("mergesvc.db", description="SQLite file (WAL); ':memory:' for tests")
-    factor_profile: Profile = Field(Profile.COMPACT, description="codec profile of factors")
+    factor_profile: Profile = Field(
+        Profile.COMPACT, description="codec profile of factors: compact (a bit stream, ~100 "
+        "bytes) or full (the factor document as a msgpack map, with its correlations: for "
+        "clients that do not decode the compact factor); f16 and int8 do not exist for factors",
+    )
     max_payload_bytes: int = Field(4 * 2**20, ge=1024, description="larger submaps are refused")
     queue_size: int = Field(
         64, ge=1, description="pending submaps the worker takes from the store at once (one "
@@ -149,7 +169,7 @@ class ServiceConfig(BaseModel):
         "samples drop); more are refused (error code busy)",
     )
     max_candidate_frames: int = Field(
-        4, ge=1, description="other sessions each submap is matched against at most: those "
+        3, ge=1, description="other sessions each submap is matched against at most: those "
         "whose objects look most like the submap's (one index over the fleet's objects, "
         "core/retrieval.py), so the cost per submap does not grow with the fleet",
     )
@@ -178,6 +198,14 @@ class ServiceConfig(BaseModel):
         description="the GNC pose graph over the sessions' keyframes (outlier thresholds)",
     )
 
+    @field_validator("factor_profile")
+    @classmethod
+    def _factor_profile(cls, v: Profile) -> Profile:
+        if v not in (Profile.FULL, Profile.COMPACT):
+            raise ValueError(f"factors are coded full or compact, not {v.value} (docs/wire.md "
+                             "§2)")
+        return v
+
 
 @dataclass
 class ServiceStats:
@@ -191,6 +219,10 @@ class ServiceStats:
     relocalize_queries: int = 0
     optimizations: int = 0
     errors: dict[str, int] = field(default_factory=dict)
+    results_processed: int = 0
+    results_failed: int = 0
+    results_no_match: dict[str, int] = field(default_factory=dict)  # per reason
+    results_refused: dict[str, int] = field(default_factory=dict)  # per code
     latency_ms: list[float] = field(default_factory=list)  # processing time per submap
     delay_ms: list[float] = field(default_factory=list)  # stored -> processed, per submap
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -198,6 +230,26 @@ class ServiceStats:
     def error(self, code: str) -> None:
         with self._lock:  # callbacks of several Zenoh threads count here
             self.errors[code] = self.errors.get(code, 0) + 1
+
+    def result(self, res: SubmapResult) -> None:
+        with self._lock:
+            if res.outcome is Outcome.PROCESSED:
+                self.results_processed += 1
+            elif res.outcome is Outcome.FAILED:
+                self.results_failed += 1
+            elif res.outcome is Outcome.NO_MATCH:
+                reason = str(getattr(res.reason, "value", res.reason))
+                self.results_no_match[reason] = self.results_no_match.get(reason, 0) + 1
+            elif res.code is not None:
+                code = res.code.value
+                self.results_refused[code] = self.results_refused.get(code, 0) + 1
+
+    def result_counts(self) -> dict[str, Any]:
+        with self._lock:
+            return {"processed": self.results_processed,
+                    "no_match": dict(self.results_no_match),
+                    "refused": dict(self.results_refused),
+                    "failed": self.results_failed}
 
 
 class TokenBucket:
@@ -222,31 +274,9 @@ class TokenBucket:
 class RefusedError(SchemaError):
     """A submap refused at the boundary; `code` is the error code the robot is sent."""
 
-    def __init__(self, code: str, detail: str) -> None:
+    def __init__(self, code: RefusalCode, detail: str) -> None:
         super().__init__(detail)
         self.code = code
-
-
-class RelocalizeReply(BaseModel):
-    """Answer of the relocalize queryable: where the query submap's frame is in the anchor
-    frame (the anchor session's keyframe 0).
-
-    T_anchor_session: the pose of the frame the query submap's positions are in: its keyframe
-    (`keyframe`, the vehicle's pose where it cut the submap) when the submap has one, else the
-    new session's frame (its origin)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    localized: bool
-    reason: str
-    anchor: str | None = None
-    T_anchor_session: Transform | None = None
-    covariance: list[list[float]] | None = None
-    matches: int = 0
-    keyframe: int | None = Field(
-        None, description="the query submap's keyframe T_anchor_session is the pose of; None: "
-        "the session frame"
-    )
 
 
 @dataclass(frozen=True)
@@ -343,6 +373,14 @@ def _session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[flo
             u = np.asarray(T.rotation().matrix()) @ st.up[k]
             return tuple(float(x) for x in u / np.linalg.norm(u))
     return None
+
+def _reply_err(query: Any, code: str, detail: str) -> None:
+    """A query's error reply: an ErrorMessage document as JSON (the one error shape)."""
+    import zenoh
+
+    doc = ErrorMessage(code=code, detail=detail[:1000]).model_dump_json()
+    query.reply_err(doc.encode(), encoding=zenoh.Encoding(keys.JSON_ENCODING))
+
 
 class MergeService:
     """The merge service. `start()` opens everything, `close()` stops it (idempotent)."""
@@ -485,20 +523,45 @@ class MergeService:
 
     # ------------------------------------------------------------------ ingress
 
-    def _publish_error(self, robot: str, code: str, detail: str, seq: int | None) -> None:
+    def _put(self, key: str, payload: bytes, json_doc: bool) -> None:
+        """Publish with the encoding of what is sent (module docstring: Answers)."""
         import zenoh
 
-        self.stats.error(code)
-        if self.session is None:
+        if self.session is None:  # offline (ingest): nothing to publish to
             return
+        enc = keys.JSON_ENCODING if json_doc else keys.MSGPACK_ENCODING
+        self.session.put(key, payload, encoding=zenoh.Encoding(enc))
+
+    def _publish_error(self, robot: str, code: RefusalCode, detail: str, seq: int | None,
+                       session: str | None = None) -> None:
+        """The error message on error/{robot} and the refused result on result/{robot}."""
+        import zenoh
+
+        self.stats.error(code.value)
+        self._publish_result(SubmapResult(robot=robot, session=session, seq=seq,
+                                          outcome=Outcome.REFUSED, code=code,
+                                          detail=detail[:1000]))
         try:
-            msg = encode_message(ErrorMessage(code=code, detail=detail[:1000], about_seq=seq),
+            msg = encode_message(ErrorMessage(code=code.value, detail=detail[:1000],
+                                              about_seq=seq),
                                  Profile.FULL, "mergesvc", self._next_seq())
-            self.session.put(keys.error_key(self._root, robot), msg)
+            self._put(keys.error_key(self._root, robot), msg, json_doc=False)
         # an error report that cannot be made (a robot name no key can carry, an unencodable
         # detail, a closed session) is logged: it must not end the callback that reports it
         except (MergeError, ValueError, zenoh.ZError) as exc:
             log.warning("could not publish an error to %s: %s", robot, exc)
+
+    def _publish_result(self, res: SubmapResult) -> None:
+        """Count a submap's result and send it on result/{robot} (JSON)."""
+        import zenoh
+
+        self.stats.result(res)
+        try:
+            self._put(keys.result_key(self._root, res.robot), res.model_dump_json().encode(),
+                      json_doc=True)
+        # as for errors: a result that cannot be sent is logged, the caller goes on
+        except (MergeError, ValueError, zenoh.ZError) as exc:
+            log.warning("could not publish a result to %s: %s", res.robot, exc)
 
     def _next_seq(self) -> int:
         with self._lock:
@@ -516,8 +579,8 @@ class MergeService:
             with self.stats._lock:
                 self.stats.submaps_received += 1
             self._refuse(robot, key, RefusedError(
-                "busy", f"{self._inbox.maxsize} submaps wait to be stored: sent again later"),
-                None)
+                RefusalCode.BUSY,
+                f"{self._inbox.maxsize} submaps wait to be stored: send again later"), None)
 
     def _ingest_loop(self) -> None:
         """The ingress thread: each received payload checked and persisted, in arrival order."""
@@ -540,7 +603,8 @@ class MergeService:
         if len(data) > self.config.max_payload_bytes:
             limit = self.config.max_payload_bytes
             self._refuse(robot, key, RefusedError(
-                "oversize", f"{len(data)}-byte submap exceeds the limit of {limit}"), None)
+                RefusalCode.OVERSIZE, f"{len(data)}-byte submap exceeds the limit of {limit}"),
+                None)
             return
         sub: Submap | None = None
         try:
@@ -559,11 +623,11 @@ class MergeService:
                                   f"{expected!r}")
             self._admit(sub)
         except RefusedError as exc:
-            self._refuse(robot, key, exc, sub.seq if sub is not None else None)
+            self._refuse(robot, key, exc, sub)
             return
         except MergeError as exc:
-            seq = sub.seq if isinstance(sub, Submap) else None
-            self._refuse(robot, key, RefusedError("bad_submap", str(exc)), seq)
+            self._refuse(robot, key, RefusedError(RefusalCode.BAD_SUBMAP, str(exc)),
+                         sub if isinstance(sub, Submap) else None)
             return
         try:
             _, created = self.store.put_submap(sub.robot_id, sub.session_id, sub.seq, data,
@@ -573,7 +637,7 @@ class MergeService:
                 self.stats.submaps_rejected += 1
             log.error("could not persist submap %s/%s/%s: %s", sub.robot_id, sub.session_id,
                       sub.seq, exc)
-            self._publish_error(robot, "store", str(exc), sub.seq)
+            self._publish_error(robot, RefusalCode.STORE, str(exc), sub.seq, sub.session_id)
             return
         if not created:
             with self.stats._lock:
@@ -581,12 +645,17 @@ class MergeService:
             return
         self._wake.set()
 
-    def _refuse(self, robot: str, key: str, exc: RefusedError, seq: int | None) -> None:
-        """Count, log (one line) and answer a refused submap."""
+    def _refuse(self, robot: str, key: str, exc: RefusedError, sub: Submap | None) -> None:
+        """Count, log (one line) and answer a refused submap (`sub`: None when it did not
+        decode)."""
         with self.stats._lock:
             self.stats.submaps_rejected += 1
-        log.warning("refused a submap on %s (%s): %s", key, exc.code, exc)
-        self._publish_error(robot, exc.code, str(exc), seq)
+        log.warning("refused a submap on %s (%s): %s", key, exc.code.value, exc)
+        # the session and seq the robot can recognise: only a submap of its own (a robot
+        # mismatch names another robot's submap: its seq means nothing to this one)
+        own = sub is not None and sub.robot_id == robot
+        self._publish_error(robot, exc.code, str(exc), sub.seq if own else None,
+                            sub.session_id if own else None)
 
     def _admit(self, sub: Submap) -> None:
         """The fleet's rules on a decoded submap (see the module docstring); raises RefusedError.
@@ -599,21 +668,22 @@ class MergeService:
                 self._dim = int(self.store.set_meta_once(META_EMBEDDING_DIM, str(dim)))
                 log.info("fleet embedding dimension fixed at %d", self._dim)
             if dim != self._dim:
-                raise RefusedError("embedding_dim", f"submap has {dim}-d embeddings, the fleet "
-                              f"{self._dim}-d (service.embedding_dim)")
+                raise RefusedError(RefusalCode.EMBEDDING_DIM, f"submap has {dim}-d embeddings, "
+                                   f"the fleet {self._dim}-d (service.embedding_dim)")
             now = self.clock()
             sessions = self._open[sub.robot_id]
             if sub.session_id not in sessions:
                 idle = self.config.session_idle_s
                 n_open = sum(1 for t in sessions.values() if now - t < idle)
                 if n_open >= self.config.max_open_sessions_per_robot:
-                    raise RefusedError("too_many_sessions", f"robot {sub.robot_id!r} has {n_open} "
-                                  f"open sessions (limit {self.config.max_open_sessions_per_robot}"
-                                  f", a session closes {idle:g} s after its last submap)")
+                    raise RefusedError(
+                        RefusalCode.TOO_MANY_SESSIONS, f"robot {sub.robot_id!r} has {n_open} "
+                        f"open sessions (limit {self.config.max_open_sessions_per_robot}, a "
+                        f"session closes {idle:g} s after its last submap)")
             if not self._bucket.take(sub.robot_id):
-                raise RefusedError("rate_limited", f"robot {sub.robot_id!r} sends more than "
-                              f"{self.config.submap_rate_hz:g} submaps/s (burst "
-                              f"{self.config.submap_burst})")
+                raise RefusedError(RefusalCode.RATE_LIMITED, f"robot {sub.robot_id!r} sends more "
+                                   f"than {self.config.submap_rate_hz:g} submaps/s (burst "
+                                   f"{self.config.submap_burst})")
             sessions[sub.session_id] = now
 
     def ingest(self, sub: Submap, profile: Profile = Profile.FULL, optimize: bool = True) -> int:
@@ -679,12 +749,26 @@ class MergeService:
             self._process(row_id)
         except Exception as exc:
             log.exception("processing submap row %d failed", row_id)
-            self.stats.error("processing")
+            self.stats.error(RefusalCode.PROCESSING.value)
             try:
                 self.store.mark_processed(row_id, "failed", str(exc)[:500])
             except MergeError as store_exc:
                 log.warning("could not mark submap row %d failed: %s", row_id, store_exc)
                 self._failed_rows.add(row_id)
+            self._result_of_failure(row_id, exc)
+
+    def _result_of_failure(self, row_id: int, exc: Exception) -> None:
+        """The `failed` result of a stored submap whose processing raised."""
+        try:
+            row = self.store.submap(row_id)
+        except MergeError as store_exc:  # the store is gone too: only the log knows
+            log.warning("no result for submap row %d: %s", row_id, store_exc)
+            return
+        detail = f"{type(exc).__name__}: {exc}"[:1000]
+        self._publish_result(SubmapResult(robot=row.robot_id, session=row.session_id,
+                                          seq=row.seq if row.seq >= 0 else None,
+                                          outcome=Outcome.FAILED, code=RefusalCode.PROCESSING,
+                                          detail=detail))
 
     def _flush(self) -> None:
         """Solve the pose graph if a processed submap changed it; publish retractions."""
@@ -741,14 +825,19 @@ class MergeService:
         me_id = FrameId(sub.robot_id, sub.session_id)
         me = str(me_id)
         new_factors = []
+        tried: list[FrameTried] = []
         others = self._candidate_frames(me, sub)
         for other, sm in others:
             other_id = FrameId.parse(other)
             self.stats.matches_tried += 1
             res = match(sm.map, sub, self.config.match).result
             if not yields_factor(res):
+                tried.append(FrameTried(frame=other, reason=res.reason,
+                                        matches=len(res.matches)))
                 continue
             factor = self._factor(res, sm, other_id, sub)
+            tried.append(FrameTried(frame=other, reason=res.reason, matches=len(res.matches),
+                                    factor_id=factor.factor_id))
             # a replay after a crash finds the factor stored already: publish it again (its id
             # is deterministic, so receivers see the same factor twice at most)
             self.store.put_factor(factor.factor_id, other, me, factor.model_dump_json().encode(),
@@ -768,6 +857,11 @@ class MergeService:
         self.store.mark_processed(row_id, "processed" if new_factors else "no_match",
                                   f"{len(new_factors)} factors")
         self.stats.submaps_processed += 1
+        self._publish_result(SubmapResult(
+            robot=sub.robot_id, session=sub.session_id, seq=sub.seq,
+            outcome=Outcome.PROCESSED if new_factors else Outcome.NO_MATCH,
+            factors=[f.factor_id for f in new_factors], tried=tried,
+            reason=None if new_factors else (tried[0].reason if tried else NO_FRAMES)))
         ms = (time.perf_counter() - t0) * 1e3
         self.stats.latency_ms.append(ms)
         del self.stats.latency_ms[:-1000]
@@ -896,8 +990,9 @@ class MergeService:
         if self.session is None:  # offline (ingest): nothing to publish to
             return
         payload = encode_message(factor, self.config.factor_profile, "mergesvc", self._next_seq())
-        for robot in {factor.robot_a, factor.robot_b}:
-            self.session.put(keys.factor_key(self._root, robot, factor.factor_id), payload)
+        for robot in sorted({factor.robot_a, factor.robot_b}):
+            self._put(keys.factor_key(self._root, robot, factor.factor_id), payload,
+                      json_doc=False)
 
     # ------------------------------------------------------------------ queries
 
@@ -980,6 +1075,8 @@ class MergeService:
                                matches=len(res.matches), keyframe=sub.keyframe)
 
     def _on_relocalize(self, query: Any) -> None:
+        import zenoh
+
         self.stats.relocalize_queries += 1
         with query:
             try:
@@ -993,18 +1090,20 @@ class MergeService:
                 if not isinstance(sub, Submap):
                     raise SchemaError("relocalize needs a submap")
                 reply = self.relocalize(sub)
-                query.reply(query.key_expr, reply.model_dump_json().encode())
+                query.reply(query.key_expr, reply.model_dump_json().encode(),
+                            encoding=zenoh.Encoding(keys.JSON_ENCODING))
             except MergeError as exc:
                 self.stats.error("bad_relocalize")
                 log.warning("bad relocalize query: %s", exc)
-                query.reply_err(json.dumps({"error": "bad_request", "detail": str(exc)}).encode())
+                _reply_err(query, "bad_request", str(exc))
             # last resort: every query gets an answer, a failure inside (a solver, a bug) too
             except Exception as exc:
                 log.exception("relocalize failed")
-                query.reply_err(json.dumps({"error": "internal", "detail": str(exc)}).encode())
+                _reply_err(query, "internal", str(exc))
 
     def status(self) -> dict[str, Any]:
-        """The service's state as strict JSON (no NaN: a percentile of nothing is null)."""
+        """The service's state as strict JSON (no NaN: a percentile of nothing is null), as
+        `StatusReply` (fleet/replies.py) checks it."""
 
         def pct(values: list[float]) -> dict[str, float | None]:
             a = np.asarray(list(values), dtype=np.float64)  # a copy: the worker appends
@@ -1017,7 +1116,7 @@ class MergeService:
             frame_poses = {f: T.tolist() for f, T in self._frame_poses().items()}
             keyframe_poses = {f: {str(k): T.tolist() for k, T in poses.items()}
                               for f, poses in self.keyframe_poses().items()}
-        return {
+        return StatusReply.model_validate({
             "fleet": self.config.fleet,
             "robots_alive": sorted(self.alive),
             "frames": frames,
@@ -1030,6 +1129,7 @@ class MergeService:
             "factors": {"accepted": self.stats.factors_accepted,
                         "retracted": self.stats.factors_retracted,
                         "active": len(self.factors)},
+            "results": self.stats.result_counts(),
             "errors": dict(self.stats.errors),
             "latency_ms": pct(self.stats.latency_ms),
             "delay_ms": pct(self.stats.delay_ms),
@@ -1039,16 +1139,19 @@ class MergeService:
             "frame_poses": frame_poses,
             "keyframe_poses": keyframe_poses,
             "store": self.store.stats(),
-        }
+        }).model_dump(mode="json")
 
     def _on_status(self, query: Any) -> None:
+        import zenoh
+
         with query:
             try:
-                query.reply(query.key_expr, json.dumps(self.status()).encode())
+                query.reply(query.key_expr, json.dumps(self.status(), allow_nan=False).encode(),
+                            encoding=zenoh.Encoding(keys.JSON_ENCODING))
             # last resort: every query gets an answer, a failure inside (a bug) too
             except Exception as exc:
                 log.exception("status failed")
-                query.reply_err(json.dumps({"error": "internal", "detail": str(exc)}).encode())
+                _reply_err(query, "internal", str(exc))
 
     def _on_alive(self, sample: Any) -> None:
         import zenoh
@@ -1063,6 +1166,7 @@ class MergeService:
 __all__ = [
     "HeldObject",
     "MergeService",
+    "RefusedError",
     "RelocalizeReply",
     "ServiceConfig",
     "ServiceStats",

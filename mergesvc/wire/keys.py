@@ -8,9 +8,14 @@ Under either root the key space is the same:
     factor/{robot}/{factor_id}  inter-robot factors for a vehicle    factor_key, robot_factors,
                                                                      all_factors
     error/{robot}               answers to a vehicle's bad submaps   error_key, all_errors
+    result/{robot}              what became of each of its submaps   result_key, all_results
     relocalize                  queryable: where is a new session    relocalize_key
     status                      queryable: the service's status      status_key
     alive/{robot}               liveliness token of a vehicle        alive_key, all_alive
+
+Payload encodings (the Zenoh `encoding` the service sets on everything it sends):
+MSGPACK_ENCODING on coded messages (submaps, factors, error messages: docs/wire.md),
+JSON_ENCODING on JSON documents (results, the status and relocalize replies, query errors).
 
 Every function takes the root first (as `fleet_root` or `uw_root` return it) and refuses a root
 of another shape, and names that would not be one key chunk (a robot), or that Zenoh refuses
@@ -39,6 +44,12 @@ ROOT = "mergesvc/v1"
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _ROOT = re.compile(r"^mergesvc/v1/(uw/)?[A-Za-z0-9_.-]{1,64}$")
 _RESERVED = set("*$?#")
+
+#: Zenoh encoding of the coded (msgpack) messages of docs/wire.md. Zenoh 1.x predefines no
+#: msgpack encoding: this string travels as a custom encoding and reads back as itself.
+MSGPACK_ENCODING = "application/msgpack"
+#: Zenoh encoding of JSON documents (zenoh.Encoding.APPLICATION_JSON).
+JSON_ENCODING = "application/json"
 
 
 def _name(value: str, what: str) -> str:
@@ -125,6 +136,17 @@ def all_errors(root: str) -> str:
     return f"{_root(root)}/error/**"
 
 
+def result_key(root: str, robot: str) -> str:
+    """Where the service says what became of each of a robot's submaps (processed, no match,
+    refused): {root}/result/{robot}."""
+    return f"{_root(root)}/result/{_robot(robot)}"
+
+
+def all_results(root: str) -> str:
+    """Every submap result of the fleet: {root}/result/**."""
+    return f"{_root(root)}/result/**"
+
+
 def relocalize_key(root: str) -> str:
     """The relocalize queryable: {root}/relocalize."""
     return f"{_root(root)}/relocalize"
@@ -173,18 +195,22 @@ def all_under(prefix: str) -> str:
 
 __all__ = [
     "BRIDGE_DOWNLINK",
+    "JSON_ENCODING",
+    "MSGPACK_ENCODING",
     "ROOT",
     "alive_key",
     "alive_robot",
     "all_alive",
     "all_errors",
     "all_factors",
+    "all_results",
     "all_submaps",
     "all_under",
     "error_key",
     "factor_key",
     "fleet_root",
     "relocalize_key",
+    "result_key",
     "robot_factors",
     "status_key",
     "submap_key",

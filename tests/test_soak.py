@@ -1,0 +1,82 @@
+"""`mergesvc bench soak --quick` (issue 14): a real `mergesvc serve` process under 3 robots, one
+robot of another embedding model, hostile payloads and a kill -9 restart; the report's
+invariants: every valid submap stored and processed exactly once (none lost, failed or
+pending, even those sent while the service was down), every hostile payload refused and
+answered, the mismatching robot refused and the others never."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from mergesvc.bench.soak import HostileKind, SoakPlan, SoakWorld, hostile_payload
+from mergesvc.core.model import Submap
+from mergesvc.errors import MergeError
+from mergesvc.wire import decode_message
+
+
+def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path) -> None:
+    out = tmp_path / "soak.json"
+    run = subprocess.run(
+        [sys.executable, "-m", "mergesvc.cli", "bench", "soak", "--quick", "--out", str(out)],
+        capture_output=True, text=True, timeout=240,
+    )
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    rep = json.loads(out.read_text())
+    v = rep["valid"]
+    assert v["sent"] > 20
+    # each valid (robot, session, seq) stored once and processed: none lost, failed, pending
+    assert v["stored"] == v["sent"]
+    assert (v["lost"], v["duplicated"], v["failed"], v["pending"]) == (0, 0, 0, 0)
+    assert v["processed"] + v["no_match"] == v["sent"]
+    assert rep["foreign_rows"] == 0
+    # the kill happened mid-stream: submaps sent while the service was down came back
+    assert len(rep["restarts"]) == 1
+    assert rep["restarts"][0]["valid_sent_while_down"] > 0
+    # hostile: all refused, all answered, none stored
+    h = rep["hostile"]
+    assert h["sent"] > 5 and len(h["by_kind"]) >= 3
+    assert h["answered"] == h["sent"] and h["stored"] == 0
+    assert set(h["codes"]) <= {"bad_submap", "oversize"}
+    # the robot of another model: every one refused with embedding_dim, nobody else answered
+    m = rep["mismatch"]
+    assert m["robots"] == ["m0"] and m["sent"] > 0 and m["stored"] == 0
+    assert set(m["answers"]["m0"]) == {"embedding_dim"} and m["answers"]["m0"]["embedding_dim"] > 0
+    assert v["errors_answered"] == {}
+    assert rep["store_integrity"] == "ok" and rep["service_log"]["tracebacks"] == 0
+    targets = dict(rep["targets"])
+    targets.pop("rss_growth_under_100mb")  # 10 s measure the service's warm-up, not a leak
+    assert all(targets.values()), targets
+    assert out.with_suffix(".png").stat().st_size > 0
+
+
+def test_every_hostile_kind_is_refused_by_the_decoder_or_is_a_key_mismatch() -> None:
+    """The payloads the soak sends as hostile: each undecodable, oversize, or a valid submap
+    whose key does not name it (which the service refuses, tests/test_service_limits.py)."""
+    plan = SoakPlan.quick()
+    world = SoakWorld.make(plan)
+    from mergesvc.bench.soak import RobotWalk
+
+    rng = np.random.default_rng(3)
+    good = RobotWalk(world, "h0", plan.dim, 6, 4.0, rng).next_submap(10**9)
+    other = RobotWalk(world, "r00", plan.dim, 6, 4.0, rng).next_submap(10**9)
+    for kind in HostileKind:
+        for _ in range(5):
+            key, data = hostile_payload(kind, "h0", 10**9, good, other, 4096, rng)
+            if kind is HostileKind.OVERSIZE:
+                assert len(data) > 4096
+                continue
+            try:
+                _, msg = decode_message(data)
+            except MergeError:
+                assert kind not in (HostileKind.KEY_SESSION, HostileKind.EXTRA_LEVELS,
+                                    HostileKind.OTHER_ROBOT)
+                continue
+            assert isinstance(msg, Submap)
+            assert kind in (HostileKind.KEY_SESSION, HostileKind.EXTRA_LEVELS,
+                            HostileKind.OTHER_ROBOT), kind
+            assert key != f"submap/{msg.robot_id}/{msg.session_id}"
