@@ -331,6 +331,17 @@ def test_status_is_strict_json_before_any_submap() -> None:
             assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
             st = _strict(json.dumps(query_status(net.cs, FLEET)))
             assert st["latency_ms"]["p50"] > 0 and st["submaps"]["stored"] == {"no_match": 1}
+            # the merged poses are there by default and left out on request: a second robot
+            # saw the same objects, so there is a factor and a solution
+            first = make_submap("auv1", "s0", 0, n=4)
+            net.put(first.model_copy(update={"robot_id": "auv2", "objects": [
+                o.model_copy(update={"id": f"b{i}"}) for i, o in enumerate(first.objects)]}))
+            assert wait_for(lambda: bool(query_status(net.cs, FLEET)["frame_poses"]))
+            st = query_status(net.cs, FLEET)
+            lean = [_strict(r.ok.payload.to_bytes())
+                    for r in net.cs.get(keys.status_key(ROOT) + "?poses=false", timeout=5.0)]
+            assert len(lean) == 1 and lean[0]["keyframe_poses"] == {} == lean[0]["frame_poses"]
+            assert lean[0]["submaps"] == st["submaps"]
 
 
 def test_callbacks_from_many_threads_count_every_submap() -> None:

@@ -544,7 +544,9 @@ def _attacker_loop(session: Any, plan: SoakPlan, rate_hz: float, world: SoakWorl
 
 def _status(session: Any, fleet: str, timeout_s: float = 2.0) -> tuple[dict | None, int]:
     """The status reply (None without one) and its size in bytes."""
-    for reply in session.get(keys.status_key(keys.fleet_root(fleet)), timeout=timeout_s):
+    # the counts only: the merged poses grow with every keyframe (MergeService.status)
+    selector = keys.status_key(keys.fleet_root(fleet)) + "?poses=false"
+    for reply in session.get(selector, timeout=timeout_s):
         if reply.ok is not None:
             data = reply.ok.payload.to_bytes()
             return json.loads(data), len(data)

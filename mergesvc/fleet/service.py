@@ -1101,9 +1101,12 @@ class MergeService:
                 log.exception("relocalize failed")
                 _reply_err(query, "internal", str(exc))
 
-    def status(self) -> dict[str, Any]:
+    def status(self, poses: bool = True) -> dict[str, Any]:
         """The service's state as strict JSON (no NaN: a percentile of nothing is null), as
-        `StatusReply` (fleet/replies.py) checks it."""
+        `StatusReply` (fleet/replies.py) checks it. `poses=False` leaves `frame_poses` and
+        `keyframe_poses` empty: they grow with every keyframe (hundreds of kB after minutes of
+        a fleet), which a monitor polling the counts does not need (query `status?poses=false`).
+        """
 
         def pct(values: list[float]) -> dict[str, float | None]:
             a = np.asarray(list(values), dtype=np.float64)  # a copy: the worker appends
@@ -1111,11 +1114,14 @@ class MergeService:
                     for q in (50, 90, 99)}
 
         counts = self.store.counts()
+        frame_poses: dict[str, Any] = {}
+        keyframe_poses: dict[str, Any] = {}
         with self._lock:
             frames = {f: len(st.objects) for f, st in self.sessions.items()}
-            frame_poses = {f: T.tolist() for f, T in self._frame_poses().items()}
-            keyframe_poses = {f: {str(k): T.tolist() for k, T in poses.items()}
-                              for f, poses in self.keyframe_poses().items()}
+            if poses:
+                frame_poses = {f: T.tolist() for f, T in self._frame_poses().items()}
+                keyframe_poses = {f: {str(k): T.tolist() for k, T in kf.items()}
+                                  for f, kf in self.keyframe_poses().items()}
         return StatusReply.model_validate({
             "fleet": self.config.fleet,
             "robots_alive": sorted(self.alive),
@@ -1146,7 +1152,9 @@ class MergeService:
 
         with query:
             try:
-                query.reply(query.key_expr, json.dumps(self.status(), allow_nan=False).encode(),
+                poses = query.parameters.get("poses") not in ("false", "0", "no")
+                query.reply(query.key_expr,
+                            json.dumps(self.status(poses=poses), allow_nan=False).encode(),
                             encoding=zenoh.Encoding(keys.JSON_ENCODING))
             # last resort: every query gets an answer, a failure inside (a bug) too
             except Exception as exc:
