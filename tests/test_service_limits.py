@@ -238,6 +238,32 @@ def test_submap_rate_per_robot_is_limited() -> None:
         assert net.svc.stats.submaps_duplicate == 1
 
 
+def test_the_agent_sends_rate_limited_submaps_again_until_they_are_stored(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A vehicle whose burst exceeds the service's bucket: the refused submaps (rate_limited,
+    "not now") are sent again after a backoff by the reference agent until every one is
+    stored; none is lost (issue 14: a cache replay after an outage can exceed the burst)."""
+    import mergesvc.fleet.agent as agent_mod
+    from mergesvc.fleet.agent import Agent, AgentConfig, decode_factor
+
+    monkeypatch.setattr(agent_mod, "RETRY_BACKOFF_S", (0.5, 0.5, 1.0, 1.0, 2.0, 2.0, 4.0))
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", submap_rate_hz=2.0, submap_burst=2)
+    with Net(cfg) as net, Agent(
+        AgentConfig(robot="fast", fleet=FLEET), net.cs,
+        lambda sub, seq: payload(sub), decode_factor,
+        submap_key=keys.submap_key(ROOT, "fast", "s0"),
+        factor_key=keys.robot_factors(ROOT, "fast"), alive_key=keys.alive_key(ROOT, "fast"),
+        result_key=keys.result_key(ROOT, "fast"),
+    ) as ag:
+        for seq in range(6):
+            ag.publish(make_submap("fast", "s0", seq, n=4))
+        assert wait_for(lambda: len(net.svc.store.submaps()) == 6, 30.0)
+        assert net.svc.stats.errors.get("rate_limited", 0) >= 4  # it was refused ...
+        assert ag.stats.submaps_resent >= 4  # ... and sent again
+        assert ag.stats.submaps_given_up == 0
+        assert sorted(r.seq for r in net.svc.store.submaps()) == list(range(6))
+
+
 def test_candidate_frames_are_capped_and_shared_between_robots() -> None:
     """40 sessions of one robot that all look like a victim's submap: the victim's submap is
     matched against at most max_candidate_frames sessions, at most max_frames_per_robot of

@@ -394,3 +394,25 @@ def test_demo_view_save_records_the_demo(tmp_path) -> None:
     accepted = last["/world/factors/accepted"]["LineStrips3D:strips"]
     retracted = last.get("/world/factors/retracted", {}).get("LineStrips3D:strips", [])
     assert len(accepted) + len(retracted) == summary["factors_accepted"]
+
+
+@pytest.mark.parametrize(("up", "axes"), [((0.0, -1.0, 0.0), "RIGHT_HAND_Y_DOWN"),
+                                          ((0.0, 0.0, 1.0), "RIGHT_HAND_Z_UP"),
+                                          ((0.97, 0.1, 0.2), "RIGHT_HAND_X_UP")])
+def test_the_view_takes_up_from_the_vehicles_not_from_a_convention(tmp_path, up, axes) -> None:
+    """KITTI's camera axes (y down), the pool (z up), anything: the world's up axis is the one
+    nearest the first session's declared gravity; before any, none is declared."""
+    from mergesvc.core.model import ObjectNode
+
+    objs = [ObjectNode(id=f"o{i}", position=(float(i), 0.0, 1.0), embedding=[1.0, float(i)],
+                       variance=0.1) for i in range(3)]
+    path = tmp_path / "up.rrd"
+    view = LiveView.open(ViewSink(save=path))
+    view.on_submap(Submap(robot_id="car1", session_id="s0", seq=0, keyframe=0, objects=objs))
+    view.on_submap(Submap(robot_id="car1", session_id="s0", seq=1, keyframe=0, up=up,
+                          objects=objs))
+    view.close()
+    last, rows = read_rrd(path)
+    want = getattr(rr.ViewCoordinates, axes).as_arrow_array().to_pylist()
+    assert last["/world"]["ViewCoordinates:xyz"] == want
+    assert rows["/world"] == 1  # declared once

@@ -263,6 +263,8 @@ def agent(
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
                            "bytes_sent": stats.bytes_sent,
+                           "submaps_resent": stats.submaps_resent,
+                           "submaps_given_up": stats.submaps_given_up,
                            "factors_received": stats.factors_received}))
 
 

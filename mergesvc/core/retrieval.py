@@ -4,7 +4,7 @@ The service used to match every submap against every other frame (robot session)
 its cost per submap grew with the fleet: 2 matches at 3 robots, 19 at 20, 41 when one robot
 opened 40 sessions. `FleetIndex` holds the unit embeddings of every frame's objects in one
 matrix per embedding size; `rank` scores each frame for a submap with one matrix product and
-the service matches only the best few (`ServiceConfig.max_frames_per_submap`), so the matching
+the service matches only the best few (`ServiceConfig.max_candidate_frames`), so the matching
 cost per submap is bounded whatever the fleet size. Frames of another embedding size are never
 candidates (their objects come from another model; issue 14).
 
@@ -17,7 +17,10 @@ of arrival. A fleet of at most `keep` candidate frames needs no ranking: `rank` 
 all (the scores still computed, for the log).
 
 Pure numpy; no frame is ever dropped from the index (a frame's row block is replaced when its
-objects change).
+objects change). Cost per ranking: one (m x N) product over the N objects of the fleet, plus
+re-stacking the (N x d) matrix after a frame changed (the service re-ranks after every submap,
+which changes its own frame): about 9 ms per submap at 20 vehicles x 24 objects, O(N d) as the
+fleet's object count grows. The matching behind it is what the index caps.
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +28,7 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import ConfigError, InputError, MergeError
-from mergesvc.fleet.replies import Outcome, SubmapResult
+from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
@@ -397,6 +398,8 @@ class AgentStats:
     factors_received: int = 0
     bad_messages: int = 0
     results: dict[str, int] = field(default_factory=dict)  # the service's results per outcome
+    submaps_resent: int = 0  # sent again after a "not now" refusal
+    submaps_given_up: int = 0  # refused "not now" after every retry
 
 
 def decode_factor(data: bytes) -> Factor:
@@ -408,9 +411,18 @@ def decode_factor(data: bytes) -> Factor:
     return f
 
 
+#: Refusals that say "not now", not "never": the agent sends the submap again after a backoff.
+RETRY_CODES = frozenset({RefusalCode.BUSY, RefusalCode.RATE_LIMITED, RefusalCode.STORE})
+RETRY_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)  # then the submap is given up
+
+
 class Agent:
     """A vehicle on Zenoh: liveliness token, advanced publisher of submaps (cache, so a service
-    that joins late or restarts recovers them), subscriber of its factors."""
+    that joins late or restarts recovers them), subscriber of its factors and of its submaps'
+    results. A submap refused with a "not now" code (RETRY_CODES: busy, rate_limited, store:
+    after a long outage the cache's replay can exceed the service's per-robot burst) is sent
+    again after RETRY_BACKOFF_S[attempt] seconds, up to len(RETRY_BACKOFF_S) times; the last
+    `cache_samples` payloads are kept for that."""
 
     def __init__(
         self,
@@ -441,6 +453,11 @@ class Agent:
             encoding=zenoh.Encoding(keys.MSGPACK_ENCODING),
         )
         self._sub = session.declare_subscriber(factor_key, self._on_factor)
+        self._sent: OrderedDict[tuple[str, int], bytes] = OrderedDict()  # (session, seq)
+        self._keep = cache_samples
+        self._attempts: dict[tuple[str, int], int] = {}
+        self._timers: set[threading.Timer] = set()
+        self._closed = False
         self._results = (None if result_key is None
                          else session.declare_subscriber(result_key, self._on_result))
 
@@ -460,6 +477,41 @@ class Agent:
             res.outcome, f"{res.outcome.value} ({res.code.value if res.code else ''}: "
                          f"{res.detail})")
         log.info("%s: submap %s/%s: %s", self.config.robot, res.session, res.seq, why)
+        if res.outcome is Outcome.REFUSED and res.code in RETRY_CODES and res.seq is not None:
+            self._retry((res.session or self.config.session, res.seq))
+
+    def _retry(self, key: tuple[str, int]) -> None:
+        """Send a refused submap again after the next backoff (or give it up)."""
+        with self._lock:
+            payload = self._sent.get(key)
+            attempt = self._attempts.get(key, 0)
+            if payload is None or self._closed:
+                return
+            if attempt >= len(RETRY_BACKOFF_S):
+                self.stats.submaps_given_up += 1
+                log.warning("%s: submap %s/%s refused %d times: given up", self.config.robot,
+                            key[0], key[1], attempt)
+                return
+            self._attempts[key] = attempt + 1
+            timer = threading.Timer(RETRY_BACKOFF_S[attempt], self._resend, (key, payload))
+            timer.daemon = True
+            self._timers.add(timer)
+        timer.start()
+
+    def _resend(self, key: tuple[str, int], payload: bytes) -> None:
+        import zenoh
+
+        with self._lock:
+            self._timers = {t for t in self._timers if t.is_alive()}
+            if self._closed:
+                return
+        try:
+            self._pub.put(payload)
+            self.stats.submaps_resent += 1
+            log.info("%s: submap %s/%s sent again", self.config.robot, key[0], key[1])
+        except zenoh.ZError as exc:  # the session is closing
+            log.warning("%s: could not send submap %s/%s again: %s", self.config.robot,
+                        key[0], key[1], exc)
 
     def _on_factor(self, sample: object) -> None:
         try:
@@ -494,17 +546,30 @@ class Agent:
                 sub = self.local.cut_submap(self.stats.submaps_sent, fr.stamp_s) if cut else None
             self.stats.frames += 1
             if sub is not None:
-                payload = self._encode(sub, self.stats.submaps_sent)
-                self._pub.put(payload)
-                self.stats.submaps_sent += 1
-                self.stats.bytes_sent += len(payload)
-                log.info("%s: submap %d (%d objects, %d bytes)", self.config.robot,
-                         sub.seq, len(sub.objects), len(payload))
+                self.publish(sub)
         return self.stats
+
+    def publish(self, sub: Submap) -> None:
+        """Encode and send one submap (kept for a retry: see the class docstring)."""
+        payload = self._encode(sub, self.stats.submaps_sent)
+        with self._lock:
+            self._sent[(sub.session_id, sub.seq)] = payload
+            while len(self._sent) > self._keep:
+                self._sent.popitem(last=False)
+        self._pub.put(payload)
+        self.stats.submaps_sent += 1
+        self.stats.bytes_sent += len(payload)
+        log.info("%s: submap %d (%d objects, %d bytes)", self.config.robot, sub.seq,
+                 len(sub.objects), len(payload))
 
     def close(self) -> None:
         import zenoh
 
+        with self._lock:
+            self._closed = True
+            timers, self._timers = self._timers, set()
+        for t in timers:
+            t.cancel()
         for ent in (self._results, self._sub, self._pub, self._token):
             if ent is None:
                 continue

@@ -19,8 +19,8 @@ and writes into `out_dir`:
                     `status`), as schemas/factor.schema.json objects, in the order accepted:
                     what a vehicle received (clients/gtsam_factors.py adds them to a graph).
   map.json          the fused global map in the anchor frame (schemas/object_map.schema.json;
-                    robot_id/session_id name the anchor session), absent before the first
-                    solve joins any session to the anchor.
+                    robot_id/session_id name the anchor session): the anchor session placed
+                    by its odometry, and every session a solve has joined to it.
   export.json       the manifest: the anchor, each node's frame and stamp, each edge's factor
                     id and kind, the files written, submaps left out (pending).
   trajectories/{robot}_{session}_odometry.tum

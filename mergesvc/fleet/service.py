@@ -104,7 +104,7 @@ from mergesvc.core.model import (
 )
 from mergesvc.core.pipeline import match
 from mergesvc.core.retrieval import FleetIndex
-from mergesvc.errors import ConfigError, MergeError, SchemaError
+from mergesvc.errors import ConfigError, MergeError, SchemaError, one_line
 from mergesvc.fleet.replies import (
     NO_FRAMES,
     FrameTried,
@@ -364,7 +364,7 @@ class SessionMap:
 
 
 
-def _session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[float, ...] | None:
+def session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[float, ...] | None:
     """The session frame's up, from the latest keyframe that declared one (its up rotated by
     that keyframe's pose in the session frame); None when no placed keyframe declared it."""
     for k in sorted(st.up, reverse=True):
@@ -434,7 +434,11 @@ class MergeService:
     def start(self) -> MergeService:
         from zenoh.ext import HistoryConfig, RecoveryConfig, declare_advanced_subscriber
 
-        self.restore()
+        try:
+            self.restore()
+        except BaseException:
+            self.close()  # the store is not left open by a service that never started
+            raise
         s = self.session
         self._entities = [
             declare_advanced_subscriber(
@@ -538,9 +542,13 @@ class MergeService:
         import zenoh
 
         self.stats.error(code.value)
-        self._publish_result(SubmapResult(robot=robot, session=session, seq=seq,
-                                          outcome=Outcome.REFUSED, code=code,
-                                          detail=detail[:1000]))
+        try:
+            res = SubmapResult(robot=robot, session=session, seq=seq, outcome=Outcome.REFUSED,
+                               code=code, detail=detail[:1000])
+        except ValueError as exc:  # a robot or session name from the key no reply can carry
+            log.warning("no result for a refused submap of %r: %s", robot[:80], one_line(exc))
+        else:
+            self._publish_result(res)
         try:
             msg = encode_message(ErrorMessage(code=code.value, detail=detail[:1000],
                                               about_seq=seq),
@@ -571,6 +579,15 @@ class MergeService:
     def _on_submap(self, sample: Any) -> None:
         """Zenoh callback: enqueue only (see Threads in the module docstring)."""
         key = str(sample.key_expr)
+        if len(sample.payload) > self.config.max_payload_bytes:
+            # refused before it is copied or queued: the queue holds no oversize payloads
+            robot = keys.submap_robot(self._root, key) or "unknown"
+            with self.stats._lock:
+                self.stats.submaps_received += 1
+            self._refuse(robot, key, RefusedError(
+                RefusalCode.OVERSIZE, f"{len(sample.payload)}-byte submap exceeds the limit of "
+                f"{self.config.max_payload_bytes}"), None)
+            return
         data = sample.payload.to_bytes()
         try:
             self._inbox.put_nowait((key, data))
@@ -726,7 +743,9 @@ class MergeService:
             # the graph solve) is logged and the loop goes on after a pause.
             try:
                 while not self._stop.is_set():
-                    ids = [i for i in self.store.pending_ids(self.config.queue_size)
+                    # rows that failed and could not be marked are skipped, not counted
+                    limit = self.config.queue_size + len(self._failed_rows)
+                    ids = [i for i in self.store.pending_ids(limit)
                            if i not in self._failed_rows]
                     for row_id in ids:
                         if self._stop.is_set():
@@ -838,11 +857,15 @@ class MergeService:
             factor = self._factor(res, sm, other_id, sub)
             tried.append(FrameTried(frame=other, reason=res.reason, matches=len(res.matches),
                                     factor_id=factor.factor_id))
-            # a replay after a crash finds the factor stored already: publish it again (its id
-            # is deterministic, so receivers see the same factor twice at most)
+            new_factors.append((other, factor))
+        # stored only once every candidate was matched: a submap that fails half way leaves no
+        # factor behind that the running service never held (a restart would restore it).
+        # A replay after a crash finds a factor stored already: it is published again (its id
+        # is deterministic, so receivers see the same factor twice at most)
+        for other, factor in new_factors:
             self.store.put_factor(factor.factor_id, other, me, factor.model_dump_json().encode(),
                                   "accepted")
-            new_factors.append(factor)
+        new_factors = [f for _, f in new_factors]
         with self._lock:
             closes_loop = self._add_submap(sub)
             for factor in new_factors:
@@ -850,7 +873,7 @@ class MergeService:
                     self.factors[factor.factor_id] = factor
                     self.graph.add_factor_model(factor, keyframe_nodes=True)
         for factor in new_factors:
-            self._publish_factor(factor)
+            self._publish_factor(factor)  # a send that fails is logged: the submap is processed
             self.stats.factors_accepted += 1
         if new_factors or closes_loop:
             self._dirty = True  # solved after the batch (_flush)
@@ -935,7 +958,7 @@ class MergeService:
         sm = None
         if len(placed) >= self.config.min_map_objects:
             sm = SessionMap(ObjectMap(robot_id=st.frame.robot, session_id=st.frame.session,
-                                      objects=placed, up=_session_up(st, poses)),
+                                      objects=placed, up=session_up(st, poses)),
                             keyframe_of, poses)
         self._session_maps[name] = (key, sm)
         return sm
@@ -976,23 +999,32 @@ class MergeService:
             self._solutions += 1
             self._global = None
             # ambiguous factors (GNC doubts them, but no two other paths confirm it) are kept
-            retract = [fid for fid in sol.outlier_factor_ids if fid in self.factors]
-        for fid in retract:
-            factor = self.factors.pop(fid)
-            self.store.set_factor_status(fid, "retracted")
-            self.graph.remove_factor(fid)
-            self.stats.factors_retracted += 1
-            log.warning("factor %s rejected by GNC: retracted", fid)
-            if publish:
+            retracted = []
+            for fid in [f for f in sol.outlier_factor_ids if f in self.factors]:
+                self.store.set_factor_status(fid, "retracted")
+                retracted.append(self.factors.pop(fid))  # under the lock: global_map reads
+                self.graph.remove_factor(fid)
+                self.stats.factors_retracted += 1
+                log.warning("factor %s rejected by GNC: retracted", fid)
+        if publish:
+            for factor in retracted:
                 self._publish_factor(factor.model_copy(update={"status": FactorStatus.RETRACTED}))
 
     def _publish_factor(self, factor: Factor) -> None:
+        """Send a factor to both its robots; a send that fails is logged (the factor is stored
+        and in the graph: a restart's replay publishes it again)."""
+        import zenoh
+
         if self.session is None:  # offline (ingest): nothing to publish to
             return
-        payload = encode_message(factor, self.config.factor_profile, "mergesvc", self._next_seq())
-        for robot in sorted({factor.robot_a, factor.robot_b}):
-            self._put(keys.factor_key(self._root, robot, factor.factor_id), payload,
-                      json_doc=False)
+        try:
+            payload = encode_message(factor, self.config.factor_profile, "mergesvc",
+                                     self._next_seq())
+            for robot in sorted({factor.robot_a, factor.robot_b}):
+                self._put(keys.factor_key(self._root, robot, factor.factor_id), payload,
+                          json_doc=False)
+        except (MergeError, ValueError, zenoh.ZError) as exc:
+            log.warning("could not publish factor %s: %s", factor.factor_id, exc)
 
     # ------------------------------------------------------------------ queries
 
@@ -1181,4 +1213,5 @@ __all__ = [
     "SessionMap",
     "SessionState",
     "TokenBucket",
+    "session_up",
 ]

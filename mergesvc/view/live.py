@@ -38,10 +38,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
+import gtsam
 import numpy as np
 
 from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.errors import ConfigError, MergeError
+from mergesvc.fleet.service import session_up
 from mergesvc.view.scene import RETRACTED_RGB, FleetScene, Segments
 
 if TYPE_CHECKING:
@@ -154,7 +156,10 @@ class LiveView:
         self._service_rows: set[int] = set()
         self._service_latency = 0  # latencies of MergeService.stats already drawn
         self.url: str | None = None  # the web viewer's, when open() served one
-        self.rec.log("world", self.rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        # which way is up in the world (the anchor's frame) is learned from the vehicles'
+        # declared gravity (`_declare_up`); nothing is assumed before (KITTI's camera axes
+        # have y down)
+        self._up_axis: str | None = None
 
     @classmethod
     def open(cls, sink: ViewSink, clock: Callable[[], float] = time.monotonic,
@@ -177,6 +182,20 @@ class LiveView:
             self._draw_session(name)
             self._draw_links()
             self._count("submaps", self.scene.submaps_seen)
+            self._declare_up()
+
+    def _declare_up(self) -> None:
+        """Once the world's session (the first seen: the anchor's, drawn in its own frame)
+        has a keyframe that declared `up`, tell the viewer the axis nearest to it."""
+        if self._up_axis is not None or not self.scene.sessions:
+            return
+        st = next(iter(self.scene.sessions.values()))
+        up = session_up(st, st.propagate({0: gtsam.Pose3()}))
+        if up is None:
+            return
+        i = int(np.argmax(np.abs(up)))
+        self._up_axis = f"RIGHT_HAND_{'XYZ'[i]}_{'UP' if up[i] > 0 else 'DOWN'}"
+        self.rec.log("world", getattr(self.rr.ViewCoordinates, self._up_axis), static=True)
 
     def on_factor(self, factor: Factor, *, timed: bool = True) -> None:
         """A factor message as the service sent it (accepted, or retracted); `timed`: it is
