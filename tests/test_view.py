@@ -68,6 +68,14 @@ def read_rrd(path: Path) -> tuple[dict[str, dict[str, Any]], Counter]:
     return {e: v for e, (_, v) in last.items()}, rows
 
 
+def assert_empty_recording(path: Path) -> None:
+    """A valid recording of a view that saw no vehicle: rerun's own properties, no robot and no
+    up axis (nothing is assumed until a vehicle declares its gravity: KITTI's y points down)."""
+    last, _ = read_rrd(path)
+    assert "/__properties" in last, last
+    assert not any(e.startswith("/world") for e in last), last
+
+
 def events(path: Path) -> list[str]:
     out = []
     for chunk in RrdReader(path).stream():
@@ -238,8 +246,7 @@ def test_view_duration_bounds_it_without_a_service(tmp_path) -> None:
                              capture_output=True, text=True, timeout=90)
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout.strip().splitlines()[-1])["submaps"] == 0
-    last, _ = read_rrd(out)
-    assert "/world" in last and not any(e.startswith("/world/robots") for e in last)
+    assert_empty_recording(out)
 
 
 # ---------------------------------------------------------------------- the web viewer
@@ -362,7 +369,7 @@ def test_web_viewer_shows_the_merged_map_in_headless_chromium(submaps, tmp_path)
 
 def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> None:
     """The hook `mergesvc demo --view-save` hands run_demo: attach, then detach closes the
-    recording (a valid file with the view's layout, and no robots: nothing was sent)."""
+    recording (a valid file, no robots and no up axis: nothing was sent)."""
     from mergesvc.view import observer
 
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -371,8 +378,7 @@ def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> No
         view = LiveView.open(ViewSink(save=out))
         detach = observer(view, status_period_s=0.2)(session, FLEET, None)
         detach()
-    last, _ = read_rrd(out)
-    assert "/world" in last and not any(e.startswith("/world/robots") for e in last)
+    assert_empty_recording(out)
 
 
 def test_demo_view_save_records_the_demo(tmp_path) -> None:

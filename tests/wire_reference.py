@@ -342,6 +342,7 @@ def decode_objects(p: Any, msg_type: str, profile: str, sender: str, env_seq: in
             k_dim += 1
             need(min(var) > 0, "variance <= 0")
         need(bool(np.all(np.isfinite(pos[i]))), "position not finite")
+        need(bool(np.all(np.abs(pos[i]) <= 1e9)), "position beyond +-1e9 m")
         obj = {"id": ids[i], "position": pos[i].tolist(), "embedding": E[i].tolist(),
                "variance": var, "n_obs": n_obs[i]}
         if labels[i] is not None:

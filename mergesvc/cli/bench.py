@@ -1,4 +1,5 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak` (see docs/benchmarks.md).
+"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak|fuzz` (see
+docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
 benchmarked configuration starts from (the benchmark sets its own axes on top), `bench link`
@@ -363,4 +364,53 @@ def bench_soak(
         fig = plot_soak(report, out.with_suffix(".png"))
         typer.echo(f"wrote {out}, {fig} and {log_path}")
     if not report["ok"]:
+        raise typer.Exit(1)
+
+
+@app.command("fuzz")
+def bench_fuzz(
+    inputs: Annotated[int, typer.Option(min=1, help="inputs per target")] = 100_000,
+    seed: Annotated[int, typer.Option(help="seed of every mutation")] = 0,
+    target: Annotated[str, typer.Option(
+        help="wire, link, match, other (codec JSON, TUM, observation log, projection) or all")
+                      ] = "all",
+    out: Annotated[Path | None, typer.Option(
+        help="write the report as JSON here (.md beside it; reproducers in NAME.findings/)")
+                   ] = None,
+    cli_samples: Annotated[int, typer.Option(
+        min=0, help="malformed files (the nastiest first) run through a real `mergesvc match`")
+                           ] = 20,
+) -> None:
+    """Fuzz every decoder of outside input with seeded mutations of valid inputs: each input
+    must decode or be refused with an error the CLI prints as one line (exit 2); anything else
+    or a hang is a finding. Exit 1 when there is a finding."""
+    import sys
+
+    from rich.progress import Progress
+
+    from mergesvc.bench.fuzz import FuzzTarget, run_fuzz
+
+    try:
+        kind = FuzzTarget(target)
+    except ValueError:
+        raise typer.BadParameter(f"{target!r}: one of {', '.join(t.value for t in FuzzTarget)}",
+                                 param_hint="--target") from None
+    with exit_on_error():
+        tree = resolve_settings(None)
+    with Progress(transient=True) as bar:
+
+        def factory(name: str, total: int):
+            task = bar.add_task(name, total=total)
+            return lambda n: bar.update(task, advance=n)
+
+        with exit_on_error():
+            report = run_fuzz(inputs, seed, kind, out, cli=[sys.executable, "-m", "mergesvc.cli"],
+                              cli_samples=cli_samples,
+                              echo=lambda m: bar.console.print(m, soft_wrap=True, highlight=False),
+                              progress_factory=factory)
+    typer.echo(report["markdown"])
+    if out is not None:
+        _write_report(report, out, tree)
+    if report["findings"] or not all(r["ok"] for r in report.get("cli_check", {}).get(
+            "results", [])):
         raise typer.Exit(1)

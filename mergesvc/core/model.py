@@ -33,6 +33,11 @@ MAX_EMBEDDING_DIM = 4096
 MAX_OBJECTS = 200_000
 MAX_ID_LENGTH = 128
 MAX_FILE_BYTES = 2 * 1024**3
+# |coordinate| of an object, metres: beyond the Moon's orbit, so any map on or around the Earth
+# (ECEF ~6.4e6 m) fits; beyond it, squared distances lose all precision and a finite 1e300
+# made the solver's affinity matrix inf (found by `bench fuzz`)
+MAX_COORDINATE_M = 1e9
+MAX_SEQ = 2**63 - 1  # seq, keyframe and about_seq: the wire's int64 (docs/wire.md §2)
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
@@ -59,6 +64,7 @@ def _in_array_branch(extra: dict[str, Any]) -> Any:
 _NONZERO3_SCHEMA = _in_array_branch({"not": {"const": [0, 0, 0]}})
 
 Identifier = Annotated[str, Field(min_length=1, max_length=MAX_ID_LENGTH)]
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
 
 
 def _check_version(v: Any) -> int:
@@ -80,7 +86,8 @@ class ObjectNode(BaseModel):
     model_config = _STRICT
 
     id: Identifier
-    position: tuple[float, float, float] = Field(description="object centre [x, y, z] in metres")
+    position: tuple[Coordinate, Coordinate, Coordinate] = Field(
+        description="object centre [x, y, z] in metres")
     embedding: list[float] = Field(min_length=1, max_length=MAX_EMBEDDING_DIM)
     variance: Annotated[float, Field(gt=0)] | list[Annotated[float, Field(gt=0)]] = Field(
         description="per-dimension variance of the embedding, or one number if isotropic"
@@ -210,7 +217,8 @@ class Odometry(BaseModel):
 
     model_config = _STRICT
 
-    from_keyframe: int = Field(ge=0, description="the earlier keyframe (the previous submap's)")
+    from_keyframe: int = Field(ge=0, le=MAX_SEQ,
+                               description="the earlier keyframe (the previous submap's)")
     T_from_to: Pose = Field(description="pose of the submap's keyframe in from_keyframe")
     covariance: Covariance6 = Field(
         description="6x6 SPD covariance of T_from_to, GTSAM Pose3 order (rotation, translation)",
@@ -227,10 +235,11 @@ class Submap(ObjectMap):
     since an earlier keyframe, so the service holds every robot's odometry chain. Without
     `keyframe`, positions are in the session's own frame (the session origin)."""
 
-    seq: int | None = Field(default=None, ge=0, description="submap sequence number")
+    seq: int | None = Field(default=None, ge=0, le=MAX_SEQ,
+                            description="submap sequence number")
     stamp: float | None = Field(default=None, description="time of the submap cut, seconds")
     keyframe: int | None = Field(
-        default=None, ge=0,
+        default=None, ge=0, le=MAX_SEQ,
         description="keyframe (pose index in the session) the submap is anchored at; object "
         "positions are then in that keyframe's body frame",
     )
@@ -335,6 +344,8 @@ class ObjectArrays:
         for name in ("position_xyz_m", "embeddings_nd", "variances_nd"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise SchemaError(f"{name} has NaN or inf")
+        if np.any(np.abs(self.position_xyz_m) > MAX_COORDINATE_M):
+            raise SchemaError(f"position_xyz_m beyond +-{MAX_COORDINATE_M:g} m")
         if np.any(self.variances_nd <= 0):
             raise SchemaError("variances_nd must be positive")
         if self.up_xyz is not None:
@@ -601,11 +612,12 @@ class Factor(BaseModel):
     )
     status: FactorStatus | None = Field(default=None, description="accepted or retracted")
     keyframe_a: int | None = Field(
-        default=None, ge=0,
+        default=None, ge=0, le=MAX_SEQ,
         description="pose-level factor: T_a_b is between keyframe keyframe_a of session a and "
         "keyframe_b of session b (both set, or neither: then between the session frames)",
     )
-    keyframe_b: int | None = Field(default=None, ge=0, description="see keyframe_a")
+    keyframe_b: int | None = Field(default=None, ge=0, le=MAX_SEQ,
+                                    description="see keyframe_a")
 
     @model_validator(mode="after")
     def _keyframes_together(self) -> Factor:
@@ -629,7 +641,8 @@ class ErrorMessage(BaseModel):
     )
     code: str = Field(min_length=1, max_length=64, description="short machine-readable code")
     detail: str = Field(default="", max_length=1024, description="one line for people")
-    about_seq: int | None = Field(default=None, ge=0, description="seq of the message at fault")
+    about_seq: int | None = Field(default=None, ge=0, le=MAX_SEQ,
+                                   description="seq of the message at fault")
 
     @field_validator("schema_version", mode="before")
     @classmethod

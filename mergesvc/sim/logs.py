@@ -5,6 +5,7 @@ written from simulated frames and read back, validated, as `Frame`s for `mergesv
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -66,13 +67,14 @@ def write_observation_log(frames: Iterator[Frame] | Sequence[Frame], path: Path 
 
 
 def read_observation_log(path: Path | str) -> Iterator[Frame]:
-    """Frames of an observation log, validated line by line (InputError names the line)."""
-    with open(path) as fh:
-        for k, line in enumerate(fh, start=1):
-            if not line.strip():
+    """Frames of an observation log, validated line by line (InputError names the line).
+    The log is UTF-8 (JSON's encoding), whatever the machine's locale."""
+    with open(path, "rb") as fh:
+        for k, raw in enumerate(fh, start=1):
+            if not raw.strip():
                 continue
             try:
-                rec = json.loads(line)
+                rec = json.loads(raw.decode("utf-8"))
                 t = np.asarray(rec["pose"]["translation"], dtype=np.float64)
                 w, x, y, z = rec["pose"]["quaternion_wxyz"]
                 if t.shape != (3,) or not np.all(np.isfinite(t)):
@@ -93,15 +95,20 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                     if body.shape != (3,) or not np.all(np.isfinite(body)):
                         raise ValueError("position_body_m must be 3 finite numbers")
                     sigma = float(d["position_sigma_m"])
-                    if not sigma > 0:
-                        raise ValueError("position_sigma_m must be > 0")
+                    if not (math.isfinite(sigma) and sigma > 0):
+                        raise ValueError("position_sigma_m must be a finite number > 0")
                     p = T[:3, :3] @ body + T[:3, 3]
                     cov = T[:3, :3] @ np.eye(3) * sigma**2 @ T[:3, :3].T
                     dets.append(Detection(np.asarray(d["embedding"], dtype=np.float64),
                                           float(d["uncertainty"]), p, cov, stamp))
             except json.JSONDecodeError as exc:
                 raise DecodeError(f"{path}:{k}: not JSON: {exc.msg}") from exc
-            except (KeyError, TypeError, ValueError) as exc:
+            except UnicodeDecodeError as exc:
+                raise DecodeError(f"{path}:{k}: not UTF-8: {exc.reason}") from exc
+            except RecursionError as exc:  # json recurses once per nesting level
+                raise DecodeError(f"{path}:{k}: JSON nested too deeply") from exc
+            # OverflowError: an integer too large for a float (a 400-digit number)
+            except (KeyError, TypeError, ValueError, OverflowError) as exc:
                 raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
             except MergeError as exc:  # tracking.py's InputError for bad values
                 raise SchemaError(f"{path}:{k}: {exc}") from exc

@@ -116,18 +116,21 @@ def encode_message(
     else:
         profile = Profile.FULL
         payload = [model.code, model.detail, model.about_seq]
-    data = msgpack.packb(
-        [
-            SCHEMA_VERSION,
-            CODEC_VERSION,
-            _TYPE_CODE[msg_type],
-            sender,
-            seq,
-            _PROFILE_CODE[profile],
-            payload,
-        ],
-        use_bin_type=True,
-    )
+    try:
+        data = msgpack.packb(
+            [
+                SCHEMA_VERSION,
+                CODEC_VERSION,
+                _TYPE_CODE[msg_type],
+                sender,
+                seq,
+                _PROFILE_CODE[profile],
+                payload,
+            ],
+            use_bin_type=True,
+        )
+    except (OverflowError, ValueError) as exc:  # an integer msgpack cannot carry (>= 2^64)
+        raise CodecError(f"cannot encode the {msg_type.value} message: {one_line(exc)}") from exc
     if len(data) > limits.max_message_bytes:
         raise CodecError(
             f"message of {len(data)} bytes exceeds the limit {limits.max_message_bytes}"

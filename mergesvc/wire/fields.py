@@ -122,8 +122,10 @@ def log_decode(codes: np.ndarray, lo: int, hi: int, width: int) -> np.ndarray:
 
 
 def check_variances(v: np.ndarray) -> None:
+    """Variances the wire can carry (float32 normal numbers). Outside, the input is at fault
+    (a map's variance of 1e300 is valid JSON): SchemaError, as for any other bad value."""
     if v.size and (v.min() < 2.0**LOG2_MIN or v.max() > 2.0**LOG2_MAX):
-        raise CodecError(
+        raise SchemaError(
             f"variances must lie in [2^{LOG2_MIN}, 2^{LOG2_MAX}] to be encoded, "
             f"got {v.min():.3g}..{v.max():.3g}"
         )

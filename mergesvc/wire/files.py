@@ -75,10 +75,15 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
     except ValueError as exc:  # not JSON or pydantic errors (parse_model maps those): the
         # json module's refusal of integers beyond Python's digit limit (4300 digits)
         raise DecodeError(f"{p} is not usable JSON: {_json_limit(exc)}") from exc
+    return _check_arrays(loaded, str(p))
+
+
+def _check_arrays(loaded: ObjectMap, what: str) -> ObjectMap:
+    """Numbers the model takes but arrays cannot hold (n_obs >= 2^63): SchemaError."""
     try:
-        loaded.arrays()  # numbers the model takes but arrays cannot hold (n_obs >= 2^63)
+        loaded.arrays()
     except (OverflowError, ValueError) as exc:
-        raise SchemaError(f"invalid {p}: a number too large ({one_line(exc)})") from exc
+        raise SchemaError(f"invalid {what}: a number too large ({one_line(exc)})") from exc
     return loaded
 
 
@@ -114,7 +119,8 @@ def _read_json_model(path: Path) -> AnyMessage:
         model = ErrorMessage
     else:
         raise SchemaError(f"invalid {path}: not a map, submap, factor or error message")
-    return validate_model(model, raw, str(path))
+    loaded = validate_model(model, raw, str(path))
+    return _check_arrays(loaded, str(path)) if isinstance(loaded, ObjectMap) else loaded
 
 
 def _projection_arg(projection: Projection | Path | str | None) -> Projection | None:

@@ -12,6 +12,7 @@ import heapq
 import math
 import struct
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,11 +161,16 @@ class Projection:
         try:
             if p.stat().st_size > MAX_PROJECTION_FILE_BYTES:
                 raise SchemaError(f"{p}: larger than {MAX_PROJECTION_FILE_BYTES} bytes")
-            with np.load(p, allow_pickle=False) as z:
+            z = np.load(p, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):  # a lone .npy array: no context manager
+                raise DecodeError(f"{p} is not a projection file: one array, not an .npz archive")
+            with z:
                 arrays = {k: z[k] for k in ("mean", "basis", "scale", "id")}
         except OSError as exc:
             raise DecodeError(f"cannot read projection {p}: {exc.strerror or exc}") from exc
-        except (ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        except (ValueError, KeyError, EOFError, zipfile.BadZipFile, NotImplementedError,
+                zlib.error) as exc:  # zipfile: an unsupported zip version or compression
+            # method is NotImplementedError, a corrupt deflate stream zlib.error
             raise DecodeError(f"{p} is not a projection file: {one_line(exc)}") from exc
         proj = cls(arrays["mean"], arrays["basis"], arrays["scale"])
         if str(arrays["id"]) != proj.id:
