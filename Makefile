@@ -31,6 +31,8 @@ bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench uncertainty --out results
 	$(BIN)/mergesvc bench generalize --seeds 3 --out results/generalize.json
 	$(BIN)/mergesvc bench merge --out results/bench_merge.json
+	$(BIN)/mergesvc bench cost --baseline-factors 500 --out results/bench_cost.json --figure results/bench_cost.png
+	$(BIN)/mergesvc bench fuzz --out results/fuzz100k.json
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache

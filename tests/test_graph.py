@@ -608,3 +608,87 @@ def test_fusion_over_keyframe_nodes_names_objects_by_session() -> None:
     assert joined.conflicts == [f"{A}/a1"]  # two objects of session A
     plain = fuse_objects(objs, poses, [(f"{A}#0", "a1", f"{A}#5", "a2")])
     assert plain.conflicts == [] and plain.objects[0].id == f"{A}#0/a1"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_warm_started_solve_converges_where_a_cold_one_does(seed: int) -> None:
+    """Each solve starts from the last solution (new nodes chained from their neighbours): the
+    graph built and solved step by step (closures, a wrong one, a new session's chain, the wrong
+    one retracted) ends at every step where a cold solve of the same factors does, with the same
+    verdicts."""
+    rng = np.random.default_rng(40 + seed)
+    graph, truth = chains(rng)
+    cold_cfg = GraphConfig(warm_start=False)
+    steps = [("c1", f"{A}#1", f"{B}#2", False), ("wrong", f"{A}#7", f"{B}#0", True),
+             ("c2", f"{A}#4", f"{B}#5", False), ("c3", f"{A}#6", f"{B}#6", False)]
+    done: list[tuple[str, str, str, gtsam.Pose3, np.ndarray, bool]] = []
+    for fid in graph.factor_ids:
+        a, b, _ = graph.factor_nodes(fid)
+        f = graph._factors[fid]
+        done.append((fid, a, b, f.T_a_b, f.covariance_66, True))
+    for fid, a, b, wrong in steps:
+        T, C = closure(rng, truth, a, b, wrong=wrong)
+        done.append((fid, a, b, T, C, False))
+    # a third chain joins late: its nodes are new to the warm start
+    start = random_pose(rng)
+    truth["C/s0#0"] = start
+    for k in range(1, 5):
+        step = gtsam.Pose3(gtsam.Rot3.Rz(-0.2), np.array([1.5, 0.0, 0.0]))
+        truth[f"C/s0#{k}"] = truth[f"C/s0#{k - 1}"].compose(step)
+        done.append((f"odom:C#{k}", f"C/s0#{k - 1}", f"C/s0#{k}", step, np.eye(6) * 1e-4, True))
+    for fid, a, b in (("d1", f"{B}#3", "C/s0#1"), ("d2", f"{A}#5", "C/s0#3")):
+        T, C = closure(rng, truth, a, b)
+        done.append((fid, a, b, T, C, False))
+
+    # replay step by step: solve warm after each change, compare with a cold twin
+    warm = PoseGraph(anchor=graph.anchor)
+    checked = 0
+    for k, (fid, a, b, T, C, known) in enumerate(done):
+        warm.add_factor(fid, a, b, T, C, known_inlier=known)
+        if known:
+            continue
+        sol = warm.optimize(marginals=False)
+        twin = PoseGraph(anchor=graph.anchor, config=cold_cfg)
+        for item in done[: k + 1]:
+            twin.add_factor(item[0], item[1], item[2], item[3], item[4], known_inlier=item[5])
+        ref = twin.optimize(marginals=False)
+        assert (sol.outlier_factor_ids, sol.ambiguous_factor_ids) == (
+            ref.outlier_factor_ids, ref.ambiguous_factor_ids), fid
+        for node, T_ref in ref.T_anchor_frame.items():
+            rot, trans = pose_error(sol.T_anchor_frame[node], T_ref)
+            assert rot < 1e-3 and trans < 1e-3, (fid, node, rot, trans)
+        checked += 1
+    assert checked == 6
+    assert "wrong" in warm.optimize(marginals=False).outlier_factor_ids
+    warm.remove_factor("wrong")
+    sol = warm.optimize(marginals=False)
+    twin = PoseGraph(anchor=graph.anchor, config=cold_cfg)
+    for item in done:
+        if item[0] != "wrong":
+            twin.add_factor(item[0], item[1], item[2], item[3], item[4], known_inlier=item[5])
+    ref = twin.optimize(marginals=False)
+    assert sol.outlier_factor_ids == ref.outlier_factor_ids == []
+    for node, T_ref in ref.T_anchor_frame.items():
+        rot, trans = pose_error(sol.T_anchor_frame[node], T_ref)
+        assert rot < 1e-3 and trans < 1e-3, (node, rot, trans)
+
+
+def test_the_next_solve_starts_from_the_last_solution() -> None:
+    """The start of a solve: last solution's poses for the nodes it placed (same anchor), the
+    chain from a neighbour for new ones; with warm_start=False, the chain for all."""
+    rng = np.random.default_rng(50)
+    graph, truth = chains(rng)
+    graph.add_factor("c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    graph.add_factor("c2", f"{A}#4", f"{B}#5", *closure(rng, truth, f"{A}#4", f"{B}#5"))
+    last = graph.optimize(marginals=False).T_anchor_frame
+    T_new = gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 0.0, 0.0]))
+    graph.add_factor("odom:new", f"{B}#7", "B/s0#8", T_new, np.eye(6) * 1e-4, known_inlier=True)
+    for warm in (True, False):
+        graph.config = GraphConfig(warm_start=warm)
+        comp = graph.components()[0]
+        facs = list(graph._factors.values())
+        start = graph._initial_values(graph.anchor, comp, facs)
+        moved = [pose_error(start.atPose3(graph.key(n)), T)[1] for n, T in last.items()]
+        assert (max(moved) < 1e-12) == warm, (warm, max(moved))
+        expected = start.atPose3(graph.key(f"{B}#7")).compose(T_new)
+        assert pose_error(start.atPose3(graph.key("B/s0#8")), expected)[1] < 1e-9

@@ -344,6 +344,19 @@ def via_bench_soak(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig
     return _invoke(["bench", "soak", "--quick", *settings])
 
 
+def via_bench_cost(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
+    """The service settings `bench cost` builds its in-process services with."""
+    import mergesvc.bench.cost
+
+    def fake(make_service, vehicle, plan, **_kw):
+        make_service(str(tmp / "cost.db"))
+
+    monkeypatch.setattr(mergesvc.fleet.service, "MergeService",
+                        lambda cfg, *_a, **_k: _reach(cfg))
+    monkeypatch.setattr(mergesvc.bench.cost, "run_cost_bench", fake)
+    return _invoke(["bench", "cost", "--quick", *settings])
+
+
 def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
     import zenoh
 
@@ -389,7 +402,7 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
         (via_bench_generalize, lambda got: got),
     ],
     "service": [(via_serve, lambda got: got), (via_bench_merge, lambda got: got[0]),
-                (via_bench_soak, lambda got: got)],
+                (via_bench_soak, lambda got: got), (via_bench_cost, lambda got: got)],
     "agent": [],  # see test_each_agent_field_reaches_the_vehicle_or_is_refused
     "codec": [(via_codec, lambda got: got)],
     "link": [(via_link_sim, lambda got: got[0]), (via_bench_link, lambda got: got[1]),
@@ -397,7 +410,12 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
     "workload": [(via_link_sim, lambda got: got[1])],
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
-BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge", "soak"}
+BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge", "soak", "cost",
+                  "fuzz"}
+# fields a command sets itself, whatever the settings say
+SET_BY_THE_COMMAND = {"via_bench_cost": {("service", "store")}}  # a fresh store per run
+# the decoders at their built-in limits (what a service without a settings file refuses)
+SETTINGS_FREE = {"fuzz"}
 
 
 def test_every_section_has_a_consumer_here() -> None:
@@ -405,13 +423,14 @@ def test_every_section_has_a_consumer_here() -> None:
 
 
 def test_every_benchmark_is_a_consumer_here() -> None:
-    """Each `bench` command reads --settings, so each is checked above."""
+    """Each `bench` command but the fuzzer reads --settings, so each is checked above."""
     from mergesvc.cli import bench
 
     commands = {c.name for c in bench.app.registered_commands}
     assert commands == BENCH_COMMANDS
     consumers = {run.__name__ for runs in CONSUMERS.values() for run, _ in runs}
-    assert {"via_bench" if c == "match" else f"via_bench_{c}" for c in commands} <= consumers
+    assert {"via_bench" if c == "match" else f"via_bench_{c}"
+            for c in commands - SETTINGS_FREE} <= consumers
 
 
 @pytest.mark.parametrize(("path", "value"), LEAVES, ids=IDS)
@@ -422,6 +441,8 @@ def test_each_field_arrives_where_the_command_passes_it(
     f = tmp_path / "settings.json"
     f.write_text(json.dumps(_nest(path, _jsonable(value))))
     for run, part in CONSUMERS[path[0]]:
+        if path in SET_BY_THE_COMMAND.get(run.__name__, ()):
+            continue
         got = part(run(monkeypatch, tmp_path, pair, ["--settings", str(f)]))
         assert _contains(_get(got, path[1:]), value), (run.__name__, got)
         # and through the environment, the way a deployment sets it

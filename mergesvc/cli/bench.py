@@ -1,4 +1,4 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak|fuzz` (see
+"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak|cost|fuzz` (see
 docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -365,6 +365,82 @@ def bench_soak(
         typer.echo(f"wrote {out}, {fig} and {log_path}")
     if not report["ok"]:
         raise typer.Exit(1)
+
+
+CostBenchSettings = settings_file(
+    "`service` (the merge service: its optimize_interval_s sets the batch) and `agent` (the "
+    "vehicles)"
+)
+
+
+@app.command("cost")
+def bench_cost(
+    quick: Annotated[bool, typer.Option(help="about 150 factors, one run (for tests)")] = False,
+    seed: Annotated[int, typer.Option(min=0, help="first world seed")] = 0,
+    runs: Annotated[int, typer.Option(min=1, help="seeds (median and spread over runs)")] = 3,
+    factors: Annotated[int, typer.Option(
+        min=1, help="feed each stream until this many factors are accepted")] = 2000,
+    baseline_factors: Annotated[int | None, typer.Option(
+        min=1, help="the per_submap baseline (a solve after every submap: quadratic in all) "
+                    "only up to this many factors; default: --factors")] = None,
+    rate_hz: Annotated[float, typer.Option(
+        min=0.0, help="submaps per second reaching the service (the whole fleet): batch = "
+                      "rate x service.optimize_interval_s")] = 5.0,
+    batch: Annotated[int | None, typer.Option(min=1, help="the batch size directly")] = None,
+    robots: Annotated[int, typer.Option(min=2, help="vehicles in the pool")] = 4,
+    max_submaps: Annotated[int, typer.Option(min=1, help="at most this many per stream")
+                           ] = 4000,
+    out: Annotated[Path | None, typer.Option(
+        help="write the report as JSON here (and .md beside it)")] = None,
+    figure: Annotated[Path | None, typer.Option(
+        help="write cost against factors accepted as a PNG here")] = None,
+    settings: CostBenchSettings = None,
+) -> None:
+    """The service's cost per submap against the factors it has accepted (issue 14: flat
+    within 2x to 2,000 factors): one seeded pool fleet, session after session, in-process
+    through a real MergeService twice: the graph solved once per batch (the worker under a
+    backlog) and after every submap (before issue 14); median and p90 ms per submap per
+    bucket of factors, median [min-max] over runs."""
+    from rich.progress import Progress
+
+    from mergesvc.bench.cost import CostBenchPlan, plot_cost, run_cost_bench
+    from mergesvc.fleet.agent import build_submaps
+    from mergesvc.fleet.service import MergeService
+
+    with exit_on_error():
+        tree = resolve_settings(settings)
+    if quick:
+        plan = CostBenchPlan.quick(seed)
+    else:
+        plan = CostBenchPlan(seed=seed, runs=runs, robots=robots, target_factors=factors,
+                             max_submaps=max_submaps, baseline_factors=baseline_factors,
+                             rate_hz=rate_hz, batch=batch)
+    plan.optimize_interval_s = tree.service.optimize_interval_s
+
+    def make_service(store: str) -> MergeService:
+        # offline: `ingest` in the calling thread, no Zenoh session; the store in the
+        # benchmark's temporary folder
+        return MergeService(tree.service.model_copy(update={"store": store}), session=None)
+
+    def vehicle(robot: str, session: str, frames: Any) -> list[Any]:
+        cfg = tree.agent_config(robot).model_copy(update={"session": session})
+        if cfg.up is None:  # the pool's vehicles know gravity (an AHRS): z up
+            cfg = cfg.model_copy(update={"up": (0.0, 0.0, 1.0)})
+        return build_submaps(cfg, frames)[1]
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task("cost", total=2 * plan.runs)
+        with exit_on_error():
+            report = run_cost_bench(
+                make_service, vehicle, plan, echo=typer.echo,
+                progress=lambda msg, done: bar.update(task, completed=done,
+                                                      description=msg[:60]))
+    typer.echo(report["markdown"])
+    typer.echo(f"{report['elapsed_s']:.0f} s")
+    if out is not None:
+        _write_report(report, out, tree)
+    if figure is not None:
+        typer.echo(f"wrote {plot_cost(report, figure)}")
 
 
 @app.command("fuzz")
