@@ -692,3 +692,17 @@ def test_the_next_solve_starts_from_the_last_solution() -> None:
         assert (max(moved) < 1e-12) == warm, (warm, max(moved))
         expected = start.atPose3(graph.key(f"{B}#7")).compose(T_new)
         assert pose_error(start.atPose3(graph.key("B/s0#8")), expected)[1] < 1e-9
+    # a removed factor may have pulled the last poses: the next solve starts cold, then warm
+    graph.config = GraphConfig()
+    graph.optimize(marginals=False)
+    graph.remove_factor("c2")
+    comp, facs = graph.components()[0], list(graph._factors.values())
+    chained = graph._initial_values(graph.anchor, comp, facs)
+    graph.config = GraphConfig(warm_start=False)
+    cold = graph._initial_values(graph.anchor, comp, facs)
+    assert all(pose_error(chained.atPose3(graph.key(n)), cold.atPose3(graph.key(n)))[1] < 1e-12
+               for n in comp)
+    graph.config = GraphConfig()
+    last = graph.optimize(marginals=False).T_anchor_frame
+    start = graph._initial_values(graph.anchor, comp, facs)
+    assert max(pose_error(start.atPose3(graph.key(n)), T)[1] for n, T in last.items()) < 1e-12

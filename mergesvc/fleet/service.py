@@ -51,7 +51,9 @@ service 1,000 of 1,000 times with an enqueue-only callback, 319 times with the f
 callback.) A sample still in the ingress queue at a kill -9 is not stored: the vehicles'
 advanced publishers replay it from their cache when the service is back.
 Two subscribers on submap/**: the advanced one takes the samples that carry a source sequence
-number (advanced publishers: it recovers their gaps), a plain one every other sample. The
+number (advanced publishers: it recovers their gaps) and the timestamped ones it recovers from
+a cache-only publisher, a plain one every other sample (a timestamped sample both get is taken
+once). The
 advanced subscriber orders unsequenced samples by timestamp per clock and drops one older than
 the last delivered; the router stamps all clients' puts with its clock, so of concurrent plain
 publishers' submaps about 1 run in 40 (3 clients x 10 submaps) lost one.
@@ -122,6 +124,8 @@ from mergesvc.fleet.replies import (
 from mergesvc.fleet.store import META_EMBEDDING_DIM, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
+# timestamped, unsequenced samples remembered to deliver each once (of two subscribers)
+SEEN_SAMPLES = 4096
 log = logging.getLogger(__name__)
 
 
@@ -412,6 +416,9 @@ class MergeService:
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
         self._process_lock = threading.Lock()  # one submap processed at a time (worker, ingest)
         self._failed_rows: set[int] = set()  # failed and could not be marked: not retried
+        # (key, timestamp) of unsequenced samples delivered (both subscribers get them)
+        self._seen: dict[tuple[str, str], None] = {}
+        self._seen_lock = threading.Lock()
         self._dirty = False  # a processed submap changed the graph: solve it
         self._last_optimize = time.monotonic()
         self._dim: int | None = config.embedding_dim
@@ -583,17 +590,34 @@ class MergeService:
             return self._seq
 
     def _on_sequenced_submap(self, sample: Any) -> None:
-        """The advanced subscriber's callback: samples of advanced publishers (live or
-        recovered from their caches); the others come through `_on_unsequenced_submap`."""
-        if sample.source_info is not None:
+        """The advanced subscriber's callback: samples of advanced publishers, live or
+        recovered from their caches. A publisher with a cache but no sample-miss detection
+        stamps its samples (no sequence number): those come here when recovered, and live
+        through the plain subscriber too; `_first_delivery` lets one through."""
+        if sample.source_info is not None or (
+                sample.timestamp is not None and self._first_delivery(sample)):
             self._on_submap(sample)
 
     def _on_unsequenced_submap(self, sample: Any) -> None:
         """The plain subscriber's callback: samples without a source sequence number (a plain
         `put`, a publisher without sample-miss detection), which the advanced subscriber may
         drop when they arrive out of timestamp order (module docstring)."""
-        if sample.source_info is None:
+        if sample.source_info is None and (
+                sample.timestamp is None or self._first_delivery(sample)):
             self._on_submap(sample)
+
+    def _first_delivery(self, sample: Any) -> bool:
+        """Whether this timestamped, unsequenced sample is seen for the first time by either
+        subscriber (both get it live). Bounded: the store's (robot, session, seq) check
+        catches an older repeat."""
+        seen = (str(sample.key_expr), str(sample.timestamp))
+        with self._seen_lock:
+            if seen in self._seen:
+                return False
+            self._seen[seen] = None
+            while len(self._seen) > SEEN_SAMPLES:
+                self._seen.pop(next(iter(self._seen)))
+            return True
 
     def _on_submap(self, sample: Any) -> None:
         """Zenoh callback: enqueue only (see Threads in the module docstring)."""
