@@ -36,7 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mergesvc.bench.scoring import check_count
+from mergesvc.bench.scoring import check_count, fmt_median_range, median_range
 from mergesvc.core.model import Submap
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError
@@ -300,14 +300,6 @@ def _ticker(progress: Callable[[str, float], Any] | None, label: str, done: int,
     return tick
 
 
-def _spread(values: list[float]) -> dict[str, float]:
-    a = np.asarray([v for v in values if np.isfinite(v)], dtype=np.float64)
-    if not a.size:
-        return {"median": float("nan"), "min": float("nan"), "max": float("nan"), "n": 0}
-    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max()),
-            "n": int(a.size)}
-
-
 def _summarize(runs: list[dict[str, Any]], plan: CostBenchPlan) -> dict[str, Any]:
     """Per mode and bucket: median [min-max] over runs of the bucket's median and p90."""
     out: dict[str, Any] = {}
@@ -316,18 +308,21 @@ def _summarize(runs: list[dict[str, Any]], plan: CostBenchPlan) -> dict[str, Any
         for j in range(len(plan.buckets)):
             per = [r[mode]["buckets"][j] for r in runs]
             rows.append({"bucket": per[0]["bucket"],
-                         "n": _spread([b["n"] for b in per]),
-                         "median_ms": _spread([b["median_ms"] for b in per]),
-                         "p90_ms": _spread([b["p90_ms"] for b in per]),
-                         "process_median_ms": _spread([b["process_median_ms"] for b in per]),
-                         "solve_share_mean_ms": _spread([b["solve_share_mean_ms"]
+                         "n": median_range([b["n"] for b in per]),
+                         "median_ms": median_range([b["median_ms"] for b in per]),
+                         "p90_ms": median_range([b["p90_ms"] for b in per]),
+                         "process_median_ms": median_range(
+                             [b["process_median_ms"] for b in per]),
+                         "solve_share_mean_ms": median_range([b["solve_share_mean_ms"]
                                                          for b in per])})
         out[mode] = {"buckets": rows,
-                     "ratio_last_first": _spread([r[mode]["ratio_last_first"] for r in runs]),
-                     "factors_accepted": _spread([r[mode]["factors_accepted"] for r in runs]),
-                     "submaps": _spread([r[mode]["submaps"] for r in runs]),
-                     "solves": _spread([r[mode]["solves"] for r in runs]),
-                     "peak_rss_mb": _spread([r[mode]["peak_rss_mb"] for r in runs])}
+                     "ratio_last_first": median_range(
+                         [r[mode]["ratio_last_first"] for r in runs]),
+                     "factors_accepted": median_range(
+                         [r[mode]["factors_accepted"] for r in runs]),
+                     "submaps": median_range([r[mode]["submaps"] for r in runs]),
+                     "solves": median_range([r[mode]["solves"] for r in runs]),
+                     "peak_rss_mb": median_range([r[mode]["peak_rss_mb"] for r in runs])}
     return out
 
 
@@ -348,15 +343,6 @@ def _verdict(runs: list[dict[str, Any]], plan: CostBenchPlan) -> dict[str, Any]:
     return out
 
 
-def _fmt(s: dict[str, float], digits: int = 1) -> str:
-    if not s["n"]:
-        return "-"
-    med = f"{s['median']:.{digits}f}"
-    if s["min"] == s["max"]:
-        return med
-    return f"{med} [{s['min']:.{digits}f}-{s['max']:.{digits}f}]"
-
-
 def markdown(report: dict[str, Any]) -> str:
     """Per bucket of accepted factors: both modes' median and p90 ms per submap (amortized),
     median [min-max] over runs; the ratios and the verdict."""
@@ -364,20 +350,21 @@ def markdown(report: dict[str, Any]) -> str:
     lines = ["| factors accepted | submaps per run batched (per_submap) | per_submap median ms "
              "| per_submap p90 | batched median ms | batched p90 | batched solve share ms "
              "(mean) |", "|" + "---|" * 7]
+    fm = fmt_median_range
     for a, b in zip(s["per_submap"]["buckets"], s["batched"]["buckets"], strict=True):
-        lines.append(f"| {a['bucket']} | {_fmt(b['n'], 0)} ({_fmt(a['n'], 0)}) | "
-                     f"{_fmt(a['median_ms'])} | "
-                     f"{_fmt(a['p90_ms'])} | {_fmt(b['median_ms'])} | {_fmt(b['p90_ms'])} | "
-                     f"{_fmt(b['solve_share_mean_ms'])} |")
+        lines.append(f"| {a['bucket']} | {fm(b['n'], 0)} ({fm(a['n'], 0)}) | "
+                     f"{fm(a['median_ms'], 1)} | {fm(a['p90_ms'], 1)} | "
+                     f"{fm(b['median_ms'], 1)} | {fm(b['p90_ms'], 1)} | "
+                     f"{fm(b['solve_share_mean_ms'], 1)} |")
     lines.append("")
     B = report["batch"]
     for mode in MODES:
         m, v = s[mode], report["verdict"][mode]
         lines.append(
             f"- {mode}{f' (B = {B})' if mode == 'batched' else ''}: last / first bucket "
-            f"{_fmt(m['ratio_last_first'], 2)}; {_fmt(m['submaps'], 0)} submaps, "
-            f"{_fmt(m['factors_accepted'], 0)} factors, {_fmt(m['solves'], 0)} solves; peak "
-            f"RSS {_fmt(m['peak_rss_mb'], 0)} MB; target (<= {TARGET_RATIO:g}x) "
+            f"{fm(m['ratio_last_first'], 2)}; {fm(m['submaps'], 0)} submaps, "
+            f"{fm(m['factors_accepted'], 0)} factors, {fm(m['solves'], 0)} solves; peak "
+            f"RSS {fm(m['peak_rss_mb'], 0)} MB; target (<= {TARGET_RATIO:g}x) "
             f"{'met' if v['met'] else 'NOT met'} (worst {v['worst_ratio']:.2f}"
             f"{'' if v['target_factors_reached'] else ', factor goal not reached'}; "
             f"run to {v['factors_goal']} factors)")

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 
 from mergesvc.bench.scoring import check_count
+from mergesvc.bench.scoring import fmt_median_range as _fmt
+from mergesvc.bench.scoring import median_range as _spread
 from mergesvc.errors import InputError
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.modem import ModemRate
@@ -232,14 +234,6 @@ def _run_line(r: dict[str, Any]) -> str:
             f"{r['elapsed_s']:.0f} s")
 
 
-def _spread(values: list[float]) -> dict[str, float]:
-    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
-    if not a.size:
-        return {"median": float("nan"), "min": float("nan"), "max": float("nan"), "n": 0}
-    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max()),
-            "n": int(a.size)}
-
-
 def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Per world and robot: median and min-max over seeds of each number."""
     out: dict[str, Any] = {}
@@ -297,15 +291,6 @@ def targets(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 def _worst(values: list[float], pick: Callable[..., float]) -> float:
     v = [x for x in values if np.isfinite(x)]
     return float(pick(v)) if v else float("nan")
-
-
-def _fmt(s: dict[str, float], digits: int = 2) -> str:
-    if not s["n"]:
-        return "-"
-    med = f"{s['median']:.{digits}f}"
-    if s["min"] == s["max"]:
-        return med
-    return f"{med} [{s['min']:.{digits}f}-{s['max']:.{digits}f}]"
 
 
 def markdown(report: dict[str, Any]) -> str:

@@ -61,6 +61,26 @@ def _spread(values: list[float]) -> dict[str, float]:
             "max": float(a.max())}
 
 
+def median_range(values: list[float | None]) -> dict[str, float]:
+    """Median, min and max of the finite values (None and NaN left out), and how many; NaN
+    when none: the "median [min-max] over runs" of the benchmark tables."""
+    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+    if not a.size:
+        return {"median": float("nan"), "min": float("nan"), "max": float("nan"), "n": 0}
+    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max()),
+            "n": int(a.size)}
+
+
+def fmt_median_range(s: dict[str, float], digits: int = 2) -> str:
+    """`median [min-max]` (the median alone when they agree; "-" when there were none)."""
+    if not s["n"]:
+        return "-"
+    med = f"{s['median']:.{digits}f}"
+    if s["min"] == s["max"]:
+        return med
+    return f"{med} [{s['min']:.{digits}f}-{s['max']:.{digits}f}]"
+
+
 def _aggregate(rows: list[dict[str, float]]) -> dict[str, float]:
     acc_returned = sum(r["acc_returned"] for r in rows)
     matchable = sum(r["matchable"] for r in rows)
@@ -102,4 +122,4 @@ def _cpu_count() -> int:
     return os.cpu_count() or 0
 
 
-__all__ = ["check_count", "score_case"]
+__all__ = ["check_count", "fmt_median_range", "median_range", "score_case"]
