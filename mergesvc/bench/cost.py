@@ -379,6 +379,8 @@ def plot_cost(report: dict[str, Any], path: Path, window: int = 51) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from mergesvc.bench.figures import save_figure
+
     colors = {"per_submap": "tab:red", "batched": "tab:blue"}
     fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
     for mode in MODES:
@@ -401,11 +403,7 @@ def plot_cost(report: dict[str, Any], path: Path, window: int = 51) -> Path:
     ax.set_title(f"service cost per submap, {n} run{'s' if n > 1 else ''} "
                  f"(running median of {window} submaps)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 __all__ = ["MODES", "CostBenchPlan", "CostService", "SubmapStream", "markdown", "plot_cost",

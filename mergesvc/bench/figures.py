@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -16,6 +17,15 @@ import numpy as np
 from mergesvc.core.pipeline import MatchOutcome
 from mergesvc.core.verify import transform_points
 from mergesvc.sim import Scenario
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """Lay out, write `path` (its folder made) and free the figure; returns `path`."""
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def plot_correspondences(
@@ -61,11 +71,7 @@ def plot_correspondences(
     verdict = outcome.result.reason.value
     ax.set_title(f"{title} ({verdict})" if title else verdict)
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_accuracy_vs_size(
@@ -83,8 +89,4 @@ def plot_accuracy_vs_size(
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -336,16 +336,22 @@ def agent_publisher(session: Any, key: str, cache_samples: int = CACHE_SAMPLES) 
     )
 
 
-def shmem_bytes(pid: int) -> int | None:
-    """The part of process `pid`'s RSS in shared memory (RssShmem: the Zenoh shared memory
-    pools of same-host clients it maps); None when it is gone or the kernel does not say."""
+def _proc_status_bytes(pid: int, field: str) -> int | None:
+    """A kB field of /proc/<pid>/status in bytes; None when the process is gone or the kernel
+    does not say."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("RssShmem:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
     except OSError:
         return None
     return None
+
+
+def shmem_bytes(pid: int) -> int | None:
+    """The part of process `pid`'s RSS in shared memory (RssShmem: the Zenoh shared memory
+    pools of same-host clients it maps); None when it is gone or the kernel does not say."""
+    return _proc_status_bytes(pid, "RssShmem")
 
 
 def rss_bytes(pid: int) -> int | None:
@@ -359,13 +365,7 @@ def rss_bytes(pid: int) -> int | None:
             return int(psutil.Process(pid).memory_info().rss)
         except psutil.Error:
             return None
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
+    return _proc_status_bytes(pid, "VmRSS")
 
 
 class ServiceProcess:
@@ -987,6 +987,8 @@ def plot_soak(report: dict[str, Any], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from mergesvc.bench.figures import save_figure
+
     s = report["series"]
     fig, axes = plt.subplots(3, 1, figsize=(9, 8), dpi=110, sharex=True)
     ax = axes[0]
@@ -1026,11 +1028,7 @@ def plot_soak(report: dict[str, Any], path: Path) -> Path:
         f"soak: {plan['robots']} robots, {plan['duration_s']:.0f} s, {len(report['restarts'])} "
         f"kill -9 (red), {plan['hostile_fraction']:.0%} hostile; {v['sent']} valid sent, lost "
         f"{v['lost']}, failed {v['failed']}, pending {v['pending']}", fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 __all__ = ["HostileKind", "Ledger", "RobotWalk", "ServiceProcess", "SoakPlan", "SoakWorld",
