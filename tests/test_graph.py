@@ -706,3 +706,57 @@ def test_the_next_solve_starts_from_the_last_solution() -> None:
     last = graph.optimize(marginals=False).T_anchor_frame
     start = graph._initial_values(graph.anchor, comp, facs)
     assert max(pose_error(start.atPose3(graph.key(n)), T)[1] for n, T in last.items()) < 1e-12
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_least_squares_gate_keeps_gncs_verdicts(seed: int) -> None:
+    """Least squares first, GNC only when a factor to judge leaves the TLS threshold there:
+    built step by step (correct closures, then a wrong one, more closures, the wrong one
+    retracted), every solve ends where GNC on every solve (gate off, cold start: the pipeline
+    before the gate) does, with the same verdicts; the gate skips GNC while every closure is
+    correct and never while the wrong one is in the graph."""
+    rng = np.random.default_rng(60 + seed)
+    graph, truth = chains(rng, n=10)
+    items = [(fid, *graph.factor_nodes(fid)[:2], graph._factors[fid].T_a_b,
+              graph._factors[fid].covariance_66, True) for fid in graph.factor_ids]
+    pairs = [(f"{A}#{i}", f"{B}#{j}") for i, j in rng.integers(0, 10, size=(8, 2))]
+    for k, (a, b) in enumerate(pairs[:4]):
+        items.append((f"c{k}", a, b, *closure(rng, truth, a, b), False))
+    items.append(("wrong", f"{A}#9", f"{B}#1", *closure(rng, truth, f"{A}#9", f"{B}#1",
+                                                       wrong=True), False))
+    for k, (a, b) in enumerate(pairs[4:], start=4):
+        items.append((f"c{k}", a, b, *closure(rng, truth, a, b), False))
+
+    gated = PoseGraph(anchor=graph.anchor)
+    skipped, judged = [], []
+    def compare(sol, present) -> None:
+        ref_graph = PoseGraph(anchor=graph.anchor,
+                              config=GraphConfig(least_squares_gate=False, warm_start=False))
+        for it in present:
+            ref_graph.add_factor(it[0], it[1], it[2], it[3], it[4], known_inlier=it[5])
+        ref = ref_graph.optimize(marginals=False)
+        assert not ref.gnc_skipped
+        assert (sol.outlier_factor_ids, sol.ambiguous_factor_ids) == (
+            ref.outlier_factor_ids, ref.ambiguous_factor_ids)
+        for node, T_ref in ref.T_anchor_frame.items():
+            rot, trans = pose_error(sol.T_anchor_frame[node], T_ref)
+            assert rot < 1e-3 and trans < 1e-3, (node, rot, trans)
+
+    for k, it in enumerate(items):
+        gated.add_factor(it[0], it[1], it[2], it[3], it[4], known_inlier=it[5])
+        if it[5]:
+            continue
+        sol = gated.optimize(marginals=False)
+        compare(sol, items[: k + 1])
+        (skipped if sol.gnc_skipped else judged).append(it[0])
+        if sol.gnc_skipped:
+            assert sol.outlier_factor_ids == [] and sol.ambiguous_factor_ids == []
+            assert min(sol.weights.values()) == 1.0
+    wrong_at = [it[0] for it in items].index("wrong")
+    after_wrong = [it[0] for it in items[wrong_at:] if not it[5]]
+    assert not set(after_wrong) & set(skipped), "GNC skipped with a wrong closure in the graph"
+    assert len(skipped) >= 2  # the first closure is a bridge (nothing judged); later ones gated
+    gated.remove_factor("wrong")
+    sol = gated.optimize(marginals=False)
+    assert sol.gnc_skipped
+    compare(sol, [it for it in items if it[0] != "wrong"])

@@ -11,7 +11,12 @@ Outlier rules (a factor can only be judged against other factors that close a lo
      every bridge factor (removing it splits its component) are known inliers: nothing in the
      graph can contradict a bridge, and a known inlier is never doubted, so GNC must not weigh
      them.
-  2. Every other factor gets a GNC TLS weight; weight < `outlier_weight` flags it.
+  2. Every other factor gets a GNC TLS weight; weight < `outlier_weight` flags it. Least
+     squares over every factor comes first (from the warm start): when every factor to judge
+     is within the TLS threshold there, that solution is a minimum of the TLS cost with every
+     weight 1 and GNC is not iterated (GTSAM's GNC would start its schedule again from the
+     residuals at the initial values, about six full solves for the same verdict on a long
+     mission's graph). Otherwise GNC runs from the initial values as before.
   3. A flagged factor is a confirmed outlier only if its two nodes stay joined by at least two
      paths of unflagged factors that share no factor other than known inliers (paths may share
      odometry: it cannot be wrong; computed as 2-edge-connectivity with the known-inlier
@@ -22,7 +27,8 @@ Outlier rules (a factor can only be judged against other factors that close a lo
      wait for more factors. With keyframe nodes this is rule 3 of the frame-level graph: the
      odometry chains contracted, each session is one node again.
   4. Poses and marginals come from a final Levenberg-Marquardt solve over the prior and every
-     factor but the confirmed outliers, started from the GNC estimate.
+     factor but the confirmed outliers, started from the GNC estimate (the least-squares
+     solution of rule 2 already is that solve when GNC was skipped).
 
 `optimize` returns its last solution again while nothing changed (no node, factor or anchor
 added or removed since): callers may call it after every change without paying twice.
@@ -39,6 +45,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
 
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name
 from mergesvc.core.model import Factor, FactorStatus, Transform
@@ -67,6 +74,11 @@ class GraphConfig(BaseModel):
     outlier_weight: float = Field(0.5, gt=0, lt=1, description="GNC weight below which to flag")
     anchor_sigma: float = Field(
         1e-6, gt=0, description="prior sigma on the anchor frame (rad and m): holds the gauge"
+    )
+    least_squares_gate: bool = Field(
+        True, description="solve least squares first and skip GNC when every factor to judge "
+        "is within the TLS threshold there (the solution GNC would keep, at a fraction of its "
+        "cost); false: GNC on every solve with factors to judge"
     )
     warm_start: bool = Field(
         True, description="start each solve from the last solution's poses (new nodes chained "
@@ -235,6 +247,8 @@ class GraphSolution:
     outlier_factor_ids: confirmed outliers (retract them); ambiguous_factor_ids: flagged by GNC
     but not identifiable (kept); unchecked_factor_ids: bridges, which nothing can contradict.
     errors: 0.5 * squared Mahalanobis residual of each factor at the final estimate.
+    gnc_ran: some factor was judged (not all known inliers); gnc_skipped: judged by the
+    least-squares gate alone (every factor within the TLS threshold: GNC not iterated).
     """
 
     anchor: str
@@ -247,6 +261,7 @@ class GraphSolution:
     unchecked_factor_ids: list[str]
     errors: dict[str, float]
     gnc_ran: bool = False
+    gnc_skipped: bool = False
     marginals_error: str | None = None
 
     @property
@@ -473,7 +488,18 @@ class PoseGraph:
 
         # Rule 2: GNC with the TLS loss; graph index 0 is the prior, factor i is index i + 1.
         gnc_ran = len(known) < len(facs)
-        if gnc_ran:
+        least_squares: gtsam.Values | None = None  # converged over every factor, if solved
+        gnc_skipped = False
+        if gnc_ran and cfg.least_squares_gate:
+            least_squares = _levenberg_marquardt(graph, initial, "least-squares")
+            barc = 0.5 * float(chi2.ppf(cfg.inlier_probability, 6))  # GTSAM's cost threshold
+            gnc_skipped = all(graph.at(i + 1).error(least_squares) < barc
+                              for i in range(len(facs)) if i not in known)
+        if gnc_skipped:
+            assert least_squares is not None
+            estimate = least_squares
+            w = np.ones(len(facs))
+        elif gnc_ran:
             params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
             params.setLossType(gtsam.GncLossType.TLS)
             params.setKnownInliers([0] + [i + 1 for i in sorted(known)])
@@ -521,12 +547,8 @@ class PoseGraph:
         for i in range(len(facs)):
             if i not in rejected:
                 final.add(graph.at(i + 1))
-        try:
-            estimate = gtsam.LevenbergMarquardtOptimizer(
-                final, estimate, gtsam.LevenbergMarquardtParams()
-            ).optimize()
-        except RuntimeError as exc:
-            raise SolverError(f"pose-graph optimisation failed: {exc}") from exc
+        if not (gnc_skipped and not rejected):  # else: `final` is `graph`, solved already
+            estimate = _levenberg_marquardt(final, estimate, "pose-graph")
 
         poses = {f: estimate.atPose3(self.key(f)) for f in comp}
         covs, marg_err = self._marginals(final, estimate, comp) if marginals else ({}, None)
@@ -543,6 +565,7 @@ class PoseGraph:
                 f.factor_id: float(graph.at(i + 1).error(estimate)) for i, f in enumerate(facs)
             },
             gnc_ran=gnc_ran,
+            gnc_skipped=gnc_skipped,
             marginals_error=marg_err,
         )
 
@@ -631,6 +654,16 @@ class PoseGraph:
         except RuntimeError as exc:  # e.g. an indeterminant linear system
             log.warning("pose-graph marginals failed: %s", exc)
             return {}, one_line(exc)
+
+
+def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+                         what: str) -> gtsam.Values:
+    try:
+        return gtsam.LevenbergMarquardtOptimizer(
+            graph, initial, gtsam.LevenbergMarquardtParams()
+        ).optimize()
+    except RuntimeError as exc:
+        raise SolverError(f"{what} optimisation failed: {exc}") from exc
 
 
 def pose_error(T_est: gtsam.Pose3, T_true: gtsam.Pose3) -> tuple[float, float]:
