@@ -94,3 +94,85 @@ def test_bad_embeddings_are_refused(bad) -> None:
         idx.rank(bad)
     with pytest.raises(InputError, match="keep"):
         idx.rank(np.eye(4), keep=-1)
+
+
+class StackedReference:
+    """The index as it was (before its rows were held once): each frame's unit rows kept apart,
+    stacked again for every ranking. `rank` must give exactly what this gives."""
+
+    def __init__(self) -> None:
+        self.frames: dict[str, np.ndarray] = {}
+
+    def update(self, frame: str, e: np.ndarray) -> None:
+        a = np.asarray(e, dtype=np.float64)
+        norm = np.linalg.norm(a, axis=1, keepdims=True)
+        self.frames[frame] = a / np.where(norm > 0, norm, 1.0)
+
+    def remove(self, frame: str) -> None:
+        self.frames.pop(frame, None)
+
+    def rank(self, e: np.ndarray, exclude: str | None = None, keep: int | None = None):
+        a = np.asarray(e, dtype=np.float64)
+        norm = np.linalg.norm(a, axis=1, keepdims=True)
+        q = a / np.where(norm > 0, norm, 1.0)
+        names = [f for f, r in self.frames.items() if r.shape[1] == q.shape[1] and len(r)]
+        blocks = [self.frames[f] for f in names]
+        rows = np.vstack(blocks) if blocks else np.zeros((0, q.shape[1]))
+        starts = np.cumsum([0] + [len(b) for b in blocks[:-1]]).astype(np.int64)
+        pick = [i for i, f in enumerate(names) if f != exclude]
+        if not pick or not len(q):
+            return [(names[i], 0.0) for i in pick][:keep]
+        best = np.maximum.reduceat(q @ rows.T, starts, axis=1)[:, pick]
+        score = np.maximum(best - np.median(best, axis=1, keepdims=True), 0.0).sum(axis=0)
+        order = np.argsort(-score, kind="stable")
+        out = [(names[pick[i]], float(score[i])) for i in order]
+        return out if keep is None else out[:keep]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_rank_is_exactly_the_stacked_reference_through_replacements_and_removals(
+        seed: int) -> None:
+    """Random updates (new frames, blocks grown, shrunk, emptied, replaced at the same size),
+    removals and re-additions, a frame moving to another embedding size, two sizes at once:
+    after every change the ranking (order and every score, bit for bit) is the reference's,
+    and the rows are held once (N x d float64 per size)."""
+    rng = np.random.default_rng(seed)
+    idx, ref = FleetIndex(), StackedReference()
+    names = [f"auv{k}/s{j}" for k in range(5) for j in range(4)]
+    dims = (16, 16, 16, 7)  # mostly one size
+    for step in range(150):
+        f = names[int(rng.integers(len(names)))]
+        if step % 11 == 5 and f in idx:
+            idx.remove(f)
+            ref.remove(f)
+            assert f not in idx
+        else:
+            n = int(rng.choice([0, 1, 2, 3, 5, 8, 13]))
+            d = int(rng.choice(dims))
+            e = rng.normal(size=(n, d))
+            if n and rng.random() < 0.2:
+                e[0] = 0.0  # a zero row stays zero
+            idx.update(f, e)
+            ref.update(f, e)
+        assert len(idx) == len(ref.frames)
+        for d in (16, 7):
+            q = rng.normal(size=(int(rng.integers(1, 6)), d))
+            exclude = names[int(rng.integers(len(names)))]
+            keep = None if step % 3 else int(rng.integers(0, 4))
+            got = [(s.frame, s.score) for s in idx.rank(q, exclude=exclude, keep=keep)]
+            assert got == ref.rank(q, exclude, keep), (seed, step, d)
+    held = sum(r.size * 8 for r in ref.frames.values())
+    assert idx.nbytes() == held
+
+
+def test_rank_is_exactly_the_stacked_reference_on_a_served_fleet() -> None:
+    """A fleet's sessions as the service updates them (a session's block grows submap after
+    submap, sessions in time order), 384-d look-alike objects."""
+    model, frames, rng = fleet(7, 12, 30, dim=384)
+    idx, ref = FleetIndex(), StackedReference()
+    for f, e in frames.items():
+        for n in range(0, len(e) + 1, 4):  # grown 4 objects at a time, as submaps come in
+            idx.update(f, e[:n])
+            ref.update(f, e[:n])
+            q = model.observe(e[:3], np.full(3, 0.3), rng) if n else rng.normal(size=(2, 384))
+            assert [(s.frame, s.score) for s in idx.rank(q, exclude=f)] == ref.rank(q, f)

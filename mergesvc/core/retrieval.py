@@ -17,10 +17,14 @@ of arrival. A fleet of at most `keep` candidate frames needs no ranking: `rank` 
 all (the scores still computed, for the log).
 
 Pure numpy; no frame is ever dropped from the index (a frame's row block is replaced when its
-objects change). Cost per ranking: one (m x N) product over the N objects of the fleet, plus
-re-stacking the (N x d) matrix after a frame changed (the service re-ranks after every submap,
-which changes its own frame): about 9 ms per submap at 20 vehicles x 24 objects, O(N d) as the
-fleet's object count grows. The matching behind it is what the index caps.
+objects change). The unit rows are held once: one float64 buffer per embedding size, the frames'
+row blocks in their order of arrival (the matrix `rank` multiplies by is a view of it). A frame
+whose block changes size moves the blocks after it (the service's sessions arrive in time
+order: the one that changed is among the last, so little moves); the buffer grows by half when
+full. (It held each frame's rows and, per size, a stacked copy of them all, made again after
+every change: twice the memory, and O(N d) copied per submap.) Cost per ranking: one (m x N)
+product over the N objects of the fleet: about 9 ms per submap at 20 vehicles x 24 objects,
+O(N d) as the fleet's object count grows. The matching behind it is what the index caps.
 """
 
 from __future__ import annotations
@@ -42,8 +46,8 @@ class FleetIndex:
     """Unit embeddings of every frame's objects, grouped by embedding size."""
 
     def __init__(self) -> None:
-        self._frames: dict[str, np.ndarray] = {}  # frame -> (n, d) unit rows, arrival order
-        self._stacked: dict[int, tuple[list[str], np.ndarray, np.ndarray]] = {}
+        self._frames: dict[str, tuple[int, int]] = {}  # frame -> (dim, rows), arrival order
+        self._blocks: dict[int, _Rows] = {}  # dim -> the unit rows of its frames, stacked
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -54,28 +58,36 @@ class FleetIndex:
     def update(self, frame: str, embeddings: np.ndarray) -> None:
         """Set (or replace) a frame's objects: (n, d) embeddings, n >= 0, finite."""
         e = _unit_rows(embeddings, f"frame {frame}")
+        dim = e.shape[1]
         old = self._frames.get(frame)
-        if old is not None:
-            self._stacked.pop(old.shape[1], None)
-        self._frames[frame] = e  # a replaced frame keeps its place in the order
-        self._stacked.pop(e.shape[1], None)
+        if old is not None and old[0] != dim:  # another embedding size: another block
+            self._blocks[old[0]].drop(frame)
+        self._frames[frame] = (dim, len(e))  # a replaced frame keeps its place in the order
+        rows = self._blocks.get(dim)
+        if rows is None:
+            rows = self._blocks[dim] = _Rows(dim)
+        if frame not in rows.sizes:
+            rows.enter(frame, [f for f, (d, _) in self._frames.items() if d == dim])
+        rows.put(frame, e)
 
     def remove(self, frame: str) -> None:
         old = self._frames.pop(frame, None)
         if old is not None:
-            self._stacked.pop(old.shape[1], None)
+            self._blocks[old[0]].drop(frame)
 
     def _stack(self, dim: int) -> tuple[list[str], np.ndarray, np.ndarray]:
         """(frames of this size with objects, (N, dim) rows, (k,) start row of each frame)."""
-        got = self._stacked.get(dim)
-        if got is None:
-            names = [f for f, e in self._frames.items() if e.shape[1] == dim and len(e)]
-            blocks = [self._frames[f] for f in names]
-            rows = np.vstack(blocks) if blocks else np.zeros((0, dim))
-            starts = np.cumsum([0] + [len(b) for b in blocks[:-1]]).astype(np.int64)
-            got = (names, rows, starts)
-            self._stacked[dim] = got
-        return got
+        rows = self._blocks.get(dim)
+        if rows is None:
+            return [], np.zeros((0, dim)), np.zeros(0, dtype=np.int64)
+        names = [f for f, n in rows.sizes.items() if n]
+        sizes = [rows.sizes[f] for f in names]
+        starts = np.cumsum([0, *sizes[:-1]]).astype(np.int64)
+        return names, rows.view(), starts
+
+    def nbytes(self) -> int:
+        """Bytes of unit rows held (the buffers' used part)."""
+        return sum(r.view().nbytes for r in self._blocks.values())
 
     def rank(self, embeddings: np.ndarray, *, exclude: str | None = None,
              keep: int | None = None) -> list[FrameScore]:
@@ -95,6 +107,52 @@ class FleetIndex:
         order = np.argsort(-score, kind="stable")
         out = [FrameScore(names[pick[i]], float(score[i])) for i in order]
         return out if keep is None else out[:keep]
+
+
+class _Rows:
+    """The unit rows of the frames of one embedding size: one float64 buffer, each frame's
+    rows a block, the blocks in the frames' order of arrival (`sizes`), no gaps."""
+
+    def __init__(self, dim: int) -> None:
+        self.dim = dim
+        self.buf = np.empty((0, dim))
+        self.used = 0
+        self.sizes: dict[str, int] = {}  # frame -> its rows, in the blocks' order
+
+    def view(self) -> np.ndarray:
+        return self.buf[:self.used]
+
+    def enter(self, frame: str, order: list[str]) -> None:
+        """A frame new to this size, without rows yet, placed by `order` (the index's order
+        of arrival of this size's frames)."""
+        if not self.sizes or order[-1] == frame:
+            self.sizes[frame] = 0
+            return
+        known = self.sizes
+        self.sizes = {f: known.get(f, 0) for f in order if f in known or f == frame}
+
+    def put(self, frame: str, e: np.ndarray) -> None:
+        """Replace a frame's block by the rows `e`; the blocks after it move."""
+        start = 0
+        for f, n in self.sizes.items():
+            if f == frame:
+                break
+            start += n
+        old, new = self.sizes[frame], len(e)
+        if new != old:
+            need = self.used + new - old
+            if need > len(self.buf):
+                grown = np.empty((max(need, len(self.buf) * 3 // 2, 64), self.dim))
+                grown[:self.used] = self.buf[:self.used]
+                self.buf = grown
+            self.buf[start + new:need] = self.buf[start + old:self.used]  # overlap-safe
+            self.used = need
+            self.sizes[frame] = new
+        self.buf[start:start + new] = e
+
+    def drop(self, frame: str) -> None:
+        self.put(frame, np.empty((0, self.dim)))
+        del self.sizes[frame]
 
 
 def _unit_rows(e: np.ndarray, what: str) -> np.ndarray:

@@ -122,7 +122,7 @@ def replay_world(
         status = svc.status()
         all_factors = [Factor.model_validate_json(f.payload) for f in svc.store.factors()]
         retracted_ids = {f.factor_id for f in svc.store.factors() if f.status == "retracted"}
-        held = {name: {oid: (h.keyframe, np.asarray(h.node.position, dtype=np.float64))
+        held = {name: {oid: (h.keyframe, np.asarray(h.position, dtype=np.float64))
                        for oid, h in st.objects.items()} for name, st in svc.sessions.items()}
         latency = list(svc.stats.latency_ms)
         matches_tried = svc.stats.matches_tried

@@ -198,7 +198,7 @@ class FleetScene:
                 if T is None:
                     continue
                 ids.append(oid)
-                xyz.append(T.transformFrom(np.asarray(held.node.position, dtype=np.float64)))
+                xyz.append(T.transformFrom(np.asarray(held.position, dtype=np.float64)))
         return PlacedObjects(ids, np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
 
     def active_factors(self) -> list[Factor]:
