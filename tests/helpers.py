@@ -94,3 +94,16 @@ class Inbox:
 
         with self._cond:
             return self._cond.wait_for(arrived, timeout_s)
+
+
+def cost_stream(n: int, seed: int, robots: int) -> list[Any]:
+    """The first n submaps of `mergesvc bench cost`'s seeded pool stream (z-up vehicles)."""
+    from mergesvc.bench.cost import CostBenchPlan, SubmapStream
+    from mergesvc.fleet.agent import AgentConfig, build_submaps
+
+    def vehicle(robot: str, session: str, frames: Any) -> list[Any]:
+        cfg = AgentConfig(robot=robot, session=session, up=(0.0, 0.0, 1.0))
+        return build_submaps(cfg, frames)[1]
+
+    subs = SubmapStream(CostBenchPlan(seed=seed, robots=robots), seed, vehicle)
+    return [s for _, s in zip(range(n), subs, strict=False)]

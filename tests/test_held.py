@@ -10,11 +10,10 @@ import math
 import gtsam
 import numpy as np
 import pytest
+from helpers import cost_stream
 
-from mergesvc.bench.cost import CostBenchPlan, SubmapStream
 from mergesvc.core.model import Factor, ObjectMap, ObjectNode, Submap
 from mergesvc.errors import InputError
-from mergesvc.fleet.agent import AgentConfig, build_submaps
 from mergesvc.fleet.held import FactorTable, HeldFactor, HeldObject, PackedVector
 from mergesvc.fleet.service import MergeService, ServiceConfig, session_up
 from mergesvc.wire import Profile, decode_message, encode_message
@@ -97,12 +96,7 @@ def test_a_held_object_is_compact_and_gives_its_node_back() -> None:
 
 
 def stream(n: int) -> list[Submap]:
-    def vehicle(robot: str, session: str, frames):
-        cfg = AgentConfig(robot=robot, session=session, up=(0.0, 0.0, 1.0))
-        return build_submaps(cfg, frames)[1]
-
-    subs = SubmapStream(CostBenchPlan(seed=3, robots=3), 3, vehicle)
-    return [s for _, s in zip(range(n), subs, strict=False)]
+    return cost_stream(n, seed=3, robots=3)
 
 
 @pytest.fixture(scope="module")

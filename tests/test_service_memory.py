@@ -16,9 +16,9 @@ from __future__ import annotations
 import gc
 import tracemalloc
 
-from mergesvc.bench.cost import CostBenchPlan, SubmapStream
+from helpers import cost_stream
+
 from mergesvc.core.model import Submap
-from mergesvc.fleet.agent import AgentConfig, build_submaps
 from mergesvc.fleet.service import MergeService, ServiceConfig
 
 WARM, FROM, TO = 30, 40, 80  # submaps untraced, then traced; the growth FROM -> TO
@@ -27,12 +27,7 @@ BATCH = 10
 
 
 def stream(n: int) -> list[Submap]:
-    def vehicle(robot: str, session: str, frames):
-        cfg = AgentConfig(robot=robot, session=session, up=(0.0, 0.0, 1.0))
-        return build_submaps(cfg, frames)[1]
-
-    subs = SubmapStream(CostBenchPlan(seed=0, robots=4), 0, vehicle)
-    return [s for _, s in zip(range(n), subs, strict=False)]
+    return cost_stream(n, seed=0, robots=4)
 
 
 def held_bytes(svc: MergeService) -> int:
