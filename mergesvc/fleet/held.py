@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from mergesvc.core.frames import frame_name
 from mergesvc.core.model import (
     Correspondence,
     Factor,
@@ -197,11 +198,11 @@ class HeldFactor:
     @property
     def frame_a(self) -> str:
         """Session a's name "{robot}/{session}"."""
-        return f"{self.robot_a}/{self.session_a}"
+        return frame_name(self.robot_a, self.session_a)
 
     @property
     def frame_b(self) -> str:
-        return f"{self.robot_b}/{self.session_b}"
+        return frame_name(self.robot_b, self.session_b)
 
     def object_pairs(self) -> Iterator[tuple[str, str]]:
         """(object_a, object_b) of every correspondence, in order."""
