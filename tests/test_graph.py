@@ -15,6 +15,11 @@ from mergesvc.core.graph import (
     GraphConfig,
     PoseGraph,
     _bridges,
+    _compose,
+    _fuse,
+    _inverse,
+    _pack,
+    _unpack,
     pose3_from_transform,
     pose_error,
 )
@@ -462,12 +467,14 @@ def test_wire_quaternion_is_normalised() -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def chains(rng: np.random.Generator, n: int = 8) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
+def chains(rng: np.random.Generator, n: int = 8,
+           odo_scale: float = 1.0) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
     """Two sessions A, B of n keyframes each ("A/s0#k"), joined by noisy odometry added as
-    known inliers; returns the graph and the true pose of every keyframe (world frame)."""
+    known inliers (covariance times odo_scale); returns the graph and the true pose of every
+    keyframe (world frame)."""
     graph = PoseGraph(anchor=f"{A}#0")
     truth = {}
-    odo_cov = np.diag([1e-4] * 3 + [4e-3] * 3)
+    odo_cov = np.diag([1e-4] * 3 + [4e-3] * 3) * odo_scale
     for s, start in ((A, random_pose(rng)), (B, random_pose(rng))):
         truth[f"{s}#0"] = start
         for k in range(1, n):
@@ -760,3 +767,225 @@ def test_the_least_squares_gate_keeps_gncs_verdicts(seed: int) -> None:
     sol = gated.optimize(marginals=False)
     assert sol.gnc_skipped
     compare(sol, [it for it in items if it[0] != "wrong"])
+
+
+# -- folding (rule 5) ------------------------------------------------------------------------
+
+
+def _empirical_covariance(T_mean: gtsam.Pose3, samples: list[gtsam.Pose3]) -> np.ndarray:
+    xi = np.array([gtsam.Pose3.Logmap(T_mean.between(T)) for T in samples])
+    return np.cov(xi.T)
+
+
+def _whitened_spectrum(S: np.ndarray, S_ref: np.ndarray) -> np.ndarray:
+    L = np.linalg.cholesky(S)
+    Li = np.linalg.inv(L)
+    return np.linalg.eigvalsh(Li @ S_ref @ Li.T)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_composed_and_inverted_covariances_match_monte_carlo(seed: int) -> None:
+    """The first-order propagation of rule 5 against sampling: perturb T_a, T_b on the right
+    by noise of their covariances, compose (or invert), and compare the spread of the result
+    (in the tangent space at the noiseless result) with the propagated covariance."""
+    rng = np.random.default_rng(100 + seed)
+    T_a, T_b = random_pose(rng), random_pose(rng, trans_m=20.0)
+    S_a, S_b = random_covariance(rng), random_covariance(rng)
+
+    def noisy(T: gtsam.Pose3, S: np.ndarray, n: int) -> list[gtsam.Pose3]:
+        xs = rng.multivariate_normal(np.zeros(6), S, n)
+        return [T.compose(gtsam.Pose3.Expmap(x)) for x in xs]
+
+    n = 4000
+    T, S = _compose(T_a, S_a, T_b, S_b)
+    assert T.equals(T_a.compose(T_b), 1e-12)
+    emp = _empirical_covariance(
+        T, [a.compose(b) for a, b in zip(noisy(T_a, S_a, n), noisy(T_b, S_b, n), strict=True)])
+    assert np.all(np.abs(_whitened_spectrum(S, emp) - 1.0) < 0.12)
+    # the rotation's noise seen in T_b's translation: without the adjoint it is badly off
+    assert np.abs(_whitened_spectrum(S_a + S_b, emp) - 1.0).max() > 1.0
+
+    T_i, S_i = _inverse(T_a, S_a)
+    assert T_i.equals(T_a.inverse(), 1e-12)
+    emp = _empirical_covariance(T_i, [a.inverse() for a in noisy(T_a, S_a, n)])
+    assert np.all(np.abs(_whitened_spectrum(S_i, emp) - 1.0) < 0.12)
+
+
+def _two_chains(seed: int, n: int, hops: int,
+                odo_scale: float = 1e-3) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
+    """chains() with odometry far better than the closures by default (a few cm and 0.02
+    degrees of drift over 10 keyframes: what folding is for)."""
+    graph, truth = chains(np.random.default_rng(seed), n, odo_scale)
+    graph.config = GraphConfig(fold_hops=hops)  # odometry only so far: nothing folded yet
+    return graph, truth
+
+
+def _closures(seed: int, truth: dict[str, gtsam.Pose3], pairs: list[tuple[int, int]],
+              wrong: set[int] = frozenset()) -> list[tuple[str, str, str, gtsam.Pose3, np.ndarray]]:
+    rng = np.random.default_rng(seed + 1000)
+    out = []
+    for i, (ka, kb) in enumerate(pairs):
+        a, b = f"{A}#{ka}", f"{B}#{kb}"
+        out.append((f"c{i}", a, b, *closure(rng, truth, a, b, wrong=i in wrong)))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_closures_that_agree_nearby_fold_and_the_solution_stays(seed: int) -> None:
+    """Two chains of 30 keyframes with a correct closure at every keyframe pair (k, k): with
+    fold_hops=10 the first closure is solved and the next ten (both ends within 10 keyframes)
+    fold into it, and so on; every closure is listed and weighed 1, and the poses are those of
+    the graph that solves every closure (fused measurements carry what the folded ones
+    measured), within a fraction of the noise."""
+    graph, truth = _two_chains(40 + seed, 30, hops=10, odo_scale=1e-4)
+    plain, _ = _two_chains(40 + seed, 30, hops=0, odo_scale=1e-4)
+    closures = _closures(seed, truth, [(k, k) for k in range(30)])
+    for c in closures:
+        graph.add_factor(*c)
+        plain.add_factor(*c)
+    solved = [c[0] for c in closures if graph.representative(c[0]) is None]
+    assert solved == ["c0", "c11", "c22"]
+    assert graph.representative("c5") == "c0" and graph.representative("c12") == "c11"
+    assert graph.folded_count == 27
+    assert set(graph.factor_ids) == set(plain.factor_ids)
+    sol, ref = graph.optimize(), plain.optimize()
+    assert sol.outlier_factor_ids == ref.outlier_factor_ids == []
+    assert all(sol.weights[c[0]] == 1.0 for c in closures)
+    assert sol.folded["c29"] == "c22" and len(sol.folded) == 27
+    T0_inv = truth[f"{A}#0"].inverse()
+    worst_fold = worst_plain = worst_gap = 0.0
+    for node, T in sol.T_anchor_frame.items():
+        true = T0_inv.compose(truth[node])
+        worst_fold = max(worst_fold, pose_error(T, true)[1])
+        worst_plain = max(worst_plain, pose_error(ref.T_anchor_frame[node], true)[1])
+        worst_gap = max(worst_gap, pose_error(T, ref.T_anchor_frame[node])[1])
+    assert worst_gap < 0.25, worst_gap
+    assert worst_fold < 1.5 * worst_plain + 0.1, (worst_fold, worst_plain)
+
+
+def test_folding_only_the_representative_would_lose_its_support() -> None:
+    """Nine agreeing closures and one wrong one, all between the same two stretches of the
+    chains: folded, the wrong one disagrees, so it is solved against one representative; the
+    fused measurement keeps the nine's weight, GNC flags the wrong one, and the folded closures
+    count as parallel paths (rule 3), so it is a confirmed outlier as in the graph that solves
+    them all. Its representative's closures share the representative's weight."""
+    graph, truth = _two_chains(50, 12, hops=10)
+    plain, _ = _two_chains(50, 12, hops=0)
+    closures = _closures(50, truth, [(k, k) for k in range(9)] + [(4, 4)], wrong={9})
+    for c in closures:
+        graph.add_factor(*c)
+        plain.add_factor(*c)
+    assert graph.representative("c9") is None  # the wrong one is solved, not folded
+    assert graph.folded_count == 8
+    sol, ref = graph.optimize(), plain.optimize()
+    assert ref.outlier_factor_ids == ["c9"]
+    assert sol.outlier_factor_ids == ["c9"]
+    assert all(sol.weights[f"c{i}"] == sol.weights["c0"] > 0.5 for i in range(9))
+
+
+def test_a_wrong_representatives_folded_closures_are_judged_on_their_own() -> None:
+    """A wrong closure solved first, then one that agrees with it (wrong the same way) folds
+    into it; correct closures along the chains contradict both: the wrong closure is a
+    confirmed outlier, reported alone. Removing it sends the folded one back to the graph,
+    where it is solved (nothing near agrees with it) and judged on its own: an outlier too."""
+    graph, truth = _two_chains(60, 30, hops=3)
+    rng = np.random.default_rng(61)
+    T, cov = closure(rng, truth, f"{A}#2", f"{B}#2", wrong=True)
+    graph.add_factor("wrong", f"{A}#2", f"{B}#2", T, cov)
+    odo = truth[f"{B}#2"].between(truth[f"{B}#3"])  # the same gross error, one keyframe on
+    graph.add_factor("also", f"{A}#2", f"{B}#3", T.compose(odo), cov)
+    for k in (10, 20, 28):
+        graph.add_factor(f"ok{k}", f"{A}#{k}", f"{B}#{k}",
+                         *closure(rng, truth, f"{A}#{k}", f"{B}#{k}"))
+    assert graph.representative("also") == "wrong"
+    sol = graph.optimize()
+    assert sol.outlier_factor_ids == ["wrong"]
+    assert sol.weights["also"] == sol.weights["wrong"] < 0.5
+    assert graph.remove_factor("wrong")
+    assert graph.representative("also") is None
+    assert "also" in graph.optimize().outlier_factor_ids
+    assert graph.remove_factor("also") and graph.folded_count == 0
+    assert graph.optimize().outlier_factor_ids == []
+
+
+def test_removing_a_folded_factor_restores_the_representatives_measurement() -> None:
+    graph, truth = _two_chains(70, 6, hops=5)
+    closures = _closures(70, truth, [(1, 1), (2, 2)])
+    graph.add_factor(*closures[0])
+    before = graph._measurement(graph._factors["c0"])
+    graph.add_factor(*closures[1])
+    assert graph.representative("c1") == "c0"
+    fused = graph._measurement(graph._factors["c0"])
+    assert np.linalg.det(fused[1]) < np.linalg.det(before[1])  # more information
+    assert graph.remove_factor("c1") and not graph.remove_factor("c1")
+    after = graph._measurement(graph._factors["c0"])
+    assert after[0].equals(before[0], 0.0) and np.array_equal(after[1], before[1])
+    with pytest.raises(InputError, match="unknown factor"):
+        graph.representative("c1")
+
+
+def test_closures_that_correct_the_odometry_are_not_folded() -> None:
+    """Where the odometry between two closures' ends is about as uncertain as a closure
+    (chains()' own odometry: 0.01 rad a keyframe), a closure corrects the drift: nothing folds,
+    however close (fold_drift); better odometry folds them."""
+    for odo_scale, folded in ((1.0, 0), (1e-3, 8)):
+        graph, truth = _two_chains(80, 10, hops=10, odo_scale=odo_scale)
+        for c in _closures(80, truth, [(k, k) for k in range(9)]):
+            graph.add_factor(*c)
+        assert graph.folded_count == folded, odo_scale
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fused_measurement_is_gtsams_least_squares_of_the_parallel_factors(seed: int) -> None:
+    """The reference for rule 5's fusion: GTSAM solving the measurements as parallel factors
+    between a fixed node and a free one (the pose graph's own form; the fusion solves them as
+    priors on one pose) gives the fused pose (the mean) and, as the free node's marginal, the
+    fused covariance."""
+    rng = np.random.default_rng(200 + seed)
+    T_true = random_pose(rng)
+    items = []
+    for _ in range(int(rng.integers(2, 7))):
+        C = random_covariance(rng) * rng.uniform(0.3, 3.0)
+        items.append((T_true.compose(gtsam.Pose3.Expmap(
+            rng.multivariate_normal(np.zeros(6), C))), C))
+    T, C = _fuse(items)
+    graph = gtsam.NonlinearFactorGraph()
+    x0, x1 = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
+    graph.add(gtsam.NonlinearEqualityPose3(x0, gtsam.Pose3()))
+    for Ti, Ci in items:
+        graph.add(gtsam.BetweenFactorPose3(x0, x1, Ti,
+                                           gtsam.noiseModel.Gaussian.Covariance(Ci)))
+    init = gtsam.Values()
+    init.insert(x0, gtsam.Pose3())
+    init.insert(x1, items[0][0])
+    est = gtsam.LevenbergMarquardtOptimizer(graph, init).optimize()
+    assert T.equals(est.atPose3(x1), 1e-9)
+    marg = gtsam.Marginals(graph, est).marginalCovariance(x1)
+    np.testing.assert_allclose(C, marg, rtol=1e-6, atol=1e-12)
+
+
+def test_a_folded_measurement_is_packed_without_loss() -> None:
+    rng = np.random.default_rng(210)
+    T, C = random_pose(rng), random_covariance(rng)
+    C = 0.5 * (C + C.T)  # as the graph holds it
+    T2, C2 = _unpack(_pack(T, C))
+    assert T2.equals(T, 1e-14)
+    np.testing.assert_array_equal(C2, C)
+
+
+def test_a_folded_factor_is_replayed_refused_and_survives_its_odometry() -> None:
+    """The same folded factor again is a no-op, another one under its id is refused; removing
+    the odometry a folded factor was carried along sends it back to the graph."""
+    graph, truth = _two_chains(90, 8, hops=5)
+    closures = _closures(90, truth, [(1, 1), (3, 3)])
+    for c in closures:
+        graph.add_factor(*c)
+    assert graph.representative("c1") == "c0"
+    assert not graph.add_factor(*closures[1])
+    with pytest.raises(InputError, match="different factor"):
+        graph.add_factor("c1", closures[1][1], closures[1][2], gross_error(closures[1][3]),
+                         closures[1][4])
+    assert graph.factor_nodes("c1") == (f"{A}#3", f"{B}#3", False)
+    assert graph.remove_factor(f"odom:{B}#1-2")  # c1's path from B#3 back to B#1 is cut
+    assert graph.representative("c1") is None and graph.folded_count == 0
+    assert set(graph.optimize().weights) >= {"c0", "c1"}

@@ -142,7 +142,7 @@ def factor_nodes(factor: Factor) -> tuple[KeyframeId, KeyframeId]:
     return KeyframeId(fa, factor.keyframe_a or 0), KeyframeId(fb, factor.keyframe_b or 0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class OdometryEdge:
     """The vehicle's own motion between two keyframes of its session: T_from_to (pose of
     `to` in `from_`) with its 6x6 covariance (GTSAM order). A known inlier of the pose graph."""
@@ -164,11 +164,13 @@ def odometry_edge(submap: Submap) -> OdometryEdge | None:
     if odo is None or submap.keyframe is None:
         return None
     frame = FrameId(submap.robot_id, submap.session_id)
+    cov = np.asarray(odo.covariance, dtype=np.float64)
+    cov.setflags(write=False)  # held as is by the pose graph (no copy of its own)
     return OdometryEdge(
         KeyframeId(frame, odo.from_keyframe),
         KeyframeId(frame, submap.keyframe),
         pose3_from_model(odo.T_from_to),
-        np.asarray(odo.covariance, dtype=np.float64),
+        cov,
     )
 
 

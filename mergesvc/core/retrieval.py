@@ -17,14 +17,16 @@ of arrival. A fleet of at most `keep` candidate frames needs no ranking: `rank` 
 all (the scores still computed, for the log).
 
 Pure numpy; no frame is ever dropped from the index (a frame's row block is replaced when its
-objects change). The unit rows are held once: one float64 buffer per embedding size, the frames'
-row blocks in their order of arrival (the matrix `rank` multiplies by is a view of it). A frame
-whose block changes size moves the blocks after it (the service's sessions arrive in time
-order: the one that changed is among the last, so little moves); the buffer grows by half when
-full. (It held each frame's rows and, per size, a stacked copy of them all, made again after
-every change: twice the memory, and O(N d) copied per submap.) Cost per ranking: one (m x N)
-product over the N objects of the fleet: about 9 ms per submap at 20 vehicles x 24 objects,
-O(N d) as the fleet's object count grows. The matching behind it is what the index caps.
+objects change). The unit rows are held once, in float32 (a cosine needs no more: scores move
+by about 1e-7, and half the memory of a fleet's objects; the products are float32 too): one
+buffer per embedding size, the frames' row blocks in their order of arrival (the matrix `rank`
+multiplies by is a view of it). A frame whose block changes size moves the blocks after it (the
+service's sessions arrive in time order: the one that changed is among the last, so little
+moves); the buffer grows by half when full. (It held each frame's rows and, per size, a stacked
+copy of them all, made again after every change: twice the memory, and O(N d) copied per
+submap.) Cost per ranking: one (m x N) product over the N objects of the fleet: about 9 ms per
+submap at 20 vehicles x 24 objects, O(N d) as the fleet's object count grows. The matching
+behind it is what the index caps.
 """
 
 from __future__ import annotations
@@ -100,22 +102,22 @@ class FleetIndex:
         pick = [i for i, f in enumerate(names) if f != exclude]
         if not pick or not len(q):
             return [FrameScore(names[i], 0.0) for i in pick][:keep]
-        sim = q @ rows.T  # (m, N)
+        sim = q.astype(np.float32) @ rows.T  # (m, N), float32 as the rows are held
         best = np.maximum.reduceat(sim, starts, axis=1)[:, pick]  # (m, frames)
         typical = np.median(best, axis=1, keepdims=True)
-        score = np.maximum(best - typical, 0.0).sum(axis=0)
+        score = np.maximum(best - typical, 0.0).sum(axis=0, dtype=np.float64)
         order = np.argsort(-score, kind="stable")
         out = [FrameScore(names[pick[i]], float(score[i])) for i in order]
         return out if keep is None else out[:keep]
 
 
 class _Rows:
-    """The unit rows of the frames of one embedding size: one float64 buffer, each frame's
+    """The unit rows of the frames of one embedding size: one float32 buffer, each frame's
     rows a block, the blocks in the frames' order of arrival (`sizes`), no gaps."""
 
     def __init__(self, dim: int) -> None:
         self.dim = dim
-        self.buf = np.empty((0, dim))
+        self.buf = np.empty((0, dim), dtype=np.float32)
         self.used = 0
         self.sizes: dict[str, int] = {}  # frame -> its rows, in the blocks' order
 
@@ -142,7 +144,8 @@ class _Rows:
         if new != old:
             need = self.used + new - old
             if need > len(self.buf):
-                grown = np.empty((max(need, len(self.buf) * 3 // 2, 64), self.dim))
+                grown = np.empty((max(need, len(self.buf) * 3 // 2, 64), self.dim),
+                                 dtype=np.float32)
                 grown[:self.used] = self.buf[:self.used]
                 self.buf = grown
             self.buf[start + new:need] = self.buf[start + old:self.used]  # overlap-safe

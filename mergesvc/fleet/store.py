@@ -483,6 +483,24 @@ class Store:
             ).fetchall()
         return [self._submap(r) for r in rows]
 
+    def iter_submaps(self, page: int = 500) -> Iterator[StoredSubmap]:
+        """Every stored submap in arrival order, like `submaps()`, read `page` rows at a time:
+        a restart goes through a whole mission's submaps without holding them all at once.
+        Each page is its own read; rows added meanwhile come last, as they would."""
+        last = 0
+        while True:
+            with self._transaction(write=False) as c:
+                rows = c.execute(
+                    f"SELECT {self._SUBMAP_COLUMNS} FROM submaps WHERE id > ? ORDER BY id "
+                    "LIMIT ?", (last, page)
+                ).fetchall()
+            if not rows:
+                return
+            for r in rows:
+                row = self._submap(r)
+                last = row.row_id
+                yield row
+
     def submap_conflicts(self) -> list[tuple[str, str, int, bytes, float]]:
         """(robot_id, session_id, seq, payload, received_at_s) of every refused replay."""
         with self._transaction(write=False) as c:
@@ -542,6 +560,27 @@ class Store:
             )
             return True
 
+    def iter_factors(self, status: FactorStatus | str | None = None,
+                     page: int = 500) -> Iterator[StoredFactor]:
+        """The stored factors in creation order, like `factors()`, read `page` rows at a time
+        (a restart's factors of a long mission are tens of MB of JSON)."""
+        where, args = "", []
+        if status is not None:
+            where, args = " AND status = ?", [_check_factor_status(status).value]
+        last = 0
+        while True:
+            with self._transaction(write=False) as c:
+                rows = c.execute(
+                    "SELECT rowid, factor_id, frame_a, frame_b, payload, status, created_at_s, "
+                    f"updated_at_s FROM factors WHERE rowid > ?{where} ORDER BY rowid LIMIT ?",
+                    (last, *args, page),
+                ).fetchall()
+            if not rows:
+                return
+            for r in rows:
+                last = int(r[0])
+                yield _stored_factor(r[1:])
+
     def factors(self, status: FactorStatus | str | None = None) -> list[StoredFactor]:
         """Stored factors in creation order, optionally only one status."""
         sql = (
@@ -554,18 +593,7 @@ class Store:
             args = (_check_factor_status(status).value,)
         with self._transaction(write=False) as c:
             rows = c.execute(sql + " ORDER BY rowid", args).fetchall()
-        return [
-            StoredFactor(
-                factor_id=r[0],
-                frame_a=r[1],
-                frame_b=r[2],
-                payload=bytes(r[3]),
-                status=FactorStatus(r[4]),
-                created_at_s=float(r[5]),
-                updated_at_s=float(r[6]),
-            )
-            for r in rows
-        ]
+        return [_stored_factor(r) for r in rows]
 
     # -- frames ----------------------------------------------------------------------------------
 
@@ -684,3 +712,10 @@ __all__ = [
     "SubmapConflictError",
     "Synchronous",
 ]
+
+
+def _stored_factor(r: tuple[Any, ...]) -> StoredFactor:
+    """A row (factor_id, frame_a, frame_b, payload, status, created_at_s, updated_at_s)."""
+    return StoredFactor(factor_id=r[0], frame_a=r[1], frame_b=r[2], payload=bytes(r[3]),
+                        status=FactorStatus(r[4]), created_at_s=float(r[5]),
+                        updated_at_s=float(r[6]))
