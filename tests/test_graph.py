@@ -912,14 +912,15 @@ def test_removing_a_folded_factor_restores_the_representatives_measurement() -> 
     graph, truth = _two_chains(70, 6, hops=5)
     closures = _closures(70, truth, [(1, 1), (2, 2)])
     graph.add_factor(*closures[0])
-    before = graph._measurement(graph._factors["c0"])
+    own_T, own_C = closures[0][3], 0.5 * (closures[0][4] + closures[0][4].T)
     graph.add_factor(*closures[1])
     assert graph.representative("c1") == "c0"
     fused = graph._measurement(graph._factors["c0"])
-    assert np.linalg.det(fused[1]) < np.linalg.det(before[1])  # more information
+    assert not fused[0].equals(own_T, 1e-6)
+    assert np.linalg.det(fused[1]) < np.linalg.det(own_C)  # more information
     assert graph.remove_factor("c1") and not graph.remove_factor("c1")
     after = graph._measurement(graph._factors["c0"])
-    assert after[0].equals(before[0], 0.0) and np.array_equal(after[1], before[1])
+    assert after[0].equals(own_T, 0.0) and np.array_equal(after[1], own_C)
     with pytest.raises(InputError, match="unknown factor"):
         graph.representative("c1")
 
@@ -989,3 +990,34 @@ def test_a_folded_factor_is_replayed_refused_and_survives_its_odometry() -> None
     assert graph.remove_factor(f"odom:{B}#1-2")  # c1's path from B#3 back to B#1 is cut
     assert graph.representative("c1") is None and graph.folded_count == 0
     assert set(graph.optimize().weights) >= {"c0", "c1"}
+
+
+def test_folding_reads_factors_in_either_direction() -> None:
+    """Closures stored A -> B and B -> A (the representative itself B -> A): they fold all the
+    same, and the poses are those of the graph that solves them all, as in one direction."""
+    graph, truth = _two_chains(95, 12, hops=10, odo_scale=1e-4)
+    plain, _ = _two_chains(95, 12, hops=0, odo_scale=1e-4)
+    for i, (fid, a, b, T, C) in enumerate(_closures(95, truth, [(k, k) for k in range(10)])):
+        if i % 2 == 0:  # stored the other way: T_b_a with its covariance
+            fid, a, b, (T, C) = fid, b, a, _inverse(T, C)
+        graph.add_factor(fid, a, b, T, C)
+        plain.add_factor(fid, a, b, T, C)
+    assert graph.factor_nodes("c0") == (f"{B}#0", f"{A}#0", False)
+    assert graph.folded_count == 9
+    assert all(graph.representative(f"c{i}") == "c0" for i in range(1, 10))
+    sol, ref = graph.optimize(), plain.optimize()
+    worst_gap = max(pose_error(T, ref.T_anchor_frame[n])[1] for n, T in sol.T_anchor_frame.items())
+    assert worst_gap < 0.1, worst_gap
+
+
+def test_removing_a_representative_folds_the_rest_into_the_first_of_them() -> None:
+    graph, truth = _two_chains(97, 8, hops=5, odo_scale=1e-4)
+    for c in _closures(97, truth, [(k, k) for k in range(4)]):
+        graph.add_factor(*c)
+    assert [graph.representative(f"c{i}") for i in range(4)] == [None, "c0", "c0", "c0"]
+    assert graph.remove_factor("c0")
+    assert [graph.representative(f"c{i}") for i in (1, 2, 3)] == [None, "c1", "c1"]
+    assert set(graph._fused) == {"c1"} and set(graph._deps) == {"c1"}
+    assert graph.remove_factor("c2") and graph._deps == {"c1": ["c3"]}
+    assert graph.remove_factor("c3") and graph._deps == {} and graph._fused == {}
+    assert set(graph.optimize().weights) >= {"c1"}

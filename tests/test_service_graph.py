@@ -46,8 +46,10 @@ def test_a_folding_service_keeps_every_factor(tmp_path) -> None:
         graph = svc.graph
         assert len(held) >= 100 and graph.folded_count >= 0.3 * len(held)
         assert held <= set(graph.factor_ids)
+        svc.graph.add_frame("solve/again#0")  # one more solve: none retracted since
+        svc._optimize(publish=False)
         sol = svc.solution
-        assert sol is not None and held <= set(sol.weights)
+        assert sol is not None and held <= set(sol.weights) and not sol.outlier_factor_ids
         assert set(sol.folded) == {f for f in graph.factor_ids if graph.representative(f)}
         stored = {f.factor_id for f in svc.store.factors("accepted")}
         assert stored == held

@@ -460,3 +460,24 @@ def test_read_only_store_is_reported_as_read_only(tmp_path: Path) -> None:
             p.chmod(0o644)
             p.unlink()
         folder.rmdir()
+
+
+def test_paged_reads_give_what_the_whole_reads_give(store: Store) -> None:
+    """A restart reads the store a page at a time (iter_submaps, iter_factors): pages of 2
+    over 7 rows with mixed statuses, a status changed after the rows were written, and a
+    filter, give exactly the rows and order of the one-shot reads."""
+    rows = [store.put_submap(f"auv{k % 3}", "s1", k, payload(k, 50), float(k))[0]
+            for k in range(7)]
+    for r in rows[1::2]:
+        store.mark_processed(r, "processed", "1 factors")
+    store.mark_processed(rows[4], "no_match")
+    assert list(store.iter_submaps(page=2)) == store.submaps()
+    assert len(store.submaps()) == 7
+    for k in range(7):
+        st = (FactorStatus.ACCEPTED, FactorStatus.RETRACTED)[k % 2]
+        assert store.put_factor(f"f{k}", "a/1", f"b/{k}", f"factor {k}".encode(), st)
+    store.set_factor_status("f2", FactorStatus.RETRACTED)
+    assert list(store.iter_factors(page=2)) == store.factors()
+    accepted = list(store.iter_factors(FactorStatus.ACCEPTED, page=2))
+    assert accepted == store.factors(FactorStatus.ACCEPTED)
+    assert [f.factor_id for f in accepted] == ["f0", "f4", "f6"]

@@ -147,20 +147,19 @@ def as_pose3(T: gtsam.Pose3 | np.ndarray | Sequence[Sequence[float]], name: str)
 
 def _check_covariance(C: Any, name: str) -> np.ndarray:
     """A valid covariance as a read-only float64 array: `C` itself when it is one already
-    (read-only, exactly symmetric: a long mission's graph shares its odometry's arrays), else a
-    symmetrised copy."""
+    (read-only, owning its data, exactly symmetric: a long mission's graph shares its
+    odometry's arrays; whoever made it must not make it writable again), else a symmetrised
+    copy."""
     S = np.asarray(C, dtype=np.float64)
     if S.shape != (6, 6) or not np.all(np.isfinite(S)):
         raise InputError(f"{name} must be a finite (6, 6) matrix")
     if np.abs(S - S.T).max() > _SYM_RTOL * max(np.abs(S).max(), 1e-300):
         raise InputError(f"{name} must be symmetric")
-    if S is C and not S.flags.writeable and np.array_equal(S, S.T):
-        try:
-            np.linalg.cholesky(S)
-        except np.linalg.LinAlgError:
-            raise InputError(f"{name} must be positive definite") from None
-        return S
-    S = 0.5 * (S + S.T)
+    # shared only when nobody can write to it: read-only, owning its data, exactly symmetric
+    shared = (S is C and not S.flags.writeable and S.base is None
+              and np.array_equal(S, S.T))
+    if not shared:
+        S = 0.5 * (S + S.T)
     try:
         np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
@@ -249,7 +248,11 @@ def _fuse(items: Sequence[tuple[gtsam.Pose3, np.ndarray]]) -> tuple[gtsam.Pose3,
     initial = gtsam.Values()
     initial.insert(key, items[0][0])
     estimate = _levenberg_marquardt(graph, initial, "fusion")
-    cov = np.asarray(gtsam.Marginals(graph, estimate).marginalCovariance(key), dtype=np.float64)
+    try:
+        cov = np.asarray(gtsam.Marginals(graph, estimate).marginalCovariance(key),
+                         dtype=np.float64)
+    except RuntimeError as exc:
+        raise SolverError(f"fusion marginals failed: {exc}") from exc
     return estimate.atPose3(key), 0.5 * (cov + cov.T)
 
 
@@ -531,10 +534,11 @@ class PoseGraph:
         found = self._representative_for(f) if not f.known_inlier else None
         if found is not None:
             rep, carried = found
+            fused = _fuse([self._measurement(self._factors[rep]), carried])  # before any change
             self._folded[f.factor_id] = (f.frame_a, f.frame_b, rep,
                                          _pack(f.T_a_b, f.covariance_66))
             self._deps.setdefault(rep, []).append(f.factor_id)
-            self._fused[rep] = _fuse([self._measurement(self._factors[rep]), carried])
+            self._fused[rep] = fused
             return
         self._factors[f.factor_id] = f
         at = self._known_at if f.known_inlier else self._closures_at
@@ -553,32 +557,37 @@ class PoseGraph:
 
     def _refuse(self, rep: str) -> None:
         """The representative's fused measurement made again from its folded ones (after one
-        left): each carried to its ends again; one that no longer reaches them (its odometry
-        removed) goes back to the graph."""
+        left), each carried to its ends again along the odometry (which has not changed: a
+        removed known inlier takes every folded factor out first, remove_factor)."""
         g = self._factors[rep]
-        self._fused.pop(rep, None)
-        items, lost = [(g.T_a_b, g.covariance_66)], []
-        for d in self._deps.get(rep, ()):
+        deps = self._deps.get(rep)
+        if not deps:
+            self._deps.pop(rep, None)
+            self._fused.pop(rep, None)
+            return
+        items = [(g.T_a_b, g.covariance_66)]
+        for d in deps:
             f = self._unfold(d)
             near_a = self._near(f.frame_a, self.config.fold_hops)
             near_b = self._near(f.frame_b, self.config.fold_hops)
-            ends = [(near_a[n][0] + near_b[o][0], n, o)
-                    for n, o in ((g.frame_a, g.frame_b), (g.frame_b, g.frame_a))
-                    if n in near_a and o in near_b]
-            if ends:
-                _, n, o = min(ends)
-                items.append(self._carry(f, g, near_a[n], near_b[o], n)[:2])
-            else:
-                lost.append(d)
-        for d in lost:
+            _, n, o = min((near_a[n][0] + near_b[o][0], n, o)
+                          for n, o in ((g.frame_a, g.frame_b), (g.frame_b, g.frame_a))
+                          if n in near_a and o in near_b)
+            items.append(self._carry(f, g, near_a[n], near_b[o], n)[:2])
+        self._fused[rep] = _fuse(items)
+
+    def _take_folded(self, ids: list[str]) -> list[_Factor]:
+        """These folded factors out of their representatives (whose fused measurements are
+        made again), as they were added."""
+        out, reps = [], set()
+        for d in ids:
+            out.append(self._unfold(d))
+            rep = self._folded.pop(d)[2]
             self._deps[rep].remove(d)
-            f = self._unfold(d)
-            del self._folded[d]
-            self._insert(f)
-        if not self._deps.get(rep):
-            self._deps.pop(rep, None)
-        elif len(items) > 1:
-            self._fused[rep] = _fuse(items)
+            reps.add(rep)
+        for rep in reps:
+            self._refuse(rep)
+        return out
 
     def _near(self, node: str, hops: int) -> dict[str, tuple[int, gtsam.Pose3, np.ndarray]]:
         """The nodes at most `hops` known-inlier factors from `node`: node -> (hops, pose in
@@ -680,9 +689,7 @@ class PoseGraph:
         """Drop a factor (e.g. retracted); its frames stay. True if it was present. The factors
         folded into it go back to the graph (rule 5: folded again, or solved)."""
         if factor_id in self._folded:
-            rep = self._folded.pop(factor_id)[2]
-            self._deps[rep].remove(factor_id)
-            self._refuse(rep)
+            self._take_folded([factor_id])
             self._revision += 1
             self._cold_next = True  # its representative's fused measurement moved
             return True
@@ -695,13 +702,13 @@ class PoseGraph:
             if not at[node]:
                 del at[node]
         self._fused.pop(factor_id, None)
-        for dep in self._deps.pop(factor_id, []):
-            unfolded = self._unfold(dep)
-            del self._folded[dep]
+        back = [self._unfold(d) for d in self._deps.get(factor_id, ())]
+        for d in self._deps.pop(factor_id, []):
+            del self._folded[d]
+        if f.known_inlier:  # folded factors may have been carried along it: judged again
+            back += self._take_folded(list(self._folded))
+        for unfolded in back:
             self._insert(unfolded)
-        if f.known_inlier:  # a folded factor may have been carried along it
-            for rep in list(self._deps):
-                self._refuse(rep)
         self._revision += 1
         self._cold_next = True  # the last solution may hold what this factor pulled
         return True

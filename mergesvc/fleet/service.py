@@ -419,12 +419,15 @@ def session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[floa
             return tuple(float(x) for x in u / np.linalg.norm(u))
     return None
 
+
 @functools.cache
 def _malloc_trim() -> Callable[[int], int] | None:
     try:
         import ctypes
 
-        return ctypes.CDLL("libc.so.6").malloc_trim  # type: ignore[no-any-return]
+        fn = ctypes.CDLL("libc.so.6").malloc_trim
+        fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+        return fn  # type: ignore[no-any-return]
     except (OSError, AttributeError):  # not glibc: nothing to trim
         return None
 
@@ -1100,7 +1103,6 @@ class MergeService:
             self.stats.optimizations += 1
             if sol is self.solution:
                 return  # nothing changed since the last solve
-            _trim_heap()
             self.solution = sol
             self._solutions += 1
             self._session_maps.clear()  # keyed by the solution: none could be used again
@@ -1113,6 +1115,7 @@ class MergeService:
                 self.graph.remove_factor(fid)
                 self.stats.factors_retracted += 1
                 log.warning("factor %s rejected by GNC: retracted", fid)
+        _trim_heap()  # outside the lock: the ingress and status replies need not wait
         if publish:
             for factor in retracted:
                 self._publish_factor(factor.model_copy(update={"status": FactorStatus.RETRACTED}))

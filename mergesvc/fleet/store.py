@@ -583,17 +583,7 @@ class Store:
 
     def factors(self, status: FactorStatus | str | None = None) -> list[StoredFactor]:
         """Stored factors in creation order, optionally only one status."""
-        sql = (
-            "SELECT factor_id, frame_a, frame_b, payload, status, created_at_s, updated_at_s "
-            "FROM factors"
-        )
-        args: tuple[Any, ...] = ()
-        if status is not None:
-            sql += " WHERE status = ?"
-            args = (_check_factor_status(status).value,)
-        with self._transaction(write=False) as c:
-            rows = c.execute(sql + " ORDER BY rowid", args).fetchall()
-        return [_stored_factor(r) for r in rows]
+        return list(self.iter_factors(status))
 
     # -- frames ----------------------------------------------------------------------------------
 
