@@ -508,13 +508,13 @@ class PoseGraph:
             raise InputError(f"factor {factor_id}: frame_a and frame_b are both {frame_a!r}")
         T = as_pose3(T_a_b, f"factor {factor_id}: T_a_b")
         C = _check_covariance(covariance_66, f"factor {factor_id}: covariance_66")
-        new = _Factor(factor_id, frame_a, frame_b, T, C, bool(known_inlier))
         old = self._factors.get(factor_id)
         if old is None and factor_id in self._folded:
             old = self._unfold(factor_id)
         if old is not None:
             if (
-                (old.frame_a, old.frame_b, old.known_inlier) == (frame_a, frame_b, new.known_inlier)
+                (old.frame_a, old.frame_b, old.known_inlier)
+                == (frame_a, frame_b, bool(known_inlier))
                 and old.T_a_b.equals(T, 1e-9)
                 and np.allclose(old.covariance_66, C, rtol=1e-9, atol=0)
             ):
@@ -523,9 +523,8 @@ class PoseGraph:
         self.add_frame(frame_a)
         self.add_frame(frame_b)
         # the node names the graph holds already (one string per node, not one per factor)
-        new = _Factor(factor_id, self._names[self._frames[frame_a]],
-                      self._names[self._frames[frame_b]], T, C, new.known_inlier)
-        self._insert(new)
+        self._insert(_Factor(factor_id, self._names[self._frames[frame_a]],
+                             self._names[self._frames[frame_b]], T, C, bool(known_inlier)))
         self._revision += 1
         return True
 
@@ -810,11 +809,11 @@ class PoseGraph:
             if f.known_inlier:
                 super_uf.union(*edges[i])
         group = [super_uf.find(i) for i in range(len(comp))]
-        kept = [  # a factor's folded ones (rule 5) are parallel paths of it
+        kept = [  # a factor's folded ones (rule 5) are parallel paths of it: one copy says so
             (group[edges[i][0]], group[edges[i][1]])
             for i in range(len(facs))
             if w[i] >= cfg.outlier_weight and not facs[i].known_inlier
-            for _ in range(1 + len(self._deps.get(facs[i].factor_id, ())))
+            for _ in range(2 if facs[i].factor_id in self._deps else 1)
         ]
         twice = self._two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
         outliers = [

@@ -437,7 +437,7 @@ def _trim_heap() -> None:
     elsewhere). Each solve allocates and frees GTSAM's linear systems, tens of MB on a long
     mission's graph; glibc keeps what was freed inside its heap, so the service's RSS grew by
     the largest solve so far and by fragmentation. Measured on the 20-robot soak stream
-    in-process: RSS slope 39 -> 20 kB per submap; 1-3 ms per call."""
+    in-process: RSS slope 39 -> 15-18 kB per submap; 1-3 ms per call."""
     fn = _malloc_trim()
     if fn is not None:
         fn(0)

@@ -485,21 +485,25 @@ class Store:
 
     def iter_submaps(self, page: int = 500) -> Iterator[StoredSubmap]:
         """Every stored submap in arrival order, like `submaps()`, read `page` rows at a time:
-        a restart goes through a whole mission's submaps without holding them all at once.
-        Each page is its own read; rows added meanwhile come last, as they would."""
+        a restart goes through a whole mission's submaps without holding them all at once."""
+        for r in self._paged(f"SELECT {self._SUBMAP_COLUMNS} FROM submaps WHERE id > ?", (),
+                             "id", page):
+            yield self._submap(r)
+
+    def _paged(self, select: str, args: tuple[Any, ...], key: str,
+               page: int) -> Iterator[tuple[Any, ...]]:
+        """The rows of `select` (its first column `key`, its WHERE starting `key > ?`, then
+        `args`) in `key` order, `page` rows per read. Each page is its own read; rows added
+        meanwhile come last, as they would."""
         last = 0
         while True:
             with self._transaction(write=False) as c:
-                rows = c.execute(
-                    f"SELECT {self._SUBMAP_COLUMNS} FROM submaps WHERE id > ? ORDER BY id "
-                    "LIMIT ?", (last, page)
-                ).fetchall()
+                rows = c.execute(f"{select} ORDER BY {key} LIMIT ?",
+                                 (last, *args, page)).fetchall()
             if not rows:
                 return
-            for r in rows:
-                row = self._submap(r)
-                last = row.row_id
-                yield row
+            last = int(rows[-1][0])
+            yield from rows
 
     def submap_conflicts(self) -> list[tuple[str, str, int, bytes, float]]:
         """(robot_id, session_id, seq, payload, received_at_s) of every refused replay."""
@@ -564,22 +568,15 @@ class Store:
                      page: int = 500) -> Iterator[StoredFactor]:
         """The stored factors in creation order, like `factors()`, read `page` rows at a time
         (a restart's factors of a long mission are tens of MB of JSON)."""
-        where, args = "", []
+        where, args = "", ()
         if status is not None:
-            where, args = " AND status = ?", [_check_factor_status(status).value]
-        last = 0
-        while True:
-            with self._transaction(write=False) as c:
-                rows = c.execute(
-                    "SELECT rowid, factor_id, frame_a, frame_b, payload, status, created_at_s, "
-                    f"updated_at_s FROM factors WHERE rowid > ?{where} ORDER BY rowid LIMIT ?",
-                    (last, *args, page),
-                ).fetchall()
-            if not rows:
-                return
-            for r in rows:
-                last = int(r[0])
-                yield _stored_factor(r[1:])
+            where, args = " AND status = ?", (_check_factor_status(status).value,)
+        for r in self._paged("SELECT rowid, factor_id, frame_a, frame_b, payload, status, "
+                             f"created_at_s, updated_at_s FROM factors WHERE rowid > ?{where}",
+                             args, "rowid", page):
+            yield StoredFactor(factor_id=r[1], frame_a=r[2], frame_b=r[3],
+                               payload=bytes(r[4]), status=FactorStatus(r[5]),
+                               created_at_s=float(r[6]), updated_at_s=float(r[7]))
 
     def factors(self, status: FactorStatus | str | None = None) -> list[StoredFactor]:
         """Stored factors in creation order, optionally only one status."""
@@ -702,10 +699,3 @@ __all__ = [
     "SubmapConflictError",
     "Synchronous",
 ]
-
-
-def _stored_factor(r: tuple[Any, ...]) -> StoredFactor:
-    """A row (factor_id, frame_a, frame_b, payload, status, created_at_s, updated_at_s)."""
-    return StoredFactor(factor_id=r[0], frame_a=r[1], frame_b=r[2], payload=bytes(r[3]),
-                        status=FactorStatus(r[4]), created_at_s=float(r[5]),
-                        updated_at_s=float(r[6]))
