@@ -694,7 +694,7 @@ def test_the_next_solve_starts_from_the_last_solution() -> None:
         graph.config = GraphConfig(warm_start=warm)
         comp = graph.components()[0]
         facs = list(graph._factors.values())
-        start = graph._initial_values(graph.anchor, comp, facs)
+        start = graph._initial_values(graph.anchor, {graph.anchor: gtsam.Pose3()}, comp, facs)
         moved = [pose_error(start.atPose3(graph.key(n)), T)[1] for n, T in last.items()]
         assert (max(moved) < 1e-12) == warm, (warm, max(moved))
         expected = start.atPose3(graph.key(f"{B}#7")).compose(T_new)
@@ -704,14 +704,14 @@ def test_the_next_solve_starts_from_the_last_solution() -> None:
     graph.optimize(marginals=False)
     graph.remove_factor("c2")
     comp, facs = graph.components()[0], list(graph._factors.values())
-    chained = graph._initial_values(graph.anchor, comp, facs)
+    chained = graph._initial_values(graph.anchor, {graph.anchor: gtsam.Pose3()}, comp, facs)
     graph.config = GraphConfig(warm_start=False)
-    cold = graph._initial_values(graph.anchor, comp, facs)
+    cold = graph._initial_values(graph.anchor, {graph.anchor: gtsam.Pose3()}, comp, facs)
     assert all(pose_error(chained.atPose3(graph.key(n)), cold.atPose3(graph.key(n)))[1] < 1e-12
                for n in comp)
     graph.config = GraphConfig()
     last = graph.optimize(marginals=False).T_anchor_frame
-    start = graph._initial_values(graph.anchor, comp, facs)
+    start = graph._initial_values(graph.anchor, {graph.anchor: gtsam.Pose3()}, comp, facs)
     assert max(pose_error(start.atPose3(graph.key(n)), T)[1] for n, T in last.items()) < 1e-12
 
 
@@ -1021,3 +1021,191 @@ def test_removing_a_representative_folds_the_rest_into_the_first_of_them() -> No
     assert graph.remove_factor("c2") and graph._deps == {"c1": ["c3"]}
     assert graph.remove_factor("c3") and graph._deps == {} and graph._fused == {}
     assert set(graph.optimize().weights) >= {"c1"}
+
+
+# -- rule 6: freezing ------------------------------------------------------------------------
+
+STEP = gtsam.Pose3(gtsam.Rot3.Rz(0.2), np.array([2.0, 0.0, 0.0]))
+ODO_COV = np.diag([1e-4] * 3 + [4e-3] * 3)
+
+
+def grow(graph: PoseGraph, rng: np.random.Generator, truth: dict[str, gtsam.Pose3], k: int,
+         closures: bool = True) -> None:
+    """Step k of two sessions A and B driving side by side: keyframe k of each (noisy odometry
+    from k - 1, a known inlier) and a closure A#k - B#k (and A#k - B#k-1)."""
+    for s, start in ((A, gtsam.Pose3()), (B, gtsam.Pose3(gtsam.Rot3(), np.array([0, 3.0, 0])))):
+        node = f"{s}#{k}"
+        if k == 0:
+            truth[node] = start
+            graph.add_frame(node)
+            continue
+        truth[node] = truth[f"{s}#{k - 1}"].compose(STEP)
+        meas = STEP.compose(gtsam.Pose3.Expmap(rng.multivariate_normal(np.zeros(6), ODO_COV)))
+        graph.add_factor(f"odom:{s}#{k}", f"{s}#{k - 1}", node, meas, ODO_COV, known_inlier=True)
+    if closures:
+        graph.add_factor(f"c{k}", f"{A}#{k}", f"{B}#{k}",
+                         *closure(rng, truth, f"{A}#{k}", f"{B}#{k}"))
+        if k:
+            graph.add_factor(f"d{k}", f"{A}#{k}", f"{B}#{k - 1}",
+                             *closure(rng, truth, f"{A}#{k}", f"{B}#{k - 1}"))
+
+
+def least_squares_with_fixed(graph: PoseGraph, fixed: dict[str, gtsam.Pose3],
+                             truth: dict[str, gtsam.Pose3]) -> dict[str, gtsam.Pose3]:
+    """Reference for rule 6: plain GTSAM least squares over every node and factor of the graph,
+    the anchor and the `fixed` nodes held by tight priors, started from the truth."""
+    g = gtsam.NonlinearFactorGraph()
+    tight = gtsam.noiseModel.Isotropic.Sigma(6, 1e-7)
+    g.add(gtsam.PriorFactorPose3(graph.key(graph.anchor), gtsam.Pose3(), tight))
+    for n, T in fixed.items():
+        g.add(gtsam.PriorFactorPose3(graph.key(n), T, tight))
+    for fid in graph.factor_ids:
+        a, b, _ = graph.factor_nodes(fid)
+        f = graph._factors[fid]
+        g.add(gtsam.BetweenFactorPose3(graph.key(a), graph.key(b), f.T_a_b,
+                                       gtsam.noiseModel.Gaussian.Covariance(f.covariance_66)))
+    values = gtsam.Values()
+    for n in graph.nodes:
+        values.insert(graph.key(n), truth[n])
+    est = gtsam.LevenbergMarquardtOptimizer(g, values, gtsam.LevenbergMarquardtParams()).optimize()
+    return {n: est.atPose3(graph.key(n)) for n in graph.nodes}
+
+
+def solve_sizes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The number of poses each least-squares solve of core.graph holds (recorded)."""
+    import mergesvc.core.graph as core_graph
+
+    sizes: list[int] = []
+    real = core_graph._levenberg_marquardt
+
+    def recording(g: gtsam.NonlinearFactorGraph, initial: gtsam.Values, what: str):
+        sizes.append(initial.size())
+        return real(g, initial, what)
+
+    monkeypatch.setattr(core_graph, "_levenberg_marquardt", recording)
+    return sizes
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_frozen_nodes_keep_their_poses_and_the_rest_is_least_squares_with_them_fixed(
+        seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A graph growing by two keyframes a step, solved after each step with max_live_nodes=10:
+    the oldest nodes freeze; a frozen node keeps its pose from then on, every other node is
+    where plain least squares over the whole graph puts it with the frozen ones held fixed, and
+    no solve holds more than the live nodes and the frozen ones their factors touch."""
+    cap, steps = 10, 25
+    sizes = solve_sizes(monkeypatch)
+    rng = np.random.default_rng(600 + seed)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(steps):
+        grow(graph, rng, truth, k)
+        before = dict(graph._frozen)
+        sol = graph.optimize(marginals=False)
+        assert sol.frozen_nodes == len(before)
+        for n, T in before.items():
+            assert sol.T_anchor_frame[n].equals(T, 0.0), n
+        ref = least_squares_with_fixed(graph, before, truth)
+        for n, T in sol.T_anchor_frame.items():
+            rot, trans = pose_error(T, ref[n])
+            assert rot < 1e-6 and trans < 1e-5, (k, n, rot, trans)
+        assert set(sol.weights) == set(graph.factor_ids)  # the frozen part's verdicts kept
+        assert sol.outlier_factor_ids == [] and sol.ambiguous_factor_ids == []
+    assert graph.frozen_count == 2 * steps - cap
+    assert max(sizes) <= cap + 2 + 3  # the live nodes, the new ones, frozen neighbours
+    assert len(graph.nodes) > 3 * max(sizes)
+    # the same graph without freezing: every node moves with every closure
+    whole = least_squares_with_fixed(graph, {}, truth)
+    moved = max(pose_error(sol.T_anchor_frame[n], whole[n])[1] for n in before)
+    assert moved > 1e-4  # freezing is not free: what it gives up is measurable
+
+
+def test_a_wrong_closure_to_the_frozen_part_is_confirmed_and_the_others_stay() -> None:
+    """Rule 3 counts the frozen part's closures: a wrong closure from a live keyframe back to a
+    frozen one is joined twice over by the closures on either side (frozen and live), so it is
+    a confirmed outlier; removing it keeps the frozen poses."""
+    cap = 8
+    rng = np.random.default_rng(610)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(20):
+        grow(graph, rng, truth, k)
+        graph.optimize(marginals=False)
+    assert f"{A}#2" in graph._frozen and f"{B}#19" not in graph._frozen
+    frozen = dict(graph._frozen)
+    graph.add_factor("wrong", f"{A}#2", f"{B}#19",
+                     *closure(rng, truth, f"{A}#2", f"{B}#19", wrong=True))
+    sol = graph.optimize(marginals=False)
+    assert sol.gnc_ran and not sol.gnc_skipped
+    assert sol.outlier_factor_ids == ["wrong"]
+    assert sol.ambiguous_factor_ids == []
+    assert graph.remove_factor("wrong")
+    sol = graph.optimize(marginals=False)
+    assert "wrong" not in sol.weights
+    for n, T in frozen.items():
+        assert sol.T_anchor_frame[n].equals(T, 0.0)
+    # a factor between two frozen nodes is judged once (here: against the frozen poses alone)
+    graph.add_factor("late", f"{A}#1", f"{B}#3", *closure(rng, truth, f"{A}#1", f"{B}#3"))
+    sol = graph.optimize(marginals=False)
+    assert sol.weights["late"] == 1.0 and "late" in graph._sealed
+    graph.add_factor("late-wrong", f"{A}#1", f"{B}#4",
+                     *closure(rng, truth, f"{A}#1", f"{B}#4", wrong=True))
+    sol = graph.optimize(marginals=False)
+    assert sol.outlier_factor_ids == ["late-wrong"]
+
+
+def test_the_anchor_cannot_move_once_nodes_are_frozen() -> None:
+    rng = np.random.default_rng(620)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=4))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(5):
+        grow(graph, rng, truth, k)
+        graph.optimize(marginals=False)
+    assert graph.frozen_count == 6
+    with pytest.raises(InputError, match="frozen"):
+        graph.anchor = f"{B}#0"
+    with pytest.raises(InputError, match="frozen"):
+        graph.optimize(anchor=f"{B}#0")
+    assert graph.optimize(marginals=False).anchor == f"{A}#0"
+
+
+def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A restart loads the whole graph at once: settle() solves it in insertion order, a few
+    nodes more each time, so it freezes as the live graph did and no solve holds the whole."""
+    cap, steps = 10, 25
+    rng = np.random.default_rng(630)
+    truth: dict[str, gtsam.Pose3] = {}
+    grown = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
+    for k in range(steps):
+        grow(grown, rng, truth, k)
+        grown.optimize(marginals=False)
+    loaded = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
+    for n in grown.nodes:
+        loaded.add_frame(n)
+    for fid in grown.factor_ids:
+        f = grown._factors[fid]
+        loaded.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
+                          known_inlier=f.known_inlier)
+    sizes = solve_sizes(monkeypatch)
+    sol = loaded.settle()
+    assert loaded.frozen_count == grown.frozen_count == 2 * steps - cap
+    assert max(sizes) <= cap + cap // 2 + 3
+    assert set(sol.weights) == set(grown.factor_ids)
+    ref = least_squares_with_fixed(loaded, {n: sol.T_anchor_frame[n] for n in loaded._frozen},
+                                   truth)
+    for n in loaded._frozen:  # frozen where the run that grew it froze them, near enough
+        assert pose_error(sol.T_anchor_frame[n], grown._frozen[n])[1] < 0.05, n
+    for n, T in sol.T_anchor_frame.items():
+        assert pose_error(T, ref[n])[1] < 1e-5, n
+    # without a bound: one solve of the whole graph
+    whole = PoseGraph(anchor=f"{A}#0")
+    for fid in grown.factor_ids:
+        f = grown._factors[fid]
+        whole.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
+                         known_inlier=f.known_inlier)
+    sizes.clear()
+    whole.settle()
+    assert sizes == [len(whole.nodes)]
+    with pytest.raises(InputError, match="step"):
+        loaded.settle(step=0)

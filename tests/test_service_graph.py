@@ -7,11 +7,12 @@ import zenoh
 from helpers import cost_stream, free_port, zenoh_config
 
 from mergesvc.core.graph import GraphConfig
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.service import LIVE_KEYFRAMES, MergeService, ServiceConfig
 
 
 def test_default_graph_settings() -> None:
-    assert ServiceConfig().graph == GraphConfig()
+    assert ServiceConfig().graph == GraphConfig(max_live_nodes=LIVE_KEYFRAMES)
+    assert LIVE_KEYFRAMES >= 500  # the merge benchmarks never freeze (under 250 keyframes)
     assert ServiceConfig().graph.fold_hops == 0  # folding (core/graph.py rule 5) is opt-in
 
 
@@ -61,5 +62,56 @@ def test_a_folding_service_keeps_every_factor(tmp_path) -> None:
         assert set(again.factors) == held
         assert held <= set(again.graph.factor_ids)
         assert again.graph.folded_count >= 0.3 * len(held)
+    finally:
+        again.close()
+
+
+def test_a_bounded_service_freezes_old_keyframes_and_restarts_the_same(
+        tmp_path, monkeypatch) -> None:
+    """With max_live_nodes = 30, a seeded stream (4 pool vehicles, 150 submaps): the oldest
+    keyframes freeze (core/graph.py rule 6), every accepted factor is still held and weighed,
+    the status says how many froze, and no solve holds more than the live keyframes and the
+    frozen ones their factors reach (the whole graph: 162 keyframes; unbounded, the same stream
+    retracts the same 6 factors). A restart settles the graph as it grew: the same keyframes
+    frozen near the same poses, no solve of the whole graph."""
+    import mergesvc.core.graph as core_graph
+
+    sizes: list[int] = []
+    real = core_graph._levenberg_marquardt
+
+    def recording(g, initial, what):
+        sizes.append(initial.size())
+        return real(g, initial, what)
+
+    monkeypatch.setattr(core_graph, "_levenberg_marquardt", recording)
+    cap = 30
+    subs = cost_stream(150, seed=0, robots=4)
+    cfg = ServiceConfig(store=str(tmp_path / "s.db"), graph=GraphConfig(max_live_nodes=cap))
+    svc = MergeService(cfg, session=None)
+    try:
+        for i, sub in enumerate(subs):
+            svc.ingest(sub, optimize=(i + 1) % 10 == 0 or i + 1 == len(subs))
+        held = set(svc.factors)
+        graph, sol = svc.graph, svc.solution
+        nodes = len(sol.T_anchor_frame)
+        assert len(held) >= 100 and graph.frozen_count >= nodes - cap - 10 > 50
+        assert sol is not None and held <= set(sol.weights)
+        assert not set(sol.outlier_factor_ids) & held  # (this stream has 6 either way)
+        assert svc.status(poses=False)["frozen_keyframes"] == graph.frozen_count
+        # live, a batch's new ones, and the frozen ones their closures reach (this pool: 40-50)
+        assert max(sizes) < 0.6 * nodes
+        frozen = dict(graph._frozen)
+    finally:
+        svc.close()
+    sizes.clear()
+    again = MergeService(cfg, session=None)
+    try:
+        again.restore()
+        assert set(again.factors) == held
+        assert again.graph.frozen_count >= len(frozen) - 10
+        assert max(sizes) < 0.7 * nodes
+        moved = [core_graph.pose_error(again.solution.T_anchor_frame[n], T)[1]
+                 for n, T in frozen.items() if n in again.graph._frozen]
+        assert len(moved) >= len(frozen) - 10 and max(moved) < 0.5
     finally:
         again.close()

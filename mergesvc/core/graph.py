@@ -54,6 +54,21 @@ Outlier rules (a factor can only be judged against other factors that close a lo
      The approximation: a carried measurement's covariance includes the odometry it was
      carried along, which the graph also holds (that correlation is ignored).
 
+  6. Freezing (opt-in: `GraphConfig.max_live_nodes` > 0): after a solve, when the anchor's
+     component holds more unfrozen ("live") nodes than max_live_nodes, the oldest (in insertion
+     order) are frozen at their solved poses. Later solves hold a frozen node fixed where a
+     factor joins it to a live node (a prior at its frozen pose, `anchor_sigma`) and leave out
+     the rest: the factors between two frozen nodes keep the weight and verdict of the last
+     solve that held them. So a long mission's solve stays the size of its live part (the
+     20-robot soak: a graph of thousands of keyframes, one solve of about a thousand) while
+     a closure to an old place still ties the new part to it. Rules 1 and 3 see every frozen
+     node (and the anchor) as one node, the fixed ground: a factor between the live part and
+     the frozen map is judged as a factor to the anchor. What it gives up: a closure no longer
+     moves frozen nodes (a frozen stretch keeps the drift it had), and removing a factor does
+     not move them back. Off by default in PoseGraph; the merge service bounds its graph.
+     `settle()` solves a graph loaded at once (a restart) in insertion order, so that it
+     freezes as the live graph did and no solve holds the whole graph.
+
 `optimize` returns its last solution again while nothing changed (no node, factor or anchor
 added or removed since): callers may call it after every change without paying twice.
 """
@@ -114,6 +129,13 @@ class GraphConfig(BaseModel):
         description="fold a new factor into a factor of the graph that it agrees with, when "
         "both pairs of ends are at most this many known-inlier (odometry) factors apart (rule "
         "5 of core/graph.py: bounds a long mission's graph); 0: never fold",
+    )
+    max_live_nodes: int = Field(
+        0, ge=0,
+        description="bound the solve (rule 6 of core/graph.py): when the anchor's component "
+        "holds more unfrozen nodes than this after a solve, the oldest (first added) are "
+        "frozen at their solved poses; later solves hold them fixed and solve only the other "
+        "nodes and the factors that touch them; 0: never freeze (the whole graph every time)",
     )
     fold_drift: float = Field(
         0.5, gt=0,
@@ -347,7 +369,9 @@ class GraphSolution:
     folded factor's is its representative's, rule 5), folded factors included.
     outlier_factor_ids: confirmed outliers (retract them); ambiguous_factor_ids: flagged by GNC
     but not identifiable (kept); unchecked_factor_ids: bridges, which nothing can contradict.
-    errors: 0.5 * squared Mahalanobis residual of each solved factor at the final estimate.
+    errors: 0.5 * squared Mahalanobis residual of each solved factor at the final estimate
+    (a factor between two frozen nodes, rule 6: at the last solve that held it).
+    frozen_nodes: how many nodes are fixed at the poses of an earlier solve (rule 6).
     folded: folded factor -> its representative (rule 5), in the anchor's component.
     gnc_ran: some factor was judged (not all known inliers); gnc_skipped: judged by the
     least-squares gate alone (every factor within the TLS threshold: GNC not iterated).
@@ -366,6 +390,7 @@ class GraphSolution:
     gnc_ran: bool = False
     gnc_skipped: bool = False
     marginals_error: str | None = None
+    frozen_nodes: int = 0
 
     @property
     def disconnected_frames(self) -> list[str]:
@@ -405,6 +430,11 @@ class PoseGraph:
         # node -> ids of the solved factors at it: known inliers, and the others
         self._known_at: dict[str, list[str]] = defaultdict(list)
         self._closures_at: dict[str, list[str]] = defaultdict(list)
+        # rule 6: frozen node -> its pose in the anchor frame (the anchor it was solved with);
+        # a factor between two frozen nodes -> (weight, verdict, error) of its last solve
+        self._frozen: dict[str, gtsam.Pose3] = {}
+        self._frozen_anchor: str | None = None
+        self._sealed: dict[str, tuple[float, str, float]] = {}
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -416,6 +446,7 @@ class PoseGraph:
 
     @anchor.setter
     def anchor(self, frame: str) -> None:
+        self._check_anchor(frame)
         self.add_frame(frame)
         if frame != self._anchor:
             self._anchor = frame
@@ -462,6 +493,16 @@ class PoseGraph:
         if factor_id not in self._factors:
             raise InputError(f"unknown factor {factor_id!r}")
         return None
+
+    @property
+    def frozen_count(self) -> int:
+        """How many nodes are frozen (rule 6)."""
+        return len(self._frozen)
+
+    def _check_anchor(self, frame: str) -> None:
+        if self._frozen and frame != self._frozen_anchor:
+            raise InputError(f"{len(self._frozen)} nodes are frozen in the frame of "
+                             f"{self._frozen_anchor!r}: the anchor cannot be {frame!r}")
 
     @property
     def folded_count(self) -> int:
@@ -701,6 +742,7 @@ class PoseGraph:
             if not at[node]:
                 del at[node]
         self._fused.pop(factor_id, None)
+        self._sealed.pop(factor_id, None)
         back = [self._unfold(d) for d in self._deps.get(factor_id, ())]
         for d in self._deps.pop(factor_id, []):
             del self._folded[d]
@@ -714,12 +756,15 @@ class PoseGraph:
 
     # -- structure ---------------------------------------------------------------------------
 
-    def components(self) -> list[list[str]]:
-        """Connected components, frames in insertion order; the anchor's component first."""
-        names = list(self._frames)
+    def components(self, limit: int | None = None) -> list[list[str]]:
+        """Connected components, frames in insertion order; the anchor's component first.
+        limit: only the first `limit` nodes added (and the factors between them)."""
+        names = list(self._frames)[:limit]
         uf = UnionFind(len(names))
         for f in self._factors.values():
-            uf.union(self._frames[f.frame_a], self._frames[f.frame_b])
+            a, b = self._frames[f.frame_a], self._frames[f.frame_b]
+            if a < len(names) and b < len(names):
+                uf.union(a, b)
         groups: dict[int, list[str]] = defaultdict(list)
         for i, name in enumerate(names):
             groups[uf.find(i)].append(name)
@@ -735,16 +780,12 @@ class PoseGraph:
 
         marginals=False skips the marginal covariances (covariance_66 stays empty): they cost
         about as much as the GNC solve on long keyframe chains, and the service does not use
-        them.
+        them. With frozen nodes (rule 6) only the live nodes get one.
 
         Returns the previous solution (the same object) when neither the graph, the anchor nor
-        the config changed since. Raises InputError for an unknown anchor, SolverError when
-        GTSAM fails."""
-        anchor = anchor if anchor is not None else self._anchor
-        if anchor is None:
-            raise InputError("the pose graph is empty: no anchor frame")
-        if anchor not in self._frames:
-            raise InputError(f"unknown anchor frame {anchor!r}")
+        the config changed since. Raises InputError for an unknown anchor (or another anchor
+        than the frozen nodes' frame), SolverError when GTSAM fails."""
+        anchor = self._anchor_of(anchor)
         key = (self._revision, anchor, self.config, marginals)
         if self._solved is not None and self._solved[0] == key:
             return self._solved[1]
@@ -753,34 +794,79 @@ class PoseGraph:
         self._cold_next = False
         return sol
 
-    def _solve(self, anchor: str, marginals: bool) -> GraphSolution:
-        comps = self.components()
+    def settle(self, step: int | None = None) -> GraphSolution:
+        """Solve a graph that was loaded at once (a restart's restore) as it grew: the first
+        `step` nodes added, then `step` more at a time (default: half of max_live_nodes), each
+        solve warm-started from the last, then the whole graph (`optimize(marginals=False)`).
+        With max_live_nodes (rule 6) the old nodes freeze on the way as they did in the live
+        run, and no solve holds much more than max_live_nodes + step nodes; without it, one
+        solve of the whole graph."""
+        anchor = self._anchor_of(None)
+        cap = self.config.max_live_nodes
+        step = step if step is not None else max(1, cap // 2)
+        if step <= 0:
+            raise InputError(f"settle: step must be positive, not {step}")
+        if cap > 0:
+            for limit in range(len(self._frozen) + step, len(self._frames), step):
+                sol = self._solve(anchor, False, limit=limit)
+                self._solved = (None, sol)  # the next solve starts from it (warm)
+                self._cold_next = False
+        return self.optimize(marginals=False)
+
+    def _anchor_of(self, anchor: str | None) -> str:
+        anchor = anchor if anchor is not None else self._anchor
+        if anchor is None:
+            raise InputError("the pose graph is empty: no anchor frame")
+        if anchor not in self._frames:
+            raise InputError(f"unknown anchor frame {anchor!r}")
+        self._check_anchor(anchor)
+        return anchor
+
+    def _solve(self, anchor: str, marginals: bool, limit: int | None = None) -> GraphSolution:
+        comps = self.components(limit)
         comps.sort(key=lambda c: anchor not in c)
         comp = comps[0]
         local = {f: i for i, f in enumerate(comp)}
-        facs = [f for f in self._factors.values() if f.frame_a in local]
-        edges = [(local[f.frame_a], local[f.frame_b]) for f in facs]
+        frozen, sealed = self._frozen, self._sealed
+        live = [n for n in comp if n not in frozen]
+        # the component's factors; rules 1 and 3 are judged on all of them (a frozen part
+        # still says which factors are bridges and which close loops twice over)
+        every = [f for f in self._factors.values() if f.frame_a in local and f.frame_b in local]
+        edges = [(local[f.frame_a], local[f.frame_b]) for f in every]
+        # the factors solved: all of them, or with frozen nodes (rule 6) those with a live end
+        # (and any not yet sealed); a frozen end is held fixed by a prior at its frozen pose
+        solved = [j for j, f in enumerate(every) if f.factor_id not in sealed
+                  or f.frame_a not in frozen or f.frame_b not in frozen]
+        facs = [every[j] for j in solved]
+        boundary = sorted({n for f in facs for n in (f.frame_a, f.frame_b) if n in frozen},
+                          key=self._frames.__getitem__)
         cfg = self.config
 
         # Rule 1: bridges (and user-confirmed factors) are known inliers.
-        bridges = _bridges(len(comp), edges)
+        bridges_all = _bridges(len(comp), edges)
+        bridges = {i for i, j in enumerate(solved) if j in bridges_all}
         known = {i for i, f in enumerate(facs) if i in bridges or f.known_inlier}
 
         graph = gtsam.NonlinearFactorGraph()
         prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, cfg.anchor_sigma)
-        graph.add(gtsam.PriorFactorPose3(self.key(anchor), gtsam.Pose3(), prior_noise))
+        seeds = {n: frozen[n] for n in boundary}
+        if anchor not in frozen or not boundary:
+            seeds[anchor] = gtsam.Pose3()
+        for n, T in seeds.items():
+            graph.add(gtsam.PriorFactorPose3(self.key(n), T, prior_noise))
+        m = graph.size()  # factor i is graph index m + i
         for f in facs:
             graph.add(self._between(f))
-        initial = self._initial_values(anchor, comp, facs)
+        initial = self._initial_values(anchor, seeds, live, facs)
 
-        # Rule 2: GNC with the TLS loss; graph index 0 is the prior, factor i is index i + 1.
+        # Rule 2: GNC with the TLS loss.
         gnc_ran = len(known) < len(facs)
         least_squares: gtsam.Values | None = None  # converged over every factor, if solved
         gnc_skipped = False
         if gnc_ran and cfg.least_squares_gate:
             least_squares = _levenberg_marquardt(graph, initial, "least-squares")
             barc = 0.5 * float(chi2.ppf(cfg.inlier_probability, 6))  # GTSAM's cost threshold
-            gnc_skipped = all(graph.at(i + 1).error(least_squares) < barc
+            gnc_skipped = all(graph.at(m + i).error(least_squares) < barc
                               for i in range(len(facs)) if i not in known)
         if gnc_skipped:
             assert least_squares is not None
@@ -789,14 +875,14 @@ class PoseGraph:
         elif gnc_ran:
             params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
             params.setLossType(gtsam.GncLossType.TLS)
-            params.setKnownInliers([0] + [i + 1 for i in sorted(known)])
+            params.setKnownInliers([*range(m), *(m + i for i in sorted(known))])
             try:
                 gnc = gtsam.GncLMOptimizer(graph, initial, params)
                 gnc.setInlierCostThresholdsAtProbability(cfg.inlier_probability)
                 estimate = gnc.optimize()
             except RuntimeError as exc:
                 raise SolverError(f"GNC pose-graph optimisation failed: {exc}") from exc
-            w = np.asarray(gnc.getWeights(), dtype=np.float64).ravel()[1:]
+            w = np.asarray(gnc.getWeights(), dtype=np.float64).ravel()[m:]
         else:
             estimate = initial
             w = np.ones(len(facs))
@@ -804,20 +890,24 @@ class PoseGraph:
         # Rule 3: confirm a flagged factor only if unflagged factors join its nodes twice over,
         # the known inliers contracted (paths may share them: they cannot be wrong).
         flagged = [i for i in range(len(facs)) if w[i] < cfg.outlier_weight]
+        weight = {f.factor_id: w[i] for i, f in enumerate(facs)}
         super_uf = UnionFind(len(comp))
-        for i, f in enumerate(facs):
+        for j, f in enumerate(every):
             if f.known_inlier:
-                super_uf.union(*edges[i])
+                super_uf.union(*edges[j])
         group = [super_uf.find(i) for i in range(len(comp))]
         kept = [  # a factor's folded ones (rule 5) are parallel paths of it: one copy says so
-            (group[edges[i][0]], group[edges[i][1]])
-            for i in range(len(facs))
-            if w[i] >= cfg.outlier_weight and not facs[i].known_inlier
-            for _ in range(2 if facs[i].factor_id in self._deps else 1)
+            (group[edges[j][0]], group[edges[j][1]])
+            for j, f in enumerate(every)
+            if not f.known_inlier
+            and weight.get(f.factor_id, sealed[f.factor_id][0] if f.factor_id in sealed else 1.0)
+            >= cfg.outlier_weight
+            for _ in range(2 if f.factor_id in self._deps else 1)
         ]
         twice = self._two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
         outliers = [
-            i for i in flagged if twice[group[edges[i][0]]] == twice[group[edges[i][1]]]
+            i for i in flagged
+            if twice[group[local[facs[i].frame_a]]] == twice[group[local[facs[i].frame_b]]]
         ]
         ambiguous = [i for i in flagged if i not in set(outliers)]
         if flagged:
@@ -830,45 +920,78 @@ class PoseGraph:
 
         # Rule 4: final least squares without the confirmed outliers.
         final = gtsam.NonlinearFactorGraph()
-        final.add(graph.at(0))
+        for j in range(m):
+            final.add(graph.at(j))
         rejected = set(outliers)
         for i in range(len(facs)):
             if i not in rejected:
-                final.add(graph.at(i + 1))
+                final.add(graph.at(m + i))
         if not (gnc_skipped and not rejected):  # else: `final` is `graph`, solved already
             estimate = _levenberg_marquardt(final, estimate, "pose-graph")
 
-        def with_folded(i: int) -> list[str]:  # factor i, then those folded into it
-            return [facs[i].factor_id, *self._deps.get(facs[i].factor_id, ())]
+        def with_folded(fid: str) -> list[str]:  # a factor, then those folded into it
+            return [fid, *self._deps.get(fid, ())]
 
-        poses = {f: estimate.atPose3(self.key(f)) for f in comp}
-        covs, marg_err = self._marginals(final, estimate, comp) if marginals else ({}, None)
-        return GraphSolution(
+        poses = {n: frozen[n] if n in frozen else estimate.atPose3(self.key(n)) for n in comp}
+        covs, marg_err = self._marginals(final, estimate, live) if marginals else ({}, None)
+        verdict = dict.fromkeys((facs[i].factor_id for i in sorted(bridges)), "unchecked")
+        verdict.update((facs[i].factor_id, "ambiguous") for i in ambiguous)
+        verdict.update((facs[i].factor_id, "outlier") for i in outliers)
+        held = {f.factor_id: (1.0 if w[i] == 1.0 else float(w[i]),  # one 1.0 for most
+                              verdict.get(f.factor_id, ""),
+                              float(graph.at(m + i).error(estimate)))
+                for i, f in enumerate(facs)}
+        # a sealed factor keeps its weight; unchecked while it is a bridge
+        was = {f.factor_id: (v[0], "unchecked" if j in bridges_all
+                             else v[1] if v[1] != "unchecked" else "", v[2])
+               for j, f in enumerate(every) if (v := sealed.get(f.factor_id)) is not None}
+        every_v = {**was, **held}  # the frozen part's verdicts first, as it was solved first
+
+        def of(kind: str) -> list[str]:
+            return [d for fid, v in every_v.items() if v[1] == kind for d in with_folded(fid)]
+
+        sol = GraphSolution(
             anchor=anchor,
             T_anchor_frame=poses,
             covariance_66=covs,
             components=comps,
-            weights={fid: 1.0 if w[i] == 1.0 else float(w[i])  # one 1.0 for most
-                     for i in range(len(facs)) for fid in with_folded(i)},
-            outlier_factor_ids=[facs[i].factor_id for i in outliers],  # not the folded ones
-            ambiguous_factor_ids=[fid for i in ambiguous for fid in with_folded(i)],
-            unchecked_factor_ids=[fid for i in sorted(bridges) for fid in with_folded(i)],
-            errors={
-                f.factor_id: float(graph.at(i + 1).error(estimate)) for i, f in enumerate(facs)
-            },
+            weights={d: v[0] for fid, v in every_v.items() for d in with_folded(fid)},
+            outlier_factor_ids=[fid for fid, v in every_v.items() if v[1] == "outlier"],
+            ambiguous_factor_ids=of("ambiguous"),
+            unchecked_factor_ids=of("unchecked"),
+            errors={fid: v[2] for fid, v in every_v.items()},
             gnc_ran=gnc_ran,
             gnc_skipped=gnc_skipped,
-            folded={d: f.factor_id for f in facs for d in self._deps.get(f.factor_id, ())},
+            folded={d: fid for fid in every_v for d in self._deps.get(fid, ())},
             marginals_error=marg_err,
+            frozen_nodes=len(frozen),
         )
+        self._freeze(anchor, live, poses, facs, held)
+        return sol
+
+    def _freeze(self, anchor: str, live: list[str], poses: dict[str, gtsam.Pose3],
+                facs: list[_Factor], held: dict[str, tuple[float, str, float]]) -> None:
+        """Rule 6: the oldest live nodes beyond max_live_nodes frozen at their solved poses;
+        the factors left between two frozen nodes keep their last verdict."""
+        cap = self.config.max_live_nodes
+        if cap > 0 and len(live) > cap:
+            for n in live[:len(live) - cap]:  # insertion order: the oldest first
+                self._frozen[n] = poses[n]
+            self._frozen_anchor = anchor
+            log.debug("pose graph: %d nodes frozen, %d live", len(self._frozen), cap)
+        for f in facs:  # (also one added between two frozen nodes: solved once, then sealed)
+            if f.frame_a in self._frozen and f.frame_b in self._frozen:
+                self._sealed[f.factor_id] = held[f.factor_id]
 
     def _between(self, f: _Factor) -> gtsam.BetweenFactorPose3:
         T, C = self._measurement(f)
         noise = gtsam.noiseModel.Gaussian.Covariance(np.array(C), False)
         return gtsam.BetweenFactorPose3(self.key(f.frame_a), self.key(f.frame_b), T, noise)
 
-    def _initial_values(self, anchor: str, comp: list[str], facs: list[_Factor]) -> gtsam.Values:
-        """Chain factors along a spanning tree from the anchor.
+    def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
+                        facs: list[_Factor]) -> gtsam.Values:
+        """The seeds (the anchor, the frozen nodes the factors touch) at their poses, every live
+        node chained from them along a spanning tree of the factors.
 
         Frame pairs are ranked: known inliers first, then pairs with more parallel factors, then
         the smaller covariance; within a pair the medoid measurement is used, so a single gross
@@ -906,14 +1029,17 @@ class PoseGraph:
             ranked.append(((not known, -len(items), float(np.trace(f.covariance_66))), pair, T))
         ranked.sort(key=lambda r: r[0])
         adj: dict[str, list[tuple[str, gtsam.Pose3]]] = defaultdict(list)
-        uf = UnionFind(len(comp))
-        index = {f: i for i, f in enumerate(comp)}
+        nodes = [*seeds, *(n for n in live if n not in seeds)]
+        uf = UnionFind(len(nodes))
+        index = {f: i for i, f in enumerate(nodes)}
+        for i in range(1, len(seeds)):  # the seeds are placed: one tree joins them all
+            uf.union(0, i)
         for _, (a, b), T in ranked:  # Kruskal: best pairs first
             if uf.union(index[a], index[b]):
                 adj[a].append((b, T))
                 adj[b].append((a, T.inverse()))
-        poses = {anchor: gtsam.Pose3()}
-        todo = [anchor]
+        poses = dict(seeds)
+        todo = list(seeds)
         while todo:
             a = todo.pop()
             for b, T_a_b in adj[a]:
@@ -921,7 +1047,7 @@ class PoseGraph:
                     poses[b] = prev[b] if b in prev else poses[a].compose(T_a_b)
                     todo.append(b)
         values = gtsam.Values()
-        for frame in comp:
+        for frame in nodes:
             values.insert(self.key(frame), poses[frame])
         return values
 

@@ -206,6 +206,9 @@ class StatusReply(BaseModel):
     latency_ms: Percentiles = Field(description="processing time per submap")
     delay_ms: Percentiles = Field(description="stored -> processed, per submap")
     optimizations: int = Field(ge=0)
+    frozen_keyframes: int = Field(0, ge=0, description="pose-graph keyframes held at the poses "
+                                  "of an earlier solve (the oldest, past the graph's "
+                                  "max_live_nodes)")
     embedding_dim: int | None
     anchor: str | None = Field(description="the anchor session, robot/session")
     frame_poses: dict[str, Matrix4] = Field(description="each session's keyframe 0 in the "
