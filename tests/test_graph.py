@@ -1209,3 +1209,135 @@ def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
     assert sizes == [len(whole.nodes)]
     with pytest.raises(InputError, match="step"):
         loaded.settle(step=0)
+
+
+def late_session(cap: int) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
+    """A and B drive 12 keyframes each, solved at every step, with no closure between them;
+    then B joins A's component on one wrong closure (a bridge: nothing can check it yet), then
+    two correct closures between older keyframes arrive."""
+    rng = np.random.default_rng(640)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(12):
+        grow(graph, rng, truth, k, closures=False)
+        graph.optimize(marginals=False)
+    graph.add_factor("wrong", f"{A}#11", f"{B}#11",
+                     *closure(rng, truth, f"{A}#11", f"{B}#11", wrong=True))
+    sol = graph.optimize(marginals=False)
+    assert sol.unchecked_factor_ids[-1] == "wrong"
+    graph.add_factor("c1", f"{A}#2", f"{B}#2", *closure(rng, truth, f"{A}#2", f"{B}#2"))
+    graph.add_factor("c2", f"{A}#5", f"{B}#5", *closure(rng, truth, f"{A}#5", f"{B}#5"))
+    return graph, truth
+
+
+def test_a_session_that_joins_late_stays_live_until_it_can_be_judged() -> None:
+    """Freezing goes by when a node joined the anchor's component, not when it was added: B's
+    keyframes, added early but joined late on one unchecked closure, are not frozen on it, so
+    the two correct closures that come next confirm it as an outlier, as without freezing."""
+    whole, truth = late_session(0)
+    expected = whole.optimize(marginals=False)
+    assert expected.outlier_factor_ids == ["wrong"] and expected.ambiguous_factor_ids == []
+    bounded, _ = late_session(8)
+    assert bounded.frozen_count == 12 and all(n.startswith(A) for n in bounded._frozen)
+    sol = bounded.optimize(marginals=False)
+    assert sol.outlier_factor_ids == ["wrong"] and sol.ambiguous_factor_ids == []
+    assert "wrong" not in bounded._sealed
+    for n in truth:
+        # (A#0-11 frozen before the closures: within a few cm of where they would move)
+        assert pose_error(sol.T_anchor_frame[n], expected.T_anchor_frame[n])[1] < 0.25, n
+
+
+def test_chains_pulled_by_disputed_closures_stay_live_until_they_are_judged() -> None:
+    """B is joined to A by two closures that disagree (ambiguous: GNC's pick between them is
+    arbitrary, and both stay in the solve): neither chain freezes on that, the disputed closures
+    are never sealed, and a third closure confirms the wrong one as an outlier, as without
+    freezing; then both chains freeze."""
+    rng = np.random.default_rng(650)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=6))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(4):
+        grow(graph, rng, truth, k, closures=False)
+        graph.optimize(marginals=False)
+    frozen_alone = set(graph._frozen)  # A alone, odometry only: nothing to doubt
+    graph.add_factor("c1", f"{A}#1", f"{B}#1", *closure(rng, truth, f"{A}#1", f"{B}#1"))
+    graph.add_factor("wrong", f"{A}#2", f"{B}#2",
+                     *closure(rng, truth, f"{A}#2", f"{B}#2", wrong=True))
+    sol = graph.optimize(marginals=False)
+    assert sol.ambiguous_factor_ids == ["wrong"] and sol.outlier_factor_ids == []
+    for k in range(4, 12):  # A and B drive on, 20 nodes past the cap: none freezes
+        grow(graph, rng, truth, k, closures=False)
+        sol = graph.optimize(marginals=False)
+        assert set(sol.ambiguous_factor_ids) & {"c1", "wrong"}
+    assert set(graph._frozen) == frozen_alone
+    assert not {"c1", "wrong"} & set(graph._sealed)
+    graph.add_factor("c3", f"{A}#9", f"{B}#9", *closure(rng, truth, f"{A}#9", f"{B}#9"))
+    sol = graph.optimize(marginals=False)
+    assert sol.outlier_factor_ids == ["wrong"] and sol.ambiguous_factor_ids == []
+    assert sol.weights["c1"] == 1.0 == sol.weights["c3"]
+    assert {f"{A}#5", f"{B}#5"} <= set(graph._frozen)  # settled now: frozen
+    assert "c1" in graph._sealed and "wrong" not in graph._sealed
+
+
+def test_settle_with_an_anchor_added_after_other_nodes() -> None:
+    rng = np.random.default_rng(660)
+    grown = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=10))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(20):
+        grow(grown, rng, truth, k)
+    loaded = PoseGraph(config=GraphConfig(max_live_nodes=10))
+    for fid in reversed(grown.factor_ids):  # B's nodes first, the anchor A#0 near the end
+        f = grown._factors[fid]
+        loaded.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
+                          known_inlier=f.known_inlier)
+    loaded.anchor = f"{A}#0"
+    assert loaded.nodes.index(f"{A}#0") > 30
+    sol = loaded.settle(step=5)
+    assert sol.anchor == f"{A}#0" and sol.T_anchor_frame[f"{A}#0"].equals(gtsam.Pose3(), 1e-6)
+    assert set(sol.weights) == set(grown.factor_ids)
+    assert set(sol.T_anchor_frame) == set(grown.nodes)  # (joined at once: none frozen yet)
+    with pytest.raises(InputError, match="anchor"):
+        loaded._solve(f"{A}#0", False, limit=3)
+
+
+def test_nothing_folds_into_a_sealed_factor() -> None:
+    """Rule 5 with rule 6: a sealed factor is not solved again, so a closure that agrees with
+    it is solved on its own (folded into it, its measurement would be used by no solve)."""
+    rng = np.random.default_rng(670)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=6, fold_hops=3,
+                                                          fold_drift=100.0))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(10):
+        grow(graph, rng, truth, k, closures=k in (1, 2, 6))
+        graph.optimize(marginals=False)
+    assert "c1" in graph._sealed
+    graph.add_factor("near-c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    assert graph.representative("near-c1") != "c1"
+    sol = graph.optimize(marginals=False)
+    assert "near-c1" in sol.errors  # solved, not only listed
+    unbounded = PoseGraph(anchor=f"{A}#0", config=GraphConfig(fold_hops=3, fold_drift=100.0))
+    for fid in graph.factor_ids:
+        a, b, known = graph.factor_nodes(fid)
+        if fid in graph._factors:
+            f = graph._factors[fid]
+            unbounded.add_factor(fid, a, b, f.T_a_b, f.covariance_66, known_inlier=known)
+    assert unbounded.representative("near-c1") is not None  # it would fold, unsealed
+
+
+def test_a_chain_joined_by_one_closure_does_not_freeze_on_it() -> None:
+    """B joined to A by one closure (a bridge: nothing can check it) stays live however many
+    nodes join after it, while A (the anchor's chain) freezes; a second closure that agrees
+    places B twice over, and B freezes too."""
+    rng = np.random.default_rng(680)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=6))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(12):
+        grow(graph, rng, truth, k, closures=False)
+        if k == 1:
+            graph.add_factor("c1", f"{A}#1", f"{B}#1", *closure(rng, truth, f"{A}#1", f"{B}#1"))
+        sol = graph.optimize(marginals=False)
+    assert "c1" in sol.unchecked_factor_ids
+    assert f"{A}#4" in graph._frozen and not any(n.startswith(B) for n in graph._frozen)
+    graph.add_factor("c5", f"{A}#5", f"{B}#5", *closure(rng, truth, f"{A}#5", f"{B}#5"))
+    sol = graph.optimize(marginals=False)
+    assert sol.outlier_factor_ids == [] == sol.ambiguous_factor_ids
+    assert f"{B}#4" in graph._frozen

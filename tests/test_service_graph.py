@@ -71,9 +71,9 @@ def test_a_bounded_service_freezes_old_keyframes_and_restarts_the_same(
     """With max_live_nodes = 30, a seeded stream (4 pool vehicles, 150 submaps): the oldest
     keyframes freeze (core/graph.py rule 6), every accepted factor is still held and weighed,
     the status says how many froze, and no solve holds more than the live keyframes and the
-    frozen ones their factors reach (the whole graph: 162 keyframes; unbounded, the same stream
-    retracts the same 6 factors). A restart settles the graph as it grew: the same keyframes
-    frozen near the same poses, no solve of the whole graph."""
+    frozen ones their factors reach (the whole graph: 162 keyframes). The same factors are
+    retracted as by a service that solves the whole graph. A restart settles the graph as it
+    grew: the same keyframes frozen near the same poses, no solve of the whole graph."""
     import mergesvc.core.graph as core_graph
 
     sizes: list[int] = []
@@ -86,17 +86,30 @@ def test_a_bounded_service_freezes_old_keyframes_and_restarts_the_same(
     monkeypatch.setattr(core_graph, "_levenberg_marquardt", recording)
     cap = 30
     subs = cost_stream(150, seed=0, robots=4)
-    cfg = ServiceConfig(store=str(tmp_path / "s.db"), graph=GraphConfig(max_live_nodes=cap))
-    svc = MergeService(cfg, session=None)
-    try:
+
+    def run(cfg: ServiceConfig) -> MergeService:
+        svc = MergeService(cfg, session=None)
         for i, sub in enumerate(subs):
             svc.ingest(sub, optimize=(i + 1) % 10 == 0 or i + 1 == len(subs))
+        return svc
+
+    whole = run(ServiceConfig(store=str(tmp_path / "whole.db"), graph=GraphConfig()))
+    try:
+        retracted_whole = {f.factor_id for f in whole.store.factors("retracted")}
+        nodes = len(whole.solution.T_anchor_frame)
+    finally:
+        whole.close()
+    sizes.clear()
+    cfg = ServiceConfig(store=str(tmp_path / "s.db"), graph=GraphConfig(max_live_nodes=cap))
+    svc = run(cfg)
+    try:
         held = set(svc.factors)
         graph, sol = svc.graph, svc.solution
-        nodes = len(sol.T_anchor_frame)
-        assert len(held) >= 100 and graph.frozen_count >= nodes - cap - 10 > 50
-        assert sol is not None and held <= set(sol.weights)
-        assert not set(sol.outlier_factor_ids) & held  # (this stream has 6 either way)
+        assert sol is not None and len(sol.T_anchor_frame) == nodes
+        assert len(held) >= 100 and graph.frozen_count >= nodes - 3 * cap > 0
+        assert held <= set(sol.weights)
+        retracted = {f.factor_id for f in svc.store.factors("retracted")}
+        assert retracted == retracted_whole and len(retracted) == 6  # the same verdicts
         assert svc.status(poses=False)["frozen_keyframes"] == graph.frozen_count
         # live, a batch's new ones, and the frozen ones their closures reach (this pool: 40-50)
         assert max(sizes) < 0.6 * nodes

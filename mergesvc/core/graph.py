@@ -54,20 +54,29 @@ Outlier rules (a factor can only be judged against other factors that close a lo
      The approximation: a carried measurement's covariance includes the odometry it was
      carried along, which the graph also holds (that correlation is ignored).
 
-  6. Freezing (opt-in: `GraphConfig.max_live_nodes` > 0): after a solve, when the anchor's
-     component holds more unfrozen ("live") nodes than max_live_nodes, the oldest (in insertion
-     order) are frozen at their solved poses. Later solves hold a frozen node fixed where a
-     factor joins it to a live node (a prior at its frozen pose, `anchor_sigma`) and leave out
-     the rest: the factors between two frozen nodes keep the weight and verdict of the last
-     solve that held them. So a long mission's solve stays the size of its live part (the
-     20-robot soak: a graph of thousands of keyframes, one solve of about a thousand) while
-     a closure to an old place still ties the new part to it. Rules 1 and 3 see every frozen
-     node (and the anchor) as one node, the fixed ground: a factor between the live part and
-     the frozen map is judged as a factor to the anchor. What it gives up: a closure no longer
-     moves frozen nodes (a frozen stretch keeps the drift it had), and removing a factor does
-     not move them back. Off by default in PoseGraph; the merge service bounds its graph.
-     `settle()` solves a graph loaded at once (a restart) in insertion order, so that it
-     freezes as the live graph did and no solve holds the whole graph.
+  6. Freezing (opt-in: `GraphConfig.max_live_nodes` > 0): a node freezes at its solved pose
+     once max_live_nodes nodes have joined the anchor's component in later solves than it did
+     (the oldest first; a session that joins late, on one closure nothing can check yet, stays
+     live until later closures can judge it), and only when it is placed beyond doubt: joined to
+     the anchor twice over by closures GNC kept, odometry contracted (rule 3's structure), and
+     no ambiguous closure touches its odometry chain: no node freezes on a single closure, on
+     GNC's arbitrary pick between two that disagree, or where a doubtful closure still pulls
+     (rule 4 keeps ambiguous closures in the solve; frozen, the pull could not be undone).
+     Such nodes stay live as long as that lasts: the bound is soft. Later solves hold a
+     frozen node fixed where a factor joins it to a live node (a prior at its frozen pose,
+     `anchor_sigma`: treated as exact) and leave out the settled factors between two frozen
+     nodes (known inliers and closures GNC kept: they keep the weight and error of the last
+     solve that held them; ambiguous, outlying and unchecked closures stay in the solve and
+     are judged again). So a long mission's solve
+     stays the size of its live part (the 20-robot soak: a graph of thousands of keyframes, a
+     solve of about a thousand) while a closure to an old place still ties the new part to it.
+     Rules 1 and 3 are still decided on every factor of the component (pure graph structure,
+     cheap): a frozen part's closures still make bridges and confirm outliers as before.
+     What it gives up: a closure no longer moves frozen nodes (a frozen stretch keeps the
+     drift it had), and removing a factor does not move them back. Off by default in
+     PoseGraph; the merge service bounds its graph. `settle()` solves a graph loaded at once
+     (a restart) in insertion order, so that no solve holds the whole graph and the old nodes
+     freeze much as they did live (at other moments: near, not equal, poses).
 
 `optimize` returns its last solution again while nothing changed (no node, factor or anchor
 added or removed since): callers may call it after every change without paying twice.
@@ -435,6 +444,9 @@ class PoseGraph:
         self._frozen: dict[str, gtsam.Pose3] = {}
         self._frozen_anchor: str | None = None
         self._sealed: dict[str, tuple[float, str, float]] = {}
+        # node -> the solve in which it joined the anchor's component; nodes joined by then
+        self._joined: dict[str, int] = {}
+        self._joined_by: list[int] = []
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -662,6 +674,8 @@ class PoseGraph:
         best: tuple[int, str, str, str] | None = None  # (hops, factor, its end near a, near b)
         for n, (h_n, _, _) in near_a.items():
             for gid in self._closures_at.get(n, ()):
+                if gid in self._sealed:  # not solved again (rule 6): nothing to fold into
+                    continue
                 g = self._factors[gid]
                 o = g.frame_b if g.frame_a == n else g.frame_a
                 if o in near_b and (best is None or h_n + near_b[o][0] < best[0]):
@@ -806,8 +820,9 @@ class PoseGraph:
         step = step if step is not None else max(1, cap // 2)
         if step <= 0:
             raise InputError(f"settle: step must be positive, not {step}")
-        if cap > 0:
-            for limit in range(len(self._frozen) + step, len(self._frames), step):
+        if cap > 0:  # (every prefix holds the anchor)
+            start = max(len(self._frozen) + step, self._frames[anchor] + 1)
+            for limit in range(start, len(self._frames), step):
                 sol = self._solve(anchor, False, limit=limit)
                 self._solved = (None, sol)  # the next solve starts from it (warm)
                 self._cold_next = False
@@ -823,6 +838,8 @@ class PoseGraph:
         return anchor
 
     def _solve(self, anchor: str, marginals: bool, limit: int | None = None) -> GraphSolution:
+        if limit is not None and self._frames[anchor] >= limit:
+            raise InputError(f"the first {limit} nodes do not hold the anchor {anchor!r}")
         comps = self.components(limit)
         comps.sort(key=lambda c: anchor not in c)
         comp = comps[0]
@@ -964,23 +981,44 @@ class PoseGraph:
             gnc_skipped=gnc_skipped,
             folded={d: fid for fid in every_v for d in self._deps.get(fid, ())},
             marginals_error=marg_err,
-            frozen_nodes=len(frozen),
+            frozen_nodes=len(comp) - len(live),
         )
-        self._freeze(anchor, live, poses, facs, held)
+        # rule 6 freezes only nodes placed beyond doubt: joined to the anchor twice over by
+        # closures GNC kept (as rule 3 confirms), and not in a chain an ambiguous closure pulls
+        placed = twice[group[local[anchor]]]
+        pulled = {group[local[n]] for i in ambiguous for n in (facs[i].frame_a, facs[i].frame_b)}
+        self._freeze(anchor, [n for n in live if twice[group[local[n]]] == placed
+                              and group[local[n]] not in pulled], poses, facs, held, live)
         return sol
 
-    def _freeze(self, anchor: str, live: list[str], poses: dict[str, gtsam.Pose3],
-                facs: list[_Factor], held: dict[str, tuple[float, str, float]]) -> None:
-        """Rule 6: the oldest live nodes beyond max_live_nodes frozen at their solved poses;
-        the factors left between two frozen nodes keep their last verdict."""
+    def _freeze(self, anchor: str, placed: list[str], poses: dict[str, gtsam.Pose3],
+                facs: list[_Factor], held: dict[str, tuple[float, str, float]],
+                live: list[str]) -> None:
+        """Rule 6: a live node placed beyond doubt (`placed`) freezes at its solved pose once
+        max_live_nodes nodes joined the anchor's component in later solves than it did (so a
+        session that joins late, on one closure nothing can check yet, stays live until more
+        closures judge it). Seals the factors between two frozen nodes that are settled: known
+        inliers and closures GNC kept (ambiguous, outlying and unchecked ones stay in the solve
+        and are judged again)."""
         cap = self.config.max_live_nodes
-        if cap > 0 and len(live) > cap:
-            for n in live[:len(live) - cap]:  # insertion order: the oldest first
-                self._frozen[n] = poses[n]
+        if cap <= 0:
+            return
+        solve = len(self._joined_by)
+        new = [n for n in live if n not in self._joined]
+        for n in new:
+            self._joined[n] = solve
+        self._joined_by.append((self._joined_by[-1] if solve else 0) + len(new))
+        total = self._joined_by[-1]
+        frozen = [n for n in placed if total - self._joined_by[self._joined[n]] >= cap]
+        for n in frozen:
+            self._frozen[n] = poses[n]
+        if frozen:
             self._frozen_anchor = anchor
-            log.debug("pose graph: %d nodes frozen, %d live", len(self._frozen), cap)
-        for f in facs:  # (also one added between two frozen nodes: solved once, then sealed)
-            if f.frame_a in self._frozen and f.frame_b in self._frozen:
+            log.debug("pose graph: %d nodes frozen, %d live", len(self._frozen),
+                      len(live) - len(frozen))
+        for f in facs:  # (also one added between two frozen nodes: solved, then sealed)
+            if (f.frame_a in self._frozen and f.frame_b in self._frozen
+                    and (f.known_inlier or held[f.factor_id][1] == "")):
                 self._sealed[f.factor_id] = held[f.factor_id]
 
     def _between(self, f: _Factor) -> gtsam.BetweenFactorPose3:
