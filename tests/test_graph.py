@@ -4,6 +4,9 @@ fusion of the objects of aligned frames."""
 from __future__ import annotations
 
 import itertools
+import weakref
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -1027,6 +1030,20 @@ def test_removing_a_representative_folds_the_rest_into_the_first_of_them() -> No
 
 STEP = gtsam.Pose3(gtsam.Rot3.Rz(0.2), np.array([2.0, 0.0, 0.0]))
 ODO_COV = np.diag([1e-4] * 3 + [4e-3] * 3)
+# what each graph was given (a sealed factor's measurement is not held by the graph, rule 6)
+MEASURED: weakref.WeakKeyDictionary[PoseGraph, dict[str, tuple]] = weakref.WeakKeyDictionary()
+
+
+def add(graph: PoseGraph, fid: str, a: str, b: str, T: gtsam.Pose3, C: np.ndarray,
+        known_inlier: bool = False) -> bool:
+    MEASURED.setdefault(graph, {})[fid] = (a, b, T, C, known_inlier)
+    return graph.add_factor(fid, a, b, T, C, known_inlier=known_inlier)
+
+
+def copy_into(graph: PoseGraph, source: PoseGraph, ids: Sequence[str]) -> None:
+    for fid in ids:
+        a, b, T, C, known = MEASURED[source][fid]
+        add(graph, fid, a, b, T, C, known)
 
 
 def grow(graph: PoseGraph, rng: np.random.Generator, truth: dict[str, gtsam.Pose3], k: int,
@@ -1041,13 +1058,27 @@ def grow(graph: PoseGraph, rng: np.random.Generator, truth: dict[str, gtsam.Pose
             continue
         truth[node] = truth[f"{s}#{k - 1}"].compose(STEP)
         meas = STEP.compose(gtsam.Pose3.Expmap(rng.multivariate_normal(np.zeros(6), ODO_COV)))
-        graph.add_factor(f"odom:{s}#{k}", f"{s}#{k - 1}", node, meas, ODO_COV, known_inlier=True)
+        add(graph, f"odom:{s}#{k}", f"{s}#{k - 1}", node, meas, ODO_COV, known_inlier=True)
     if closures:
-        graph.add_factor(f"c{k}", f"{A}#{k}", f"{B}#{k}",
-                         *closure(rng, truth, f"{A}#{k}", f"{B}#{k}"))
+        add(graph, f"c{k}", f"{A}#{k}", f"{B}#{k}", *closure(rng, truth, f"{A}#{k}", f"{B}#{k}"))
         if k:
-            graph.add_factor(f"d{k}", f"{A}#{k}", f"{B}#{k - 1}",
-                             *closure(rng, truth, f"{A}#{k}", f"{B}#{k - 1}"))
+            add(graph, f"d{k}", f"{A}#{k}", f"{B}#{k - 1}",
+                *closure(rng, truth, f"{A}#{k}", f"{B}#{k - 1}"))
+
+
+def driven(seed: int, cap: int, steps: int, *, solve: bool = True,
+           closures: Callable[[int], bool] = lambda k: True,
+           **config: Any) -> tuple[PoseGraph, dict[str, gtsam.Pose3], np.random.Generator]:
+    """A graph of `steps` grow() steps with max_live_nodes=cap (and `config`), solved after
+    each step unless solve=False; returns it, the truth and the random generator."""
+    rng = np.random.default_rng(seed)
+    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap, **config))
+    truth: dict[str, gtsam.Pose3] = {}
+    for k in range(steps):
+        grow(graph, rng, truth, k, closures=closures(k))
+        if solve:
+            graph.optimize(marginals=False)
+    return graph, truth, rng
 
 
 def least_squares_with_fixed(graph: PoseGraph, fixed: dict[str, gtsam.Pose3],
@@ -1060,10 +1091,9 @@ def least_squares_with_fixed(graph: PoseGraph, fixed: dict[str, gtsam.Pose3],
     for n, T in fixed.items():
         g.add(gtsam.PriorFactorPose3(graph.key(n), T, tight))
     for fid in graph.factor_ids:
-        a, b, _ = graph.factor_nodes(fid)
-        f = graph._factors[fid]
-        g.add(gtsam.BetweenFactorPose3(graph.key(a), graph.key(b), f.T_a_b,
-                                       gtsam.noiseModel.Gaussian.Covariance(f.covariance_66)))
+        a, b, T, C, _ = MEASURED[graph][fid]
+        g.add(gtsam.BetweenFactorPose3(graph.key(a), graph.key(b), T,
+                                       gtsam.noiseModel.Gaussian.Covariance(C)))
     values = gtsam.Values()
     for n in graph.nodes:
         values.insert(graph.key(n), truth[n])
@@ -1112,6 +1142,8 @@ def test_frozen_nodes_keep_their_poses_and_the_rest_is_least_squares_with_them_f
         assert set(sol.weights) == set(graph.factor_ids)  # the frozen part's verdicts kept
         assert sol.outlier_factor_ids == [] and sol.ambiguous_factor_ids == []
     assert graph.frozen_count == 2 * steps - cap
+    assert "c0" in graph._sealed and graph._factors["c0"].T_a_b is None  # not held any more
+    assert not add(graph, "c0", *MEASURED[graph]["c0"][:4])  # a replay: a no-op
     assert max(sizes) <= cap + 2 + 3  # the live nodes, the new ones, frozen neighbours
     assert len(graph.nodes) > 3 * max(sizes)
     # the same graph without freezing: every node moves with every closure
@@ -1124,13 +1156,7 @@ def test_a_wrong_closure_to_the_frozen_part_is_confirmed_and_the_others_stay() -
     """Rule 3 counts the frozen part's closures: a wrong closure from a live keyframe back to a
     frozen one is joined twice over by the closures on either side (frozen and live), so it is
     a confirmed outlier; removing it keeps the frozen poses."""
-    cap = 8
-    rng = np.random.default_rng(610)
-    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(20):
-        grow(graph, rng, truth, k)
-        graph.optimize(marginals=False)
+    graph, truth, rng = driven(610, 8, 20)
     assert f"{A}#2" in graph._frozen and f"{B}#19" not in graph._frozen
     frozen = dict(graph._frozen)
     graph.add_factor("wrong", f"{A}#2", f"{B}#19",
@@ -1155,12 +1181,7 @@ def test_a_wrong_closure_to_the_frozen_part_is_confirmed_and_the_others_stay() -
 
 
 def test_the_anchor_cannot_move_once_nodes_are_frozen() -> None:
-    rng = np.random.default_rng(620)
-    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=4))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(5):
-        grow(graph, rng, truth, k)
-        graph.optimize(marginals=False)
+    graph, _, _ = driven(620, 4, 5)
     assert graph.frozen_count == 6
     with pytest.raises(InputError, match="frozen"):
         graph.anchor = f"{B}#0"
@@ -1174,19 +1195,11 @@ def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
     """A restart loads the whole graph at once: settle() solves it in insertion order, a few
     nodes more each time, so it freezes as the live graph did and no solve holds the whole."""
     cap, steps = 10, 25
-    rng = np.random.default_rng(630)
-    truth: dict[str, gtsam.Pose3] = {}
-    grown = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
-    for k in range(steps):
-        grow(grown, rng, truth, k)
-        grown.optimize(marginals=False)
+    grown, truth, _ = driven(630, cap, steps)
     loaded = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
     for n in grown.nodes:
         loaded.add_frame(n)
-    for fid in grown.factor_ids:
-        f = grown._factors[fid]
-        loaded.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
-                          known_inlier=f.known_inlier)
+    copy_into(loaded, grown, grown.factor_ids)
     sizes = solve_sizes(monkeypatch)
     sol = loaded.settle()
     assert loaded.frozen_count == grown.frozen_count == 2 * steps - cap
@@ -1200,10 +1213,7 @@ def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
         assert pose_error(T, ref[n])[1] < 1e-5, n
     # without a bound: one solve of the whole graph
     whole = PoseGraph(anchor=f"{A}#0")
-    for fid in grown.factor_ids:
-        f = grown._factors[fid]
-        whole.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
-                         known_inlier=f.known_inlier)
+    copy_into(whole, grown, grown.factor_ids)
     sizes.clear()
     whole.settle()
     assert sizes == [len(whole.nodes)]
@@ -1215,12 +1225,7 @@ def late_session(cap: int) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:
     """A and B drive 12 keyframes each, solved at every step, with no closure between them;
     then B joins A's component on one wrong closure (a bridge: nothing can check it yet), then
     two correct closures between older keyframes arrive."""
-    rng = np.random.default_rng(640)
-    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=cap))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(12):
-        grow(graph, rng, truth, k, closures=False)
-        graph.optimize(marginals=False)
+    graph, truth, rng = driven(640, cap, 12, closures=lambda k: False)
     graph.add_factor("wrong", f"{A}#11", f"{B}#11",
                      *closure(rng, truth, f"{A}#11", f"{B}#11", wrong=True))
     sol = graph.optimize(marginals=False)
@@ -1252,12 +1257,7 @@ def test_chains_pulled_by_disputed_closures_stay_live_until_they_are_judged() ->
     arbitrary, and both stay in the solve): neither chain freezes on that, the disputed closures
     are never sealed, and a third closure confirms the wrong one as an outlier, as without
     freezing; then both chains freeze."""
-    rng = np.random.default_rng(650)
-    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=6))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(4):
-        grow(graph, rng, truth, k, closures=False)
-        graph.optimize(marginals=False)
+    graph, truth, rng = driven(650, 6, 4, closures=lambda k: False)
     frozen_alone = set(graph._frozen)  # A alone, odometry only: nothing to doubt
     graph.add_factor("c1", f"{A}#1", f"{B}#1", *closure(rng, truth, f"{A}#1", f"{B}#1"))
     graph.add_factor("wrong", f"{A}#2", f"{B}#2",
@@ -1279,16 +1279,9 @@ def test_chains_pulled_by_disputed_closures_stay_live_until_they_are_judged() ->
 
 
 def test_settle_with_an_anchor_added_after_other_nodes() -> None:
-    rng = np.random.default_rng(660)
-    grown = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=10))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(20):
-        grow(grown, rng, truth, k)
+    grown, _, _ = driven(660, 10, 20, solve=False)
     loaded = PoseGraph(config=GraphConfig(max_live_nodes=10))
-    for fid in reversed(grown.factor_ids):  # B's nodes first, the anchor A#0 near the end
-        f = grown._factors[fid]
-        loaded.add_factor(fid, f.frame_a, f.frame_b, f.T_a_b, f.covariance_66,
-                          known_inlier=f.known_inlier)
+    copy_into(loaded, grown, grown.factor_ids[::-1])  # B's nodes first, the anchor near the end
     loaded.anchor = f"{A}#0"
     assert loaded.nodes.index(f"{A}#0") > 30
     sol = loaded.settle(step=5)
@@ -1302,24 +1295,16 @@ def test_settle_with_an_anchor_added_after_other_nodes() -> None:
 def test_nothing_folds_into_a_sealed_factor() -> None:
     """Rule 5 with rule 6: a sealed factor is not solved again, so a closure that agrees with
     it is solved on its own (folded into it, its measurement would be used by no solve)."""
-    rng = np.random.default_rng(670)
-    graph = PoseGraph(anchor=f"{A}#0", config=GraphConfig(max_live_nodes=6, fold_hops=3,
-                                                          fold_drift=100.0))
-    truth: dict[str, gtsam.Pose3] = {}
-    for k in range(10):
-        grow(graph, rng, truth, k, closures=k in (1, 2, 6))
-        graph.optimize(marginals=False)
+    graph, truth, rng = driven(670, 6, 10, closures=lambda k: k in (1, 2, 6), fold_hops=3,
+                               fold_drift=100.0)
     assert "c1" in graph._sealed
-    graph.add_factor("near-c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
+    add(graph, "near-c1", f"{A}#1", f"{B}#2", *closure(rng, truth, f"{A}#1", f"{B}#2"))
     assert graph.representative("near-c1") != "c1"
     sol = graph.optimize(marginals=False)
     assert "near-c1" in sol.errors  # solved, not only listed
     unbounded = PoseGraph(anchor=f"{A}#0", config=GraphConfig(fold_hops=3, fold_drift=100.0))
-    for fid in graph.factor_ids:
-        a, b, known = graph.factor_nodes(fid)
-        if fid in graph._factors:
-            f = graph._factors[fid]
-            unbounded.add_factor(fid, a, b, f.T_a_b, f.covariance_66, known_inlier=known)
+    copy_into(unbounded, graph, [f for f in graph.factor_ids if f != "near-c1"])
+    unbounded.add_factor("near-c1", *MEASURED[graph]["near-c1"][:4])
     assert unbounded.representative("near-c1") is not None  # it would fold, unsealed
 
 

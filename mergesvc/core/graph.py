@@ -65,9 +65,10 @@ Outlier rules (a factor can only be judged against other factors that close a lo
      Such nodes stay live as long as that lasts: the bound is soft. Later solves hold a
      frozen node fixed where a factor joins it to a live node (a prior at its frozen pose,
      `anchor_sigma`: treated as exact) and leave out the settled factors between two frozen
-     nodes (known inliers and closures GNC kept: they keep the weight and error of the last
-     solve that held them; ambiguous, outlying and unchecked closures stay in the solve and
-     are judged again). So a long mission's solve
+     nodes (known inliers and closures GNC kept: they keep the weight of the last solve that
+     held them; ambiguous, outlying and unchecked closures stay in the solve and
+     are judged again; a sealed factor's measurement is no longer held, and the same id
+     added again with the same ends is taken as a replay). So a long mission's solve
      stays the size of its live part (the 20-robot soak: a graph of thousands of keyframes, a
      solve of about a thousand) while a closure to an old place still ties the new part to it.
      Rules 1 and 3 are still decided on every factor of the component (pure graph structure,
@@ -360,7 +361,7 @@ class _Factor:
     factor_id: str
     frame_a: str
     frame_b: str
-    T_a_b: gtsam.Pose3
+    T_a_b: gtsam.Pose3  # None once sealed (rule 6): never solved again
     covariance_66: np.ndarray
     known_inlier: bool
 
@@ -378,8 +379,8 @@ class GraphSolution:
     folded factor's is its representative's, rule 5), folded factors included.
     outlier_factor_ids: confirmed outliers (retract them); ambiguous_factor_ids: flagged by GNC
     but not identifiable (kept); unchecked_factor_ids: bridges, which nothing can contradict.
-    errors: 0.5 * squared Mahalanobis residual of each solved factor at the final estimate
-    (a factor between two frozen nodes, rule 6: at the last solve that held it).
+    errors: 0.5 * squared Mahalanobis residual of each factor solved at the final estimate
+    (not the settled factors between two frozen nodes, rule 6, which are not solved).
     frozen_nodes: how many nodes are fixed at the poses of an earlier solve (rule 6).
     folded: folded factor -> its representative (rule 5), in the anchor's component.
     gnc_ran: some factor was judged (not all known inliers); gnc_skipped: judged by the
@@ -436,14 +437,16 @@ class PoseGraph:
         self._deps: dict[str, list[str]] = {}
         # representative -> its measurement fused with its folded ones'
         self._fused: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
-        # node -> ids of the solved factors at it: known inliers, and the others
+        # node -> ids of the solved factors at it: known inliers, and the others (rule 5 only:
+        # kept once folding was asked for, built then from the factors)
         self._known_at: dict[str, list[str]] = defaultdict(list)
         self._closures_at: dict[str, list[str]] = defaultdict(list)
+        self._at_kept = False
         # rule 6: frozen node -> its pose in the anchor frame (the anchor it was solved with);
-        # a factor between two frozen nodes -> (weight, verdict, error) of its last solve
+        # a settled factor between two frozen nodes -> its weight in the last solve that held it
         self._frozen: dict[str, gtsam.Pose3] = {}
         self._frozen_anchor: str | None = None
-        self._sealed: dict[str, tuple[float, str, float]] = {}
+        self._sealed: dict[str, float] = {}
         # node -> the solve in which it joined the anchor's component; nodes joined by then
         self._joined: dict[str, int] = {}
         self._joined_by: list[int] = []
@@ -568,8 +571,9 @@ class PoseGraph:
             if (
                 (old.frame_a, old.frame_b, old.known_inlier)
                 == (frame_a, frame_b, bool(known_inlier))
-                and old.T_a_b.equals(T, 1e-9)
-                and np.allclose(old.covariance_66, C, rtol=1e-9, atol=0)
+                and (old.T_a_b is None  # sealed (rule 6): its measurement is not held
+                     or (old.T_a_b.equals(T, 1e-9)
+                         and np.allclose(old.covariance_66, C, rtol=1e-9, atol=0)))
             ):
                 return False
             raise InputError(f"factor id {factor_id!r} is already used by a different factor")
@@ -593,6 +597,10 @@ class PoseGraph:
             self._fused[rep] = fused
             return
         self._factors[f.factor_id] = f
+        if self._at_kept:
+            self._index_at(f)
+
+    def _index_at(self, f: _Factor) -> None:
         at = self._known_at if f.known_inlier else self._closures_at
         at[f.frame_a].append(f.factor_id)
         at[f.frame_b].append(f.factor_id)
@@ -652,6 +660,8 @@ class PoseGraph:
                 _, T_n, S_n = out[n]
                 for fid in self._known_at.get(n, ()):
                     k = self._factors[fid]
+                    if k.T_a_b is None:  # sealed (rule 6): not carried along
+                        continue
                     m, T_step, C_step = ((k.frame_b, k.T_a_b, k.covariance_66) if k.frame_a == n
                                          else (k.frame_a, *_inverse(k.T_a_b, k.covariance_66)))
                     if m not in out:
@@ -669,6 +679,10 @@ class PoseGraph:
         hops = self.config.fold_hops
         if hops <= 0 or f.frame_a not in self._frames or f.frame_b not in self._frames:
             return None
+        if not self._at_kept:  # the first fold asked for: index the factors at their nodes
+            for g in self._factors.values():
+                self._index_at(g)
+            self._at_kept = True
         near_a = self._near(f.frame_a, hops)
         near_b = self._near(f.frame_b, hops)
         best: tuple[int, str, str, str] | None = None  # (hops, factor, its end near a, near b)
@@ -751,7 +765,7 @@ class PoseGraph:
         if f is None:
             return False
         at = self._known_at if f.known_inlier else self._closures_at
-        for node in (f.frame_a, f.frame_b):
+        for node in (f.frame_a, f.frame_b) if self._at_kept else ():
             at[node].remove(factor_id)
             if not at[node]:
                 del at[node]
@@ -917,7 +931,7 @@ class PoseGraph:
             (group[edges[j][0]], group[edges[j][1]])
             for j, f in enumerate(every)
             if not f.known_inlier
-            and weight.get(f.factor_id, sealed[f.factor_id][0] if f.factor_id in sealed else 1.0)
+            and weight.get(f.factor_id, sealed.get(f.factor_id, 1.0))
             >= cfg.outlier_weight
             for _ in range(2 if f.factor_id in self._deps else 1)
         ]
@@ -958,9 +972,9 @@ class PoseGraph:
                               verdict.get(f.factor_id, ""),
                               float(graph.at(m + i).error(estimate)))
                 for i, f in enumerate(facs)}
-        # a sealed factor keeps its weight; unchecked while it is a bridge
-        was = {f.factor_id: (v[0], "unchecked" if j in bridges_all
-                             else v[1] if v[1] != "unchecked" else "", v[2])
+        # a sealed factor (rule 6: kept by GNC, or a known inlier) keeps its weight; unchecked
+        # while it is a bridge
+        was = {f.factor_id: (v, "unchecked" if j in bridges_all else "", 0.0)
                for j, f in enumerate(every) if (v := sealed.get(f.factor_id)) is not None}
         every_v = {**was, **held}  # the frozen part's verdicts first, as it was solved first
 
@@ -976,7 +990,7 @@ class PoseGraph:
             outlier_factor_ids=[fid for fid, v in every_v.items() if v[1] == "outlier"],
             ambiguous_factor_ids=of("ambiguous"),
             unchecked_factor_ids=of("unchecked"),
-            errors={fid: v[2] for fid, v in every_v.items()},
+            errors={fid: v[2] for fid, v in held.items()},
             gnc_ran=gnc_ran,
             gnc_skipped=gnc_skipped,
             folded={d: fid for fid in every_v for d in self._deps.get(fid, ())},
@@ -1012,6 +1026,7 @@ class PoseGraph:
         frozen = [n for n in placed if total - self._joined_by[self._joined[n]] >= cap]
         for n in frozen:
             self._frozen[n] = poses[n]
+            del self._joined[n]  # (only live nodes need it)
         if frozen:
             self._frozen_anchor = anchor
             log.debug("pose graph: %d nodes frozen, %d live", len(self._frozen),
@@ -1019,7 +1034,10 @@ class PoseGraph:
         for f in facs:  # (also one added between two frozen nodes: solved, then sealed)
             if (f.frame_a in self._frozen and f.frame_b in self._frozen
                     and (f.known_inlier or held[f.factor_id][1] == "")):
-                self._sealed[f.factor_id] = held[f.factor_id]
+                self._sealed[f.factor_id] = held[f.factor_id][0]
+                if f.factor_id not in self._deps:  # never solved again: its ends are enough
+                    self._factors[f.factor_id] = _Factor(f.factor_id, f.frame_a, f.frame_b,
+                                                         None, None, f.known_inlier)
 
     def _between(self, f: _Factor) -> gtsam.BetweenFactorPose3:
         T, C = self._measurement(f)

@@ -318,8 +318,12 @@ class SessionState:
     objects: dict[str, HeldObject] = field(default_factory=dict)  # compact: fleet/held.py
     up: dict[int, np.ndarray] = field(default_factory=dict)  # declared up per keyframe frame
     version: int = 0  # bumped by every submap
-    # keyframe -> its odometry neighbours: (keyframe, the edge's pair, whether it leaves k)
-    _adjacent: dict[int, list[tuple[int, tuple[int, int], bool]]] = field(
+    # the last declared up and odometry covariance: a vehicle sends the same ones again and
+    # again, held once (a long mission's keyframes each held their own copy)
+    _last_up: np.ndarray | None = field(default=None, repr=False)
+    _last_cov: np.ndarray | None = field(default=None, repr=False)
+    # keyframe -> its odometry neighbours (the keyframes of its edges, either way)
+    _adjacent: dict[int, list[int]] = field(
         default_factory=lambda: defaultdict(list), repr=False
     )
 
@@ -337,7 +341,11 @@ class SessionState:
         seq = sub.seq if sub.seq is not None else -1
         self.keyframes.add(k)
         if sub.up is not None:
-            self.up[k] = np.asarray(sub.up, dtype=np.float64)
+            up = np.asarray(sub.up, dtype=np.float64)
+            if self._last_up is None or not np.array_equal(up, self._last_up):
+                up.setflags(write=False)  # shared by the keyframes that declare it
+                self._last_up = up
+            self.up[k] = self._last_up
         for o in sub.objects:  # the latest submap holding an object gives its estimate
             held = self.objects.get(o.id)
             if held is None or held.seq <= seq:
@@ -346,6 +354,10 @@ class SessionState:
         edge = odometry_edge(sub)
         if edge is None:
             return None
+        if self._last_cov is None or not np.array_equal(edge.covariance, self._last_cov):
+            self._last_cov = edge.covariance  # (read-only: odometry_edge)
+        edge = OdometryEdge(KeyframeId(self.frame, edge.from_.k), KeyframeId(self.frame, edge.to.k),
+                            edge.T_from_to, self._last_cov)  # this session's names, held once
         pair = (edge.from_.k, edge.to.k)
         old = self.edges.get(pair)
         if old is not None:
@@ -355,8 +367,8 @@ class SessionState:
             return None
         self.edges[pair] = edge
         self.keyframes.add(edge.from_.k)
-        self._adjacent[pair[0]].append((pair[1], pair, True))
-        self._adjacent[pair[1]].append((pair[0], pair, False))
+        self._adjacent[pair[0]].append(pair[1])
+        self._adjacent[pair[1]].append(pair[0])
         return edge
 
     def propagate(self, seeds: Mapping[int, gtsam.Pose3]) -> dict[int, gtsam.Pose3]:
@@ -366,10 +378,11 @@ class SessionState:
         todo = deque(sorted(seeds))
         while todo:
             k = todo.popleft()
-            for j, pair, forward in self._adjacent.get(k, ()):
+            for j in self._adjacent.get(k, ()):
                 if j not in poses:
-                    T = self.edges[pair].T_from_to
-                    poses[j] = poses[k].compose(T if forward else T.inverse())
+                    edge = self.edges.get((k, j))
+                    poses[j] = poses[k].compose(edge.T_from_to if edge is not None
+                                                else self.edges[(j, k)].T_from_to.inverse())
                     todo.append(j)
         return poses
 
