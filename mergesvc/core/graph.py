@@ -447,9 +447,9 @@ class PoseGraph:
         self._frozen: dict[str, gtsam.Pose3] = {}
         self._frozen_anchor: str | None = None
         self._sealed: dict[str, float] = {}
-        # node -> the solve in which it joined the anchor's component; nodes joined by then
+        # live node -> how many nodes had joined the anchor's component once it had; how many now
         self._joined: dict[str, int] = {}
-        self._joined_by: list[int] = []
+        self._joined_total = 0
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -999,10 +999,12 @@ class PoseGraph:
         )
         # rule 6 freezes only nodes placed beyond doubt: joined to the anchor twice over by
         # closures GNC kept (as rule 3 confirms), and not in a chain an ambiguous closure pulls
-        placed = twice[group[local[anchor]]]
-        pulled = {group[local[n]] for i in ambiguous for n in (facs[i].frame_a, facs[i].frame_b)}
-        self._freeze(anchor, [n for n in live if twice[group[local[n]]] == placed
-                              and group[local[n]] not in pulled], poses, facs, held, live)
+        if cfg.max_live_nodes > 0:
+            placed = twice[group[local[anchor]]]
+            pulled = {group[local[n]] for i in ambiguous
+                      for n in (facs[i].frame_a, facs[i].frame_b)}
+            self._freeze(anchor, [n for n in live if twice[group[local[n]]] == placed
+                                  and group[local[n]] not in pulled], poses, facs, held, live)
         return sol
 
     def _freeze(self, anchor: str, placed: list[str], poses: dict[str, gtsam.Pose3],
@@ -1015,15 +1017,11 @@ class PoseGraph:
         inliers and closures GNC kept (ambiguous, outlying and unchecked ones stay in the solve
         and are judged again)."""
         cap = self.config.max_live_nodes
-        if cap <= 0:
-            return
-        solve = len(self._joined_by)
         new = [n for n in live if n not in self._joined]
+        self._joined_total += len(new)
         for n in new:
-            self._joined[n] = solve
-        self._joined_by.append((self._joined_by[-1] if solve else 0) + len(new))
-        total = self._joined_by[-1]
-        frozen = [n for n in placed if total - self._joined_by[self._joined[n]] >= cap]
+            self._joined[n] = self._joined_total  # (those that join in one solve: alike)
+        frozen = [n for n in placed if self._joined_total - self._joined[n] >= cap]
         for n in frozen:
             self._frozen[n] = poses[n]
             del self._joined[n]  # (only live nodes need it)
