@@ -20,10 +20,13 @@ from mergesvc.sim.real_data import KITTI_GT, KITTI_ORB, data_available
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("merge") / "merge.json"
-    r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--out", str(out)])
+    fig = out.with_name("bounds.png")
+    r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--out", str(out), "--figure",
+                                 str(fig)])
     assert r.exit_code == 0, r.output
     assert out.with_suffix(".md").is_file()
     assert out.with_suffix(".settings.json").is_file()
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     return json.loads(out.read_text())
 
 

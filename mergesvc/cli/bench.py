@@ -244,6 +244,9 @@ def bench_merge(
     scale: Annotated[str | None, typer.Option(
         help="instead: the service's cost per submap at these fleet sizes, e.g. 2,3,5,10,20 "
              "(the pool world, in-process)")] = None,
+    figure: Annotated[Path | None, typer.Option(
+        help="also plot every robot's merged ATE and its bounds over its odometry ATE here "
+             "(.png)")] = None,
     settings: MergeBenchSettings = None,
 ) -> None:
     """Merged trajectories in-process against the truth: the pool fleet, 3 cars on real
@@ -287,6 +290,10 @@ def bench_merge(
     typer.echo(f"{report['elapsed_s']:.0f} s")
     if out is not None:
         _write_report(report, out, tree)
+    if figure is not None:
+        from mergesvc.bench.merge import plot_merge
+
+        typer.echo(f"wrote {plot_merge(report, figure)}")
 
 
 SoakSettings = settings_file(
@@ -439,6 +446,10 @@ def bench_cost(
     typer.echo(f"{report['elapsed_s']:.0f} s")
     if out is not None:
         _write_report(report, out, tree)
+    if figure is not None:
+        from mergesvc.bench.merge import plot_merge
+
+        typer.echo(f"wrote {plot_merge(report, figure)}")
     if figure is not None:
         typer.echo(f"wrote {plot_cost(report, figure)}")
 
