@@ -145,6 +145,21 @@ def test_the_factors_error_per_axis_is_robust() -> None:
     assert _error_sigma([{"err_tangent": None, "corr_wrong": 0}] * 20) is None
 
 
+def test_a_lost_submap_leaves_a_piece_only_closures_place(two_robots) -> None:
+    """b's submap at keyframe 5 lost: keyframes 6-11 no longer chain to keyframe 0. Closures to
+    a place them (and as well as before: their odometry is the same), without closures they
+    are left out, as the service leaves them."""
+    truth, odo, seen = two_robots
+    a = _robot("a", truth["a"], odo["a"], seen["a"], sigma=(1e-5, 1e-5))
+    b = [s for s in _robot("b", truth["b"], odo["b"], seen["b"]) if s.keyframe != 5]
+    placed = closure_bound(a + b, truth, _truth_of, anchor="a")["b"][0]
+    assert sorted(placed) == [0, 1, 2, 3, 4, *range(6, 12)]
+    est = np.stack([placed[k] for k in sorted(placed)])
+    assert ate_rmse(est, truth["b"][sorted(placed)]) < 0.05
+    alone = closure_bound(a + b, truth, _truth_of, anchor="a", min_shared=4)["b"][0]
+    assert sorted(alone) == [0, 1, 2, 3, 4]
+
+
 def test_no_closure_joins_two_keyframes_of_one_robot(two_robots) -> None:
     """One robot alone, every keyframe sharing objects with its neighbours: no closure (the
     service closes loops between robots only), so the bound is its odometry."""

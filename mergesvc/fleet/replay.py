@@ -25,7 +25,7 @@ import gtsam
 import numpy as np
 
 from mergesvc.core.frames import FrameId
-from mergesvc.core.graph import pose3_from_model
+from mergesvc.core.graph import UnionFind, pose3_from_model
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.trajectory import ate_rmse, final_pose_error, rotation_error_deg
 from mergesvc.errors import MergeError
@@ -312,9 +312,12 @@ def closure_bound(
 
     Returns per robot ({keyframe: pose (4x4) in the anchor robot's frame}, closures touching
     the robot); None instead of the poses for a robot with no odometry edge; {} when the solve
-    fails. Keyframes the odometry does not chain to keyframe 0 are left out. The anchor's
-    keyframe 0 holds the gauge (any robot's, if the anchor sent nothing: ATE aligns each robot
-    on its own); every node starts at its true start pose composed with its own odometry."""
+    fails. A keyframe the odometry does not chain to keyframe 0 (its previous submap was lost)
+    starts a piece of chain that only closures join to the rest, as in the service; a piece
+    joined neither to the anchor nor to its robot's keyframe 0 is left out (the service does
+    not place it either). The anchor's keyframe 0 holds the gauge (any robot's, if the anchor
+    sent nothing: ATE aligns each robot on its own); every node starts at its piece's true
+    start composed with the odometry."""
     by_robot: dict[str, list[Submap]] = defaultdict(list)
     for s in subs:
         if s.keyframe is not None and s.robot_id in truth_T:
@@ -331,6 +334,7 @@ def closure_bound(
 
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     seen: dict[str, dict[int, set[str]]] = {}  # robot -> keyframe -> true objects it holds
+    links: list[tuple[tuple[str, int], tuple[str, int]]] = []  # odometry edges and closures
     edges: dict[str, int] = defaultdict(int)
     for r in robots:
         T = truth_T[r]
@@ -339,24 +343,31 @@ def closure_bound(
         if r != anchor:  # a loose prior: a robot no closure reaches is still solvable
             graph.add(gtsam.PriorFactorPose3(key(r, 0), gtsam.Pose3(start),
                                              gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
-        odo = {0: np.eye(4)}
+        # each keyframe composed from its own chain's first one (keyframe 0, or the keyframe
+        # after a lost submap: a piece only closures join to the rest, as in the service)
+        odo = {0: start}
         seen[r] = defaultdict(set)
         for s in sorted(by_robot[r], key=lambda s: s.keyframe or 0):
             k = int(s.keyframe or 0)
             if k >= len(T):
                 continue
             seen[r][k] |= {t for o in s.objects if (t := truth_of(r, o.id)) is not None}
-            od = s.odometry
-            if od is None or od.from_keyframe not in odo or k in odo:
+            if k in odo:
                 continue
-            T_ft = pose3_from_model(od.T_from_to)
-            odo[k] = odo[od.from_keyframe] @ T_ft.matrix()
-            values.insert(key(r, k), gtsam.Pose3(start @ odo[k]))
-            graph.add(gtsam.BetweenFactorPose3(
-                key(r, od.from_keyframe), key(r, k), T_ft,
-                gtsam.noiseModel.Gaussian.Covariance(np.asarray(od.covariance, dtype=np.float64))))
-            edges[r] += 1
-        seen[r] = {k: v for k, v in seen[r].items() if k in odo}
+            od = s.odometry
+            if od is None or od.from_keyframe not in odo:
+                odo[k] = T[k]  # a new piece, started where it truly is (the start is free)
+                graph.add(gtsam.PriorFactorPose3(key(r, k), gtsam.Pose3(T[k]),
+                                                 gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
+            else:
+                T_ft = pose3_from_model(od.T_from_to)
+                odo[k] = odo[od.from_keyframe] @ T_ft.matrix()
+                graph.add(gtsam.BetweenFactorPose3(
+                    key(r, od.from_keyframe), key(r, k), T_ft, gtsam.noiseModel.Gaussian
+                    .Covariance(np.asarray(od.covariance, dtype=np.float64))))
+                links.append(((r, od.from_keyframe), (r, k)))
+                edges[r] += 1
+            values.insert(key(r, k), gtsam.Pose3(odo[k]))
     graph.add(gtsam.PriorFactorPose3(key(anchor, 0), gtsam.Pose3(truth_T[anchor][0]),
                                      gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     if error_sigma is None:
@@ -376,6 +387,7 @@ def closure_bound(
                 assert rng is not None
                 T_ab = T_ab.compose(gtsam.Pose3.Expmap(rng.normal(0.0, sigma)))
             graph.add(gtsam.BetweenFactorPose3(key(ra, ka), key(rb, kb), T_ab, noise))
+            links.append(((ra, ka), (rb, kb)))
             closures[ra] += 1
             closures[rb] += 1
     try:
@@ -383,7 +395,15 @@ def closure_bound(
     except RuntimeError as exc:  # (not seen: a bench row is left empty rather than failing)
         log.warning("closure bound: the solve failed: %s", exc)
         return {}
-    return {r: ({k: est.atPose3(key(r, k)).matrix() for k in sorted(set(seen[r]) | {0})}
+    # placed: a robot's own chain from keyframe 0, and every piece joined to the anchor
+    index = {n: i for i, n in enumerate((r, k) for r in robots for k in sorted(set(seen[r])
+                                                                                | {0}))}
+    uf = UnionFind(len(index))
+    for a, b in links:
+        uf.union(index[a], index[b])
+    gauge = uf.find(index[(anchor, 0)])
+    return {r: ({k: est.atPose3(key(r, k)).matrix() for k in sorted(set(seen[r]) | {0})
+                 if uf.find(index[(r, k)]) in (gauge, uf.find(index[(r, 0)]))}
                 if edges[r] else None, closures[r]) for r in robots}
 
 
