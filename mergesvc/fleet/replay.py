@@ -45,7 +45,7 @@ TOPSIDE = "topside"
 EXACT_SIGMA = (1e-3, 1e-2)
 MIN_SHARED = 3  # true objects two submaps must share for a closure between their keyframes
 BOUND_DRAWS = 10  # draws of the closures' errors for the bound at the factors' accuracy
-MIN_ERROR_SAMPLES = 10  # factors needed to estimate their error per axis
+MIN_ERROR_SAMPLES = 10  # factors needed to estimate their error per axis (to about a third)
 MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 x its median absolute value
 SIGMA_FLOOR = 1e-4  # rad, m: an axis the factors got exactly right (the tilt, fitted about
 # gravity) is still not held infinitely stiff
@@ -311,13 +311,14 @@ def closure_bound(
     co-visible pair matched, with independent errors.
 
     Returns per robot ({keyframe: pose (4x4) in the anchor robot's frame}, closures touching
-    the robot); None instead of the poses for a robot with no odometry edge; {} when the solve
-    fails. A keyframe the odometry does not chain to keyframe 0 (its previous submap was lost)
-    starts a piece of chain that only closures join to the rest, as in the service; a piece
-    joined neither to the anchor nor to its robot's keyframe 0 is left out (the service does
-    not place it either). The anchor's keyframe 0 holds the gauge (any robot's, if the anchor
-    sent nothing: ATE aligns each robot on its own); every node starts at its piece's true
-    start composed with the odometry."""
+    the robot); None for a robot with fewer than two poses to score; {} when the solve fails.
+    A submap lost on the link leaves pieces of chain that only closures join to the rest, as
+    in the service (the start of a delivered odometry edge whose own submap was lost is a node
+    there too). The anchor's largest piece holds the gauge; a robot is scored on its nodes
+    joined to it, else on its own chain from keyframe 0 (ATE aligns each robot on its own).
+    Nodes start at their piece's true start composed with the odometry; a piece's start has a
+    loose prior there, which places nothing the links do not.
+    """
     by_robot: dict[str, list[Submap]] = defaultdict(list)
     for s in subs:
         if s.keyframe is not None and s.robot_id in truth_T:
@@ -334,19 +335,23 @@ def closure_bound(
 
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     seen: dict[str, dict[int, set[str]]] = {}  # robot -> keyframe -> true objects it holds
+    placed: dict[str, dict[int, np.ndarray]] = {}  # robot -> node -> initial pose
     links: list[tuple[tuple[str, int], tuple[str, int]]] = []  # odometry edges and closures
-    edges: dict[str, int] = defaultdict(int)
+    loose = gtsam.noiseModel.Isotropic.Sigma(6, 1e3)
     for r in robots:
         T = truth_T[r]
-        start = T[0]
-        values.insert(key(r, 0), gtsam.Pose3(start))
-        if r != anchor:  # a loose prior: a robot no closure reaches is still solvable
-            graph.add(gtsam.PriorFactorPose3(key(r, 0), gtsam.Pose3(start),
-                                             gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
-        # each keyframe composed from its own chain's first one (keyframe 0, or the keyframe
-        # after a lost submap: a piece only closures join to the rest, as in the service)
-        odo = {0: start}
+        odo = placed[r] = {}
         seen[r] = defaultdict(set)
+
+        def piece(k: int, T: np.ndarray = T, r: str = r) -> None:
+            # a node no odometry reaches (keyframe 0, or the start of an edge whose submap was
+            # lost: the service holds it too) starts a piece where it truly is, loosely: only
+            # links place it relative to anything else
+            placed[r][k] = T[k]
+            values.insert(key(r, k), gtsam.Pose3(T[k]))
+            graph.add(gtsam.PriorFactorPose3(key(r, k), gtsam.Pose3(T[k]), loose))
+
+        piece(0)
         for s in sorted(by_robot[r], key=lambda s: s.keyframe or 0):
             k = int(s.keyframe or 0)
             if k >= len(T):
@@ -355,21 +360,18 @@ def closure_bound(
             if k in odo:
                 continue
             od = s.odometry
-            if od is None or od.from_keyframe not in odo:
-                odo[k] = T[k]  # a new piece, started where it truly is (the start is free)
-                graph.add(gtsam.PriorFactorPose3(key(r, k), gtsam.Pose3(T[k]),
-                                                 gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
-            else:
-                T_ft = pose3_from_model(od.T_from_to)
-                odo[k] = odo[od.from_keyframe] @ T_ft.matrix()
-                graph.add(gtsam.BetweenFactorPose3(
-                    key(r, od.from_keyframe), key(r, k), T_ft, gtsam.noiseModel.Gaussian
-                    .Covariance(np.asarray(od.covariance, dtype=np.float64))))
-                links.append(((r, od.from_keyframe), (r, k)))
-                edges[r] += 1
+            if od is None or od.from_keyframe >= k:
+                piece(k)
+                continue
+            if od.from_keyframe not in odo:
+                piece(od.from_keyframe)
+            T_ft = pose3_from_model(od.T_from_to)
+            odo[k] = odo[od.from_keyframe] @ T_ft.matrix()
             values.insert(key(r, k), gtsam.Pose3(odo[k]))
-    graph.add(gtsam.PriorFactorPose3(key(anchor, 0), gtsam.Pose3(truth_T[anchor][0]),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+            graph.add(gtsam.BetweenFactorPose3(
+                key(r, od.from_keyframe), key(r, k), T_ft,
+                gtsam.noiseModel.Gaussian.Covariance(np.asarray(od.covariance, dtype=np.float64))))
+            links.append(((r, od.from_keyframe), (r, k)))
     if error_sigma is None:
         sigma = np.array([exact_sigma[0]] * 3 + [exact_sigma[1]] * 3)
     else:
@@ -390,21 +392,35 @@ def closure_bound(
             links.append(((ra, ka), (rb, kb)))
             closures[ra] += 1
             closures[rb] += 1
+    # groups: nodes joined by links (the loose priors join nothing). The gauge: the anchor's
+    # largest group, held at its first node's true pose; each robot is scored on its nodes in
+    # the gauge's group, else on its keyframe 0's group (its own odometry: ATE aligns)
+    index = {n: i for i, n in enumerate((r, k) for r in robots for k in sorted(placed[r]))}
+    uf = UnionFind(len(index))
+    for a, b in links:
+        uf.union(index[a], index[b])
+
+    def group(r: str, g: int) -> list[int]:
+        return [k for k in sorted(placed[r]) if uf.find(index[(r, k)]) == g]
+
+    sizes: dict[int, int] = defaultdict(int)
+    for k in placed[anchor]:
+        sizes[uf.find(index[(anchor, k)])] += 1
+    gauge = min(sizes, key=lambda g: (-sizes[g], g))
+    k0 = group(anchor, gauge)[0]
+    graph.add(gtsam.PriorFactorPose3(key(anchor, k0), gtsam.Pose3(truth_T[anchor][k0]),
+                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     try:
         est = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
     except RuntimeError as exc:  # (not seen: a bench row is left empty rather than failing)
         log.warning("closure bound: the solve failed: %s", exc)
         return {}
-    # placed: a robot's own chain from keyframe 0, and every piece joined to the anchor
-    index = {n: i for i, n in enumerate((r, k) for r in robots for k in sorted(set(seen[r])
-                                                                                | {0}))}
-    uf = UnionFind(len(index))
-    for a, b in links:
-        uf.union(index[a], index[b])
-    gauge = uf.find(index[(anchor, 0)])
-    return {r: ({k: est.atPose3(key(r, k)).matrix() for k in sorted(set(seen[r]) | {0})
-                 if uf.find(index[(r, k)]) in (gauge, uf.find(index[(r, 0)]))}
-                if edges[r] else None, closures[r]) for r in robots}
+    out: dict[str, tuple[dict[int, np.ndarray] | None, int]] = {}
+    for r in robots:
+        ks = group(r, gauge) or group(r, uf.find(index[(r, 0)]))
+        out[r] = ({k: est.atPose3(key(r, k)).matrix() for k in ks} if len(ks) > 1 else None,
+                  closures[r])
+    return out
 
 
 def _error_sigma(factors: list[dict[str, Any]]) -> np.ndarray | None:
