@@ -131,3 +131,15 @@ def test_bad_plans_are_input_errors(change: dict) -> None:
         setattr(plan, k, v)
     with pytest.raises(InputError):
         run_cost_bench(make_service, build, plan, echo=lambda _m: None)
+
+
+def test_the_cli_writes_the_cost_figure(tmp_path: Path) -> None:
+    """`bench cost --quick --figure`: the cost figure (and nothing of another bench's)."""
+    from typer.testing import CliRunner
+
+    from mergesvc.cli import app
+
+    fig = tmp_path / "cost.png"
+    r = CliRunner().invoke(app, ["bench", "cost", "--quick", "--figure", str(fig)])
+    assert r.exit_code == 0, r.output
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -447,10 +447,6 @@ def bench_cost(
     if out is not None:
         _write_report(report, out, tree)
     if figure is not None:
-        from mergesvc.bench.merge import plot_merge
-
-        typer.echo(f"wrote {plot_merge(report, figure)}")
-    if figure is not None:
         typer.echo(f"wrote {plot_cost(report, figure)}")
 
 
