@@ -114,3 +114,7 @@ def test_scale_reports_cost_per_submap_by_fleet_size(tmp_path: Path) -> None:
         assert run["factors_accepted"] > 0 and math.isfinite(run["service_ms_median"])
     bad = CliRunner().invoke(app, ["bench", "merge", "--scale", "3,x"])
     assert bad.exit_code == 2
+    both = CliRunner().invoke(app, ["bench", "merge", "--scale", "3", "--figure",
+                                    str(tmp_path / "f.png")])
+    assert both.exit_code == 2 and "--figure" in both.output
+    assert not (tmp_path / "f.png").exists()

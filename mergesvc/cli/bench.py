@@ -259,6 +259,9 @@ def bench_merge(
     if data is not None and not data.is_dir():
         raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
     if scale is not None:
+        if figure is not None:
+            raise typer.BadParameter("the figure is the merge bench's: leave out --scale",
+                                     param_hint="--figure")
         try:
             sizes = [int(x) for x in scale.split(",")]
         except ValueError:

@@ -171,10 +171,10 @@ def replay_world(
             err_m = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
             err_deg = rotation_error_deg(T_est, T_true)
             ok_T = err_m <= tolerance.metres and err_deg <= tolerance.degrees
-            nees = _nees(T_est, T_true, np.asarray(f.covariance, dtype=np.float64))
             # the error as a right perturbation of the truth: T_est = T_true Exp(e)
-            tangent = gtsam.Pose3.Logmap(gtsam.Pose3(T_true).between(gtsam.Pose3(T_est))
-                                         ).tolist()
+            e = gtsam.Pose3.Logmap(gtsam.Pose3(T_true).between(gtsam.Pose3(T_est)))
+            nees = _nees(e, np.asarray(f.covariance, dtype=np.float64))
+            tangent = e.tolist()
         pairs = [(truth_of(f.robot_a, c.object_a), truth_of(f.robot_b, c.object_b))
                  for c in f.correspondences]
         right = sum(a is not None and a == b for a, b in pairs)
@@ -217,9 +217,8 @@ def replay_world(
                                "final_rot_bound_factor_accuracy_deg": float("nan"),
                                "keyframes_bound": 0,
                                "closures_bound": bound.get(r, (None, 0))[1]}
-        with contextlib.suppress(MergeError):
-            row["ate_odometry_m"] = ate_rmse(odo, truth_T[r][keys_odo])
-            row["final_rot_err_odometry_deg"] = final_pose_error(odo, truth_T[r][keys_odo])[1]
+        row["ate_odometry_m"], row["final_rot_err_odometry_deg"] = _scores(
+            odo, truth_T[r][keys_odo])
         if keys_m:
             merged = np.stack([np.asarray(raw[str(k)], dtype=np.float64) for k in keys_m])
             with contextlib.suppress(MergeError):
@@ -228,8 +227,9 @@ def replay_world(
                 row["final_pos_err_m"], row["final_rot_err_deg"] = m, deg
         if (b := bound.get(r, (None, 0))[0]) is not None:
             row["keyframes_bound"] = len(b)
-            row["ate_bound_m"], row["final_rot_bound_deg"] = _scores(b, truth_T[r])
-        acc = [_scores(b, truth_T[r]) for d in draws if (b := d.get(r, (None, 0))[0]) is not None]
+            row["ate_bound_m"], row["final_rot_bound_deg"] = _scores_of(b, truth_T[r])
+        acc = [_scores_of(b, truth_T[r]) for d in draws
+               if (b := d.get(r, (None, 0))[0]) is not None]
         if acc:
             row["ate_bound_factor_accuracy_m"], row["final_rot_bound_factor_accuracy_deg"] = (
                 float(x) for x in np.median(acc, axis=0))
@@ -436,22 +436,25 @@ def _error_sigma(factors: list[dict[str, Any]]) -> np.ndarray | None:
     return np.maximum(MAD_TO_SIGMA * np.median(np.abs(e), axis=0), SIGMA_FLOOR)
 
 
-def _scores(poses: dict[int, np.ndarray], truth: np.ndarray) -> tuple[float, float]:
-    """(ATE m, final rotation error deg) of {keyframe: pose} against the truth; nan when the
-    keyframes do not fix an alignment."""
-    keys = sorted(poses)
-    est = np.stack([poses[k] for k in keys])
+def _scores(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """(ATE m, final rotation error deg) of (n, 4, 4) poses against the truth's, associated by
+    index; nan when they do not fix an alignment."""
     try:
-        return ate_rmse(est, truth[keys]), final_pose_error(est, truth[keys])[1]
+        return ate_rmse(est, ref), final_pose_error(est, ref)[1]
     except MergeError:
         return float("nan"), float("nan")
 
 
-def _nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> float:
-    """The factor's error under its own covariance: e' inv(cov) e with e = Log(inv(T_est)
-    T_true) in GTSAM's Pose3 tangent order (rotation, translation); chi2 with 6 degrees of
-    freedom (mean 6) when the covariance is honest."""
-    e = gtsam.Pose3.Logmap(gtsam.Pose3(T_est).between(gtsam.Pose3(T_true)))
+def _scores_of(poses: dict[int, np.ndarray], truth: np.ndarray) -> tuple[float, float]:
+    """`_scores` of {keyframe: pose} against the truth's poses of those keyframes."""
+    keys = sorted(poses)
+    return _scores(np.stack([poses[k] for k in keys]), truth[keys])
+
+
+def _nees(e: np.ndarray, cov: np.ndarray) -> float:
+    """A factor's error under its own covariance: e' inv(cov) e with e = Log(inv(T_true) T_est)
+    in GTSAM's Pose3 tangent order (rotation, translation); chi2 with 6 degrees of freedom
+    (mean 6) when the covariance is honest."""
     try:
         return float(e @ np.linalg.solve(cov, e))
     except np.linalg.LinAlgError:
