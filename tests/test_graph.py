@@ -1217,8 +1217,11 @@ def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
     sizes.clear()
     whole.settle()
     assert sizes == [len(whole.nodes)]
+    for bad in (0, -3, 1.5, True, "2"):
+        with pytest.raises(InputError, match="step"):
+            loaded.settle(step=bad)  # type: ignore[arg-type]
     with pytest.raises(InputError, match="step"):
-        loaded.settle(step=0)
+        whole.settle(step=1.5)  # type: ignore[arg-type]  (without a bound too)
 
 
 def late_session(cap: int) -> tuple[PoseGraph, dict[str, gtsam.Pose3]]:

@@ -142,10 +142,11 @@ class GraphConfig(BaseModel):
     )
     max_live_nodes: int = Field(
         0, ge=0,
-        description="bound the solve (rule 6 of core/graph.py): when the anchor's component "
-        "holds more unfrozen nodes than this after a solve, the oldest (first added) are "
-        "frozen at their solved poses; later solves hold them fixed and solve only the other "
-        "nodes and the factors that touch them; 0: never freeze (the whole graph every time)",
+        description="bound the solve (rule 6 of core/graph.py): a node placed beyond doubt "
+        "freezes at its solved pose once this many nodes joined the anchor's component after "
+        "it; later solves hold it fixed and solve only the other nodes and the factors that "
+        "touch them; 0: never freeze (the whole graph every time; set on a graph with frozen "
+        "nodes, it freezes no more and they stay frozen)",
     )
     fold_drift: float = Field(
         0.5, gt=0,
@@ -361,8 +362,8 @@ class _Factor:
     factor_id: str
     frame_a: str
     frame_b: str
-    T_a_b: gtsam.Pose3  # None once sealed (rule 6): never solved again
-    covariance_66: np.ndarray
+    T_a_b: gtsam.Pose3 | None  # None once sealed (rule 6): never solved again
+    covariance_66: np.ndarray | None
     known_inlier: bool
 
 
@@ -449,7 +450,6 @@ class PoseGraph:
         self._sealed: dict[str, float] = {}
         # live node -> how many nodes had joined the anchor's component once it had; how many now
         self._joined: dict[str, int] = {}
-        self._joined_total = 0
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -771,8 +771,9 @@ class PoseGraph:
                 del at[node]
         self._fused.pop(factor_id, None)
         self._sealed.pop(factor_id, None)
-        back = [self._unfold(d) for d in self._deps.get(factor_id, ())]
-        for d in self._deps.pop(factor_id, []):
+        deps = self._deps.pop(factor_id, [])
+        back = [self._unfold(d) for d in deps]
+        for d in deps:
             del self._folded[d]
         if f.known_inlier:  # folded factors may have been carried along it: judged again
             back += self._take_folded(list(self._folded))
@@ -817,7 +818,11 @@ class PoseGraph:
         key = (self._revision, anchor, self.config, marginals)
         if self._solved is not None and self._solved[0] == key:
             return self._solved[1]
-        sol = self._solve(anchor, marginals)
+        return self._remember(key, self._solve(anchor, marginals))
+
+    def _remember(self, key: tuple[Any, ...] | None, sol: GraphSolution) -> GraphSolution:
+        """`sol` is the last solution (the next solve starts from it, warm); returned again for
+        `key` (None: for no key, a step of `settle`)."""
         self._solved = (key, sol)
         self._cold_next = False
         return sol
@@ -832,14 +837,12 @@ class PoseGraph:
         anchor = self._anchor_of(None)
         cap = self.config.max_live_nodes
         step = step if step is not None else max(1, cap // 2)
-        if step <= 0:
-            raise InputError(f"settle: step must be positive, not {step}")
+        if not isinstance(step, int) or isinstance(step, bool) or step <= 0:
+            raise InputError(f"settle: step must be a positive whole number, not {step!r}")
         if cap > 0:  # (every prefix holds the anchor)
             start = max(len(self._frozen) + step, self._frames[anchor] + 1)
             for limit in range(start, len(self._frames), step):
-                sol = self._solve(anchor, False, limit=limit)
-                self._solved = (None, sol)  # the next solve starts from it (warm)
-                self._cold_next = False
+                self._remember(None, self._solve(anchor, False, limit=limit))
         return self.optimize(marginals=False)
 
     def _anchor_of(self, anchor: str | None) -> str:
@@ -1018,10 +1021,11 @@ class PoseGraph:
         and are judged again)."""
         cap = self.config.max_live_nodes
         new = [n for n in live if n not in self._joined]
-        self._joined_total += len(new)
+        # nodes ever joined: live ones (in _joined) and frozen ones (they left _joined)
+        total = len(self._joined) + len(self._frozen) + len(new)
         for n in new:
-            self._joined[n] = self._joined_total  # (those that join in one solve: alike)
-        frozen = [n for n in placed if self._joined_total - self._joined[n] >= cap]
+            self._joined[n] = total  # (those that join in one solve: alike)
+        frozen = [n for n in placed if total - self._joined[n] >= cap]
         for n in frozen:
             self._frozen[n] = poses[n]
             del self._joined[n]  # (only live nodes need it)

@@ -354,10 +354,6 @@ class SessionState:
         edge = odometry_edge(sub)
         if edge is None:
             return None
-        if self._last_cov is None or not np.array_equal(edge.covariance, self._last_cov):
-            self._last_cov = edge.covariance  # (read-only: odometry_edge)
-        edge = OdometryEdge(KeyframeId(self.frame, edge.from_.k), KeyframeId(self.frame, edge.to.k),
-                            edge.T_from_to, self._last_cov)  # this session's names, held once
         pair = (edge.from_.k, edge.to.k)
         old = self.edges.get(pair)
         if old is not None:
@@ -365,6 +361,10 @@ class SessionState:
                 log.warning("%s: odometry %d -> %d sent again with another value: kept the "
                             "first", self.name, *pair)
             return None
+        if self._last_cov is None or not np.array_equal(edge.covariance, self._last_cov):
+            self._last_cov = edge.covariance  # (read-only: odometry_edge)
+        edge = OdometryEdge(KeyframeId(self.frame, edge.from_.k), KeyframeId(self.frame, edge.to.k),
+                            edge.T_from_to, self._last_cov)  # this session's names, held once
         self.edges[pair] = edge
         self.keyframes.add(edge.from_.k)
         self._adjacent[pair[0]].append(pair[1])
