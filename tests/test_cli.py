@@ -216,8 +216,10 @@ def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
     assert (tmp_path / "merged_map.png").read_bytes()[:4] == b"\x89PNG"
     # each robot's keyframe trajectory against the truth: odometry alone for every robot,
     # merged (the service's keyframe poses) for the anchor and every robot aligned with it
-    traj = summary["trajectory"]
+    traj = summary["trajectory"]["robots"]
     assert set(traj) == {"auv1", "auv2", "auv3"}
+    assert math.isfinite(summary["trajectory"]["fleet_ate_merged_m"])
+    assert sum(line.strip().startswith("fleet ATE") for line in r.stdout.splitlines()) == 1
     anchor_robot = summary["anchor"].split("/")[0]
     aligned = {rb for rb, a in summary["alignment"].items() if a["after_m"] is not None}
     for robot, t in traj.items():
@@ -231,6 +233,11 @@ def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
         if t["ate_merged_m"] is not None:
             assert (tmp_path / "trajectories" / f"{robot}_merged.tum").is_file()
             assert 0.0 <= t["final_rot_err_deg"] <= 180.0
+            # merged and odometry on the same keyframes, their ratio said in the output
+            assert t["merged_over_odometry"] == t["ate_merged_m"] / t["ate_odometry_m"]
+            worse = t["merged_over_odometry"] > 1.0
+            line = next(x for x in r.stdout.splitlines() if x.strip().startswith(f"{robot}:"))
+            assert ("WORSE than its own odometry" in line) == worse, line
     assert sum("keyframe ATE" in line for line in r.stdout.splitlines()) == len(traj)
     # the stopped service's store exported (mergesvc export): the g2o graph loads in gtsam with
     # every node the export names, and a merged TUM file for every robot aligned with the anchor

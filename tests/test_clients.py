@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from test_keyframes import interleaved, mission, run_service
 
-from mergesvc.core.graph import pose3_from_model
 from mergesvc.core.model import Factor, ObjectMap
+from mergesvc.core.poses import pose3_from_model
 from mergesvc.fleet.export import export_store
 
 CLIENTS = Path(__file__).resolve().parents[1] / "clients"

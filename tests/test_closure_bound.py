@@ -1,4 +1,4 @@
-"""`closure_bound` (fleet/replay.py): odometry chains plus exact closures between keyframes of
+"""`closure_bound` (fleet/bound.py): odometry chains plus exact closures between keyframes of
 two robots that share true objects, the best any pose-level merge of those submaps can do.
 
 Checked against references: with no closure it must give back each robot's own odometry (the
@@ -13,11 +13,13 @@ import logging
 import numpy as np
 import pytest
 
-from mergesvc.core.graph import transform_from_pose3
 from mergesvc.core.model import ObjectNode, Odometry, Submap
+from mergesvc.core.poses import transform_from_pose3
 from mergesvc.core.trajectory import ate_rmse, rotation_error_deg
 from mergesvc.fleet.agent import odometry_covariance
-from mergesvc.fleet.replay import _error_sigma, closure_bound, replay_world
+from mergesvc.fleet.bound import closure_bound
+from mergesvc.fleet.bound import error_sigma as _error_sigma
+from mergesvc.fleet.replay import replay_world
 
 
 def _pose(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:

@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 from mergesvc.cli import app
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId
-from mergesvc.core.graph import pose3_from_model
+from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, StoreError
 from mergesvc.fleet.export import ExportResult, export_store
 from mergesvc.fleet.service import MergeService, ServiceConfig

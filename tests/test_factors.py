@@ -20,7 +20,6 @@ from mergesvc.core.factors import (
     yields_factor,
 )
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name, keyframe_name, split_frame
-from mergesvc.core.graph import pose3_from_model, transform_from_pose3
 from mergesvc.core.model import (
     Correspondence,
     Factor,
@@ -33,6 +32,7 @@ from mergesvc.core.model import (
     Submap,
     Transform,
 )
+from mergesvc.core.poses import pose3_from_model, transform_from_pose3
 from mergesvc.errors import InputError, one_line
 
 DRIFT = (0.05, 0.5)

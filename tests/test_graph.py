@@ -12,20 +12,11 @@ import gtsam
 import numpy as np
 import pytest
 
+from mergesvc.core.config import GraphConfig
+from mergesvc.core.connectivity import bridges as _bridges
 from mergesvc.core.frames import frame_name, split_frame
 from mergesvc.core.fusion import ObjectLink, fuse_objects, links_from_factor
-from mergesvc.core.graph import (
-    GraphConfig,
-    PoseGraph,
-    _bridges,
-    _compose,
-    _fuse,
-    _inverse,
-    _pack,
-    _unpack,
-    pose3_from_transform,
-    pose_error,
-)
+from mergesvc.core.graph import PoseGraph, _fuse, _pack, _unpack
 from mergesvc.core.model import (
     Correspondence,
     Factor,
@@ -35,6 +26,9 @@ from mergesvc.core.model import (
     ObjectNode,
     Transform,
 )
+from mergesvc.core.poses import compose_with_covariance as _compose
+from mergesvc.core.poses import inverse_with_covariance as _inverse
+from mergesvc.core.poses import pose3_from_transform, pose_error
 from mergesvc.errors import InputError
 
 A, B, C, D, E, F = (f"{r}/s0" for r in "ABCDEF")

@@ -21,8 +21,8 @@ import pytest
 
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId, KeyframeId
-from mergesvc.core.graph import pose3_from_model, transform_from_pose3
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap
+from mergesvc.core.poses import pose3_from_model, transform_from_pose3
 from mergesvc.fleet.service import MergeService, ServiceConfig, SessionState
 from mergesvc.sim import fleet_world
 

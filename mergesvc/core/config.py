@@ -1,5 +1,5 @@
 """Matching settings: one pydantic model with a section per stage, and `match_config`, which
-builds one from nested override dicts.
+builds one from nested override dicts; and the pose graph's settings (`GraphConfig`).
 
 Pure: nothing here reads a file or the environment. The settings file and the `MERGESVC_*`
 environment are read by `mergesvc.settings` (the whole settings tree, of which `MatchConfig` is
@@ -18,6 +18,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from mergesvc.core.calibration import CalibrationConfig
 from mergesvc.errors import ConfigError
 
 
@@ -186,3 +187,58 @@ def match_config(
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
         raise ConfigError(f"invalid config: {loc}: {err['msg']}") from exc
+
+
+class GraphConfig(BaseModel):
+    """Settings of the global pose graph (core/graph.py)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    inlier_probability: float = Field(
+        0.999,
+        gt=0,
+        lt=1,
+        description="TLS threshold: chi-square quantile (6 dof) a correct factor's whitened "
+        "residual stays below (synthetic 8-frame graphs: 0.2 % false rejections, 0.9 % at 0.99)",
+    )
+    outlier_weight: float = Field(0.5, gt=0, lt=1, description="GNC weight below which to flag")
+    anchor_sigma: float = Field(
+        1e-6, gt=0, description="prior sigma on the anchor frame (rad and m): holds the gauge"
+    )
+    least_squares_gate: bool = Field(
+        True, description="solve least squares first and skip GNC when every factor to judge "
+        "is within the TLS threshold there (the solution GNC would keep, at a fraction of its "
+        "cost); false: GNC on every solve with factors to judge"
+    )
+    warm_start: bool = Field(
+        True, description="start each solve from the last solution's poses (new nodes chained "
+        "from their neighbours); false: from the spanning-tree chain every time"
+    )
+    fold_hops: int = Field(
+        0, ge=0, le=1000,
+        description="fold a new factor into a factor of the graph that it agrees with, when "
+        "both pairs of ends are at most this many known-inlier (odometry) factors apart (rule "
+        "5 of core/graph.py: bounds a long mission's graph); 0: never fold",
+    )
+    max_live_nodes: int = Field(
+        0, ge=0,
+        description="bound the solve (rule 6 of core/graph.py): a node placed beyond doubt "
+        "freezes at its solved pose once this many nodes joined the anchor's component after "
+        "it; later solves hold it fixed and solve only the other nodes and the factors that "
+        "touch them; 0: never freeze (the whole graph every time; set on a graph with frozen "
+        "nodes, it freezes no more and they stay frozen)",
+    )
+    calibration: CalibrationConfig = Field(
+        CalibrationConfig(enabled=False),
+        description="scale each factor group's covariances per axis to what the residuals "
+        "show (core/calibration.py: variance-component estimation after each solve); off by "
+        "default in PoseGraph",
+    )
+    fold_drift: float = Field(
+        0.5, gt=0,
+        description="fold only where the odometry between the two factors' ends is known this "
+        "well: its covariance, whitened by the factor's own, at most this (largest eigenvalue); "
+        "where the odometry drifts more, the factor corrects it and is solved",
+    )
+
+

@@ -30,8 +30,9 @@ import gtsam
 import numpy as np
 
 from mergesvc.core.frames import FrameId, KeyframeId
-from mergesvc.core.graph import as_pose3, pose3_from_model, transform_from_pose3
 from mergesvc.core.model import Correspondence, Factor, FactorStatus, MatchResult, Submap
+from mergesvc.core.poses import as_pose3, pose3_from_model, transform_from_pose3
+from mergesvc.core.verify import align_about_vertical, align_weighted, pose_covariance, skew
 from mergesvc.errors import InputError
 
 if TYPE_CHECKING:
@@ -78,6 +79,7 @@ def factor_from_match(
     keyframe_a: int | None = None,
     keyframe_b: int | None = None,
     T_a_keyframe_a: gtsam.Pose3 | np.ndarray | None = None,
+    measured: tuple[gtsam.Pose3, np.ndarray] | None = None,
 ) -> Factor:
     """The factor T_a_b between frame_a (the map matched against) and frame_b (the submap's),
     its covariance the result's inflated by `drift_sigma`, its correspondences the matched
@@ -89,6 +91,9 @@ def factor_from_match(
     frame_a's session frame used to place the map (default: identity); the covariance is the
     result's (a constant left factor leaves a right perturbation as it is) inflated. Without
     keyframes: the frame-level factor, T_a_b = T_map_submap.
+
+    measured: T_{keyframe_a, keyframe_b} and its covariance fitted otherwise (`local_fit`),
+    used instead of the result's transform and covariance (still inflated by drift_sigma).
 
     A result that does not `yields_factor` (rejected, or without transform or covariance) is
     refused with `InputError`, and so are one keyframe without the other, or T_a_keyframe_a
@@ -105,7 +110,11 @@ def factor_from_match(
         raise InputError("keyframe_a and keyframe_b go together")
     if keyframe_a is None and T_a_keyframe_a is not None:
         raise InputError("T_a_keyframe_a needs keyframe_a and keyframe_b")
-    if T_a_keyframe_a is not None:
+    if measured is not None:
+        if keyframe_a is None or T_a_keyframe_a is not None:
+            raise InputError("a measured factor ties two keyframes, and needs no T_a_keyframe_a")
+        transform, covariance = transform_from_pose3(measured[0]), measured[1]
+    elif T_a_keyframe_a is not None:
         T_ka = as_pose3(T_a_keyframe_a, "T_a_keyframe_a")
         transform = transform_from_pose3(T_ka.inverse().compose(pose3_from_model(transform)))
     cov = inflate_covariance(covariance, drift_sigma)
@@ -119,6 +128,92 @@ def factor_from_match(
         status=status,
         keyframe_a=keyframe_a, keyframe_b=keyframe_b,
     )
+
+
+def local_fit(
+    sub_xyz: np.ndarray,
+    map_body_xyz: np.ndarray,
+    map_keyframes: Sequence[int],
+    placements: Mapping[int, tuple[gtsam.Pose3, np.ndarray]],
+    *,
+    up_sub: np.ndarray | None = None,
+    up_map: np.ndarray | None = None,
+    vertical_sigma_rad: float = np.radians(2.0),
+    sigma_floor_m: float = 1e-3,
+    range_weighted: bool = True,
+) -> tuple[gtsam.Pose3, np.ndarray] | None:
+    """T_{Ka,Kb} and its covariance from matched objects, the map's placed around keyframe Ka
+    by the odometry alone (not by any merged solution, so that errors of the graph do not
+    become errors of its factors).
+
+    sub_xyz: (k, 3) submap objects in Kb's frame; map_body_xyz: (k, 3) the matched map
+    objects, each in the frame of its own keyframe map_keyframes[i]; placements: keyframe ->
+    (T_{Ka,k}, its 6x6 covariance: the odometry composed from Ka). With both verticals (up_sub
+    in Kb's frame, up_map in Ka's) the fit is about gravity (4-DoF: yaw and translation, a tilt
+    prior of vertical_sigma_rad), else 6-DoF. The covariance is the fit's (sigma from the
+    residuals, at least sigma_floor_m) plus the placements' carried through the fit to first
+    order: objects placed by one keyframe move together (docs/uncertainty.md). None when the
+    pairs do not fix a transform (too few, on a line, or a keyframe not placed).
+
+    range_weighted: an object's noise grows with its range from the keyframe that placed it
+    (sonar and stereo both): sigma_i = c (1 + rho_i / median rho), rho_i the larger of its two
+    ranges, c from the weighted residuals; the fit and its covariance weigh each pair so."""
+    k = len(sub_xyz)
+    if k == 0 or any(g not in placements for g in map_keyframes):
+        return None
+    q = np.array([placements[g][0].transformFrom(np.asarray(m, dtype=np.float64))
+                  for m, g in zip(map_body_xyz, map_keyframes, strict=True)])
+    p = np.asarray(sub_xyz, dtype=np.float64)
+    u = np.ones(k)  # each pair's noise, relative
+    if range_weighted:
+        rho = np.maximum(np.linalg.norm(p, axis=1),
+                         np.linalg.norm(np.asarray(map_body_xyz, dtype=np.float64), axis=1))
+        u = 1.0 + rho / max(float(np.median(rho)), 1e-9)
+    w = 1.0 / u**2
+    prior = None
+    if up_sub is not None and up_map is not None:
+        u_s = np.asarray(up_sub, dtype=np.float64) / np.linalg.norm(up_sub)
+        u_m = np.asarray(up_map, dtype=np.float64) / np.linalg.norm(up_map)
+        centred = p - p.mean(axis=0)
+        if k < 2 or np.linalg.norm(centred - np.outer(centred @ u_s, u_s), axis=1).max() < 1e-6:
+            return None
+        T = align_about_vertical(p, q, u_s, u_m, weights=w)
+        dof = 3 * k - 4
+        prior = np.zeros((6, 6))
+        prior[:3, :3] = (np.eye(3) - np.outer(u_s, u_s)) / vertical_sigma_rad**2
+    else:
+        if k < 3:
+            return None
+        sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+        if sv[1] < 1e-3 * sv[0]:
+            return None
+        T = align_weighted(p, q, w)
+        dof = 3 * k - 6
+    if T is None:
+        return None
+    R = T.rotation().matrix()
+    rss = float(np.sum(w * np.sum((p @ R.T + T.translation() - q) ** 2, axis=1)))
+    c = max(np.sqrt(rss / dof) if dof > 0 else 0.0, sigma_floor_m)
+    sigma = c * u
+    try:
+        cov = pose_covariance(T, p, sigma, prior_info=prior)
+    except np.linalg.LinAlgError:
+        return None
+    # the placements: q_i = P_g m_i moves by R_g (-[m_i]x eta_r + eta_t) for eta ~ N(0, S_g),
+    # the fit by cov * sum_i J_i^T dq_i / sigma^2 (J_i = [-R [p_i]x, R], verify.pose_covariance)
+    M = np.zeros((6, 6))
+    for g in dict.fromkeys(map_keyframes):
+        P, S = placements[g]
+        Rg = P.rotation().matrix()
+        B = np.zeros((6, 6))
+        for i in (i for i, kf in enumerate(map_keyframes) if kf == g):
+            J = np.hstack([-R @ skew(p[i]), R])
+            G = Rg @ np.hstack([-skew(np.asarray(map_body_xyz[i], dtype=np.float64)),
+                                np.eye(3)])
+            B += J.T @ G / sigma[i] ** 2
+        M += B @ S @ B.T
+    total = cov + cov @ M @ cov
+    return T, 0.5 * (total + total.T)
 
 
 def anchoring_keyframe(
@@ -190,6 +285,7 @@ __all__ = [
     "factor_from_match",
     "factor_nodes",
     "inflate_covariance",
+    "local_fit",
     "match_factor_id",
     "odometry_edge",
     "yields_factor",

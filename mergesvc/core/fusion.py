@@ -16,9 +16,10 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
+from mergesvc.core.connectivity import UnionFind
 from mergesvc.core.frames import frame_name
-from mergesvc.core.graph import UnionFind, as_pose3
 from mergesvc.core.model import MAX_ID_LENGTH, Factor, ObjectArrays, ObjectMap, ObjectNode
+from mergesvc.core.poses import as_pose3
 from mergesvc.core.tracking import fuse_gaussians
 from mergesvc.errors import InputError
 

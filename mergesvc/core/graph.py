@@ -93,89 +93,29 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import eigh
 from scipy.stats import chi2
 
+from mergesvc.core.calibration import scale_covariance, updated_scale, variance_components
+from mergesvc.core.config import GraphConfig
+from mergesvc.core.connectivity import UnionFind, two_edge_connected
+from mergesvc.core.connectivity import bridges as find_bridges
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name
-from mergesvc.core.model import Factor, FactorStatus, Transform
+from mergesvc.core.model import Factor, FactorStatus
+from mergesvc.core.poses import as_pose3, pose3_from_model
+from mergesvc.core.poses import compose_with_covariance as _compose
+from mergesvc.core.poses import inverse_with_covariance as _inverse
 from mergesvc.errors import InputError, SolverError, one_line
 
 log = logging.getLogger(__name__)
 
-# Tolerance of the rotation check on (4, 4) inputs: |R^T R - I| and |det R - 1|.
-_ROTATION_TOL = 1e-6
 # Symmetry tolerance of covariance inputs, relative to the largest entry.
 _SYM_RTOL = 1e-9
-
-
-class GraphConfig(BaseModel):
-    """Settings of the global pose graph (a candidate section for mergesvc.core.config)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    inlier_probability: float = Field(
-        0.999,
-        gt=0,
-        lt=1,
-        description="TLS threshold: chi-square quantile (6 dof) a correct factor's whitened "
-        "residual stays below (synthetic 8-frame graphs: 0.2 % false rejections, 0.9 % at 0.99)",
-    )
-    outlier_weight: float = Field(0.5, gt=0, lt=1, description="GNC weight below which to flag")
-    anchor_sigma: float = Field(
-        1e-6, gt=0, description="prior sigma on the anchor frame (rad and m): holds the gauge"
-    )
-    least_squares_gate: bool = Field(
-        True, description="solve least squares first and skip GNC when every factor to judge "
-        "is within the TLS threshold there (the solution GNC would keep, at a fraction of its "
-        "cost); false: GNC on every solve with factors to judge"
-    )
-    warm_start: bool = Field(
-        True, description="start each solve from the last solution's poses (new nodes chained "
-        "from their neighbours); false: from the spanning-tree chain every time"
-    )
-    fold_hops: int = Field(
-        0, ge=0, le=1000,
-        description="fold a new factor into a factor of the graph that it agrees with, when "
-        "both pairs of ends are at most this many known-inlier (odometry) factors apart (rule "
-        "5 of core/graph.py: bounds a long mission's graph); 0: never fold",
-    )
-    max_live_nodes: int = Field(
-        0, ge=0,
-        description="bound the solve (rule 6 of core/graph.py): a node placed beyond doubt "
-        "freezes at its solved pose once this many nodes joined the anchor's component after "
-        "it; later solves hold it fixed and solve only the other nodes and the factors that "
-        "touch them; 0: never freeze (the whole graph every time; set on a graph with frozen "
-        "nodes, it freezes no more and they stay frozen)",
-    )
-    fold_drift: float = Field(
-        0.5, gt=0,
-        description="fold only where the odometry between the two factors' ends is known this "
-        "well: its covariance, whitened by the factor's own, at most this (largest eigenvalue); "
-        "where the odometry drifts more, the factor corrects it and is solved",
-    )
 
 
 # --------------------------------------------------------------------------------------------
 # Input checks
 # --------------------------------------------------------------------------------------------
-
-
-def as_pose3(T: gtsam.Pose3 | np.ndarray | Sequence[Sequence[float]], name: str) -> gtsam.Pose3:
-    """A gtsam.Pose3 from a Pose3 or a (4, 4) homogeneous matrix with a proper rotation."""
-    if isinstance(T, gtsam.Pose3):
-        return T
-    M = np.asarray(T, dtype=np.float64)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise InputError(f"{name} must be a gtsam.Pose3 or a finite (4, 4) matrix")
-    R = M[:3, :3]
-    if (
-        np.abs(R.T @ R - np.eye(3)).max() > _ROTATION_TOL
-        or abs(np.linalg.det(R) - 1.0) > _ROTATION_TOL
-        or np.abs(M[3] - [0, 0, 0, 1]).max() > 0
-    ):
-        raise InputError(f"{name} is not a rigid transform (rotation not orthonormal, det 1)")
-    return gtsam.Pose3(gtsam.Rot3.ClosestTo(R), M[:3, 3])
 
 
 def _check_covariance(C: Any, name: str) -> np.ndarray:
@@ -199,54 +139,6 @@ def _check_covariance(C: Any, name: str) -> np.ndarray:
         raise InputError(f"{name} must be positive definite") from None
     S.setflags(write=False)
     return S
-
-
-def pose3_from_transform(
-    translation: Sequence[float], quaternion_wxyz: Sequence[float]
-) -> gtsam.Pose3:
-    """gtsam.Pose3 from a translation (3,) and a quaternion (w, x, y, z), normalised here (the
-    wire allows a norm off by 1e-3; Rot3.Quaternion assumes exactly 1)."""
-    q = np.asarray(quaternion_wxyz, dtype=np.float64)
-    norm = float(np.linalg.norm(q))
-    if q.shape != (4,) or not np.isfinite(norm) or norm < 0.5:
-        raise InputError(f"quaternion_wxyz must be 4 finite numbers of norm ~1, got {q}")
-    w, x, y, z = (float(v) for v in q / norm)
-    return gtsam.Pose3(gtsam.Rot3.Quaternion(w, x, y, z), np.asarray(translation, dtype=float))
-
-
-def pose3_from_model(T: Transform) -> gtsam.Pose3:
-    """gtsam.Pose3 of a wire Transform."""
-    return pose3_from_transform(T.translation, T.quaternion_wxyz)
-
-
-def transform_from_pose3(T: gtsam.Pose3 | np.ndarray) -> Transform:
-    """The wire Transform of a gtsam.Pose3 (or a (4, 4) rigid transform)."""
-    P = as_pose3(T, "transform")
-    q = P.rotation().toQuaternion()
-    return Transform(
-        translation=tuple(float(x) for x in P.translation()),
-        quaternion_wxyz=(float(q.w()), float(q.x()), float(q.y()), float(q.z())),
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# Small graph algorithms on multigraphs (parallel factors are separate edges)
-# --------------------------------------------------------------------------------------------
-
-
-def _compose(T_a: gtsam.Pose3, S_a: np.ndarray, T_b: gtsam.Pose3,
-             S_b: np.ndarray) -> tuple[gtsam.Pose3, np.ndarray]:
-    """T_a * T_b with its covariance, both independent, to first order, in GTSAM's tangent
-    convention (right perturbation, rotation then translation): Ad(T_b^-1) S_a Ad(T_b^-1)^T +
-    S_b."""
-    A = np.asarray(T_b.inverse().AdjointMap())
-    return T_a.compose(T_b), A @ S_a @ A.T + S_b
-
-
-def _inverse(T: gtsam.Pose3, S: np.ndarray) -> tuple[gtsam.Pose3, np.ndarray]:
-    """T^-1 with its covariance, to first order (right perturbation): Ad(T) S Ad(T)^T."""
-    A = np.asarray(T.AdjointMap())
-    return T.inverse(), A @ S @ A.T
 
 
 _TRIU = np.triu_indices(6)
@@ -289,69 +181,6 @@ def _fuse(items: Sequence[tuple[gtsam.Pose3, np.ndarray]]) -> tuple[gtsam.Pose3,
     return estimate.atPose3(key), 0.5 * (cov + cov.T)
 
 
-def _bridges(n: int, edges: Sequence[tuple[int, int]]) -> set[int]:
-    """Indices of the bridge edges of an undirected multigraph (Tarjan, iterative)."""
-    adj: list[list[tuple[int, int]]] = [[] for _ in range(n)]
-    for e, (u, v) in enumerate(edges):
-        adj[u].append((v, e))
-        adj[v].append((u, e))
-    disc = [-1] * n
-    low = [0] * n
-    out: set[int] = set()
-    t = 0
-    for root in range(n):
-        if disc[root] >= 0:
-            continue
-        disc[root] = low[root] = t
-        t += 1
-        stack = [(root, -1, iter(adj[root]))]
-        while stack:
-            u, in_edge, it = stack[-1]
-            advanced = False
-            for v, e in it:
-                if e == in_edge:  # the tree edge back to the parent (parallel edges still count)
-                    continue
-                if disc[v] < 0:
-                    disc[v] = low[v] = t
-                    t += 1
-                    stack.append((v, e, iter(adj[v])))
-                    advanced = True
-                    break
-                low[u] = min(low[u], disc[v])
-            if advanced:
-                continue
-            stack.pop()
-            if stack:
-                p = stack[-1][0]
-                low[p] = min(low[p], low[u])
-                if low[u] > disc[p]:
-                    out.add(in_edge)
-    return out
-
-
-class UnionFind:
-    def __init__(self, n: int) -> None:
-        self.parent = list(range(n))
-
-    def find(self, i: int) -> int:
-        root = i
-        while self.parent[root] != root:
-            root = self.parent[root]
-        while self.parent[i] != root:  # path compression
-            self.parent[i], i = root, self.parent[i]
-        return root
-
-    def union(self, i: int, j: int) -> bool:
-        ri, rj = self.find(i), self.find(j)
-        if ri == rj:
-            return False
-        # The smaller index stays the root: groups are named after their first member.
-        if rj < ri:
-            ri, rj = rj, ri
-        self.parent[rj] = ri
-        return True
-
-
 # --------------------------------------------------------------------------------------------
 # Pose graph
 # --------------------------------------------------------------------------------------------
@@ -365,6 +194,7 @@ class _Factor:
     T_a_b: gtsam.Pose3 | None  # None once sealed (rule 6): never solved again
     covariance_66: np.ndarray | None
     known_inlier: bool
+    group: str | None = None  # its noise group (calibration), None: not calibrated
 
 
 @dataclass(frozen=True)
@@ -432,9 +262,9 @@ class PoseGraph:
         self._solved: tuple[tuple[int, str, GraphConfig, bool], GraphSolution] | None = None
         self._cold_next = False  # a factor was removed: the next solve starts cold
         # rule 5: folded factor -> (it, its representative); representative -> its folded
-        # (node a, node b, representative, measurement packed: _pack): a long mission holds
+        # (node a, node b, representative, measurement packed: _pack, group): a long mission holds
         # thousands, so each is one small array rather than a Pose3 and a 6x6 matrix
-        self._folded: dict[str, tuple[str, str, str, np.ndarray]] = {}
+        self._folded: dict[str, tuple[str, str, str, np.ndarray, str | None]] = {}
         self._deps: dict[str, list[str]] = {}
         # representative -> its measurement fused with its folded ones'
         self._fused: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
@@ -450,6 +280,13 @@ class PoseGraph:
         self._sealed: dict[str, float] = {}
         # live node -> how many nodes had joined the anchor's component once it had; how many now
         self._joined: dict[str, int] = {}
+        # calibration: noise group -> sigma scale per axis (6,), applied when solving
+        self._scales: dict[str, np.ndarray] = {}
+        self._components: dict[str, Any] = {}  # the last estimate's sums, per group
+        self._recalibrated = False  # the last solve moved a scale: solve again
+        self._solved_scales: dict[str, np.ndarray] = {}
+        # False: solve with the scales as they are (a restart solving what it restored)
+        self.calibrating = True
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -491,7 +328,7 @@ class PoseGraph:
         if f is not None:
             return f.frame_a, f.frame_b, f.known_inlier
         if factor_id in self._folded:
-            a, b, _, _ = self._folded[factor_id]
+            a, b = self._folded[factor_id][:2]
             return a, b, False
         raise InputError(f"unknown factor {factor_id!r}")
 
@@ -553,11 +390,14 @@ class PoseGraph:
         covariance_66: np.ndarray | Sequence[Sequence[float]],
         *,
         known_inlier: bool = False,
+        group: str | None = None,
     ) -> bool:
         """Add the measurement T_a_b (pose of frame b in frame a) with its (6, 6) covariance in
         GTSAM Pose3 tangent order (rotation rad, translation m). True if new; replaying the same
         factor is a no-op, reusing an id for a different factor raises InputError.
-        known_inlier: never judged by GNC (e.g. a factor an operator confirmed)."""
+        known_inlier: never judged by GNC (e.g. a factor an operator confirmed). group: its
+        noise group (e.g. one robot's odometry), whose covariances the calibration scales
+        together (None: never scaled)."""
         if not isinstance(factor_id, str) or not factor_id:
             raise InputError("factor_id must be a non-empty string")
         if frame_a == frame_b:
@@ -581,7 +421,8 @@ class PoseGraph:
         self.add_frame(frame_b)
         # the node names the graph holds already (one string per node, not one per factor)
         self._insert(_Factor(factor_id, self._names[self._frames[frame_a]],
-                             self._names[self._frames[frame_b]], T, C, bool(known_inlier)))
+                             self._names[self._frames[frame_b]], T, C, bool(known_inlier),
+                             group))
         self._revision += 1
         return True
 
@@ -592,7 +433,7 @@ class PoseGraph:
             rep, carried = found
             fused = _fuse([self._measurement(self._factors[rep]), carried])  # before any change
             self._folded[f.factor_id] = (f.frame_a, f.frame_b, rep,
-                                         _pack(f.T_a_b, f.covariance_66))
+                                         _pack(f.T_a_b, f.covariance_66), f.group)
             self._deps.setdefault(rep, []).append(f.factor_id)
             self._fused[rep] = fused
             return
@@ -607,8 +448,8 @@ class PoseGraph:
 
     def _unfold(self, factor_id: str) -> _Factor:
         """A folded factor as it was added."""
-        a, b, _, packed = self._folded[factor_id]
-        return _Factor(factor_id, a, b, *_unpack(packed), False)
+        a, b, _, packed, group = self._folded[factor_id]
+        return _Factor(factor_id, a, b, *_unpack(packed), False, group)
 
     def _measurement(self, g: _Factor) -> tuple[gtsam.Pose3, np.ndarray]:
         """What the solve uses of a solved factor: its own measurement, or fused with those
@@ -729,7 +570,8 @@ class PoseGraph:
         return T, 0.5 * (S + S.T), drift
 
     def add_factor_model(
-        self, factor: Factor, *, known_inlier: bool = False, keyframe_nodes: bool | None = None
+        self, factor: Factor, *, known_inlier: bool = False, keyframe_nodes: bool | None = None,
+        group: str | None = None,
     ) -> bool:
         """Add a wire `Factor` (skipped, returning False, if its status is retracted).
 
@@ -750,7 +592,7 @@ class PoseGraph:
             a, b = frame_name(fa.robot, fa.session), frame_name(fb.robot, fb.session)
         return self.add_factor(
             factor.factor_id, a, b, pose3_from_model(factor.T_a_b), factor.covariance,
-            known_inlier=known_inlier,
+            known_inlier=known_inlier, group=group,
         )
 
     def remove_factor(self, factor_id: str) -> bool:
@@ -855,6 +697,74 @@ class PoseGraph:
         return anchor
 
     def _solve(self, anchor: str, marginals: bool, limit: int | None = None) -> GraphSolution:
+        """One solve; with calibration on, solved again (warm) while a scale moved by more
+        than `calibration.resolve_change`, at most `calibration.resolves` times."""
+        sol = self._solve_once(anchor, marginals, limit)
+        for _ in range(self.config.calibration.resolves if self._recalibrated else 0):
+            self._remember(None, sol)
+            sol = self._solve_once(anchor, marginals, limit)
+            if not self._recalibrated:
+                break
+        return sol
+
+    def set_noise_scale(self, group: str, sigma_scale: Sequence[float] | float) -> None:
+        """Scale a group's covariances per axis (sigma, GTSAM order; one number: every axis)
+        from the next solve on; the calibration goes on from there for the groups it
+        calibrates."""
+        s = np.broadcast_to(np.asarray(sigma_scale, dtype=np.float64), (6,)).copy()
+        if not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise InputError(f"noise scale must be positive, got {s.tolist()}")
+        self._scales[group] = s
+        self._revision += 1
+
+    @property
+    def noise_scales(self) -> dict[str, np.ndarray]:
+        """Each noise group's sigma scale per axis (GTSAM order), as the calibration left it
+        (groups it never estimated are absent: scale 1)."""
+        return {g: s.copy() for g, s in self._scales.items()}
+
+    def scaled_covariance(self, factor_id: str) -> np.ndarray:
+        """A solved factor's covariance as the solve uses it (its group's scale applied;
+        fused with its folded ones, rule 5). InputError if unknown or sealed."""
+        f = self._factors.get(factor_id)
+        if f is None or f.T_a_b is None:
+            raise InputError(f"no solved factor {factor_id!r}")
+        _, C = self._measurement(f)
+        s = self._scales.get(f.group) if f.group is not None else None
+        return C if s is None else scale_covariance(C, s)
+
+    def _calibrate(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                   groups: list[str | None]) -> None:
+        """One variance-component step (core/calibration.py) on the final solve; sets
+        `_recalibrated` when a scale moved enough to solve again."""
+        cal = self.config.calibration
+        self._recalibrated = False
+        if not any(g is not None for g in groups):
+            return
+        try:
+            comps = variance_components(graph, values, groups, cal)
+        except SolverError as exc:
+            log.warning("noise calibration skipped: %s", exc)
+            return
+        for g, comp in comps.items():
+            if g.split(":", 1)[0] not in cal.groups:
+                continue
+            old = self._scales.get(g, np.ones(6))
+            new = updated_scale(old, comp, cal)
+            self._scales[g] = new
+            if np.max(np.abs(np.log(new / old))) > np.log1p(cal.resolve_change):
+                self._recalibrated = True
+        self._components = comps
+
+    @property
+    def solved_noise_scales(self) -> dict[str, np.ndarray]:
+        """The noise scales the last solution was solved with (the calibration may have moved
+        them since): what a restart needs to solve the same graph the same way."""
+        return {g: s.copy() for g, s in self._solved_scales.items()}
+
+    def _solve_once(self, anchor: str, marginals: bool,
+                    limit: int | None = None) -> GraphSolution:
+        self._solved_scales = {g: s.copy() for g, s in self._scales.items()}
         if limit is not None and self._frames[anchor] >= limit:
             raise InputError(f"the first {limit} nodes do not hold the anchor {anchor!r}")
         comps = self.components(limit)
@@ -877,7 +787,7 @@ class PoseGraph:
         cfg = self.config
 
         # Rule 1: bridges (and user-confirmed factors) are known inliers.
-        bridges_all = _bridges(len(comp), edges)
+        bridges_all = find_bridges(len(comp), edges)
         bridges = {i for i, j in enumerate(solved) if j in bridges_all}
         known = {i for i, f in enumerate(facs) if i in bridges or f.known_inlier}
 
@@ -938,7 +848,7 @@ class PoseGraph:
             >= cfg.outlier_weight
             for _ in range(2 if f.factor_id in self._deps else 1)
         ]
-        twice = self._two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
+        twice = two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
         outliers = [
             i for i in flagged
             if twice[group[local[facs[i].frame_a]]] == twice[group[local[facs[i].frame_b]]]
@@ -962,6 +872,10 @@ class PoseGraph:
                 final.add(graph.at(m + i))
         if not (gnc_skipped and not rejected):  # else: `final` is `graph`, solved already
             estimate = _levenberg_marquardt(final, estimate, "pose-graph")
+        self._recalibrated = False
+        if cfg.calibration.enabled and self.calibrating:
+            self._calibrate(final, estimate, [None] * m + [
+                facs[i].group for i in range(len(facs)) if i not in rejected])
 
         def with_folded(fid: str) -> list[str]:  # a factor, then those folded into it
             return [fid, *self._deps.get(fid, ())]
@@ -1039,10 +953,13 @@ class PoseGraph:
                 self._sealed[f.factor_id] = held[f.factor_id][0]
                 if f.factor_id not in self._deps:  # never solved again: its ends are enough
                     self._factors[f.factor_id] = _Factor(f.factor_id, f.frame_a, f.frame_b,
-                                                         None, None, f.known_inlier)
+                                                         None, None, f.known_inlier, f.group)
 
     def _between(self, f: _Factor) -> gtsam.BetweenFactorPose3:
         T, C = self._measurement(f)
+        s = self._scales.get(f.group) if f.group is not None else None
+        if s is not None:
+            C = scale_covariance(C, s)
         noise = gtsam.noiseModel.Gaussian.Covariance(np.array(C), False)
         return gtsam.BetweenFactorPose3(self.key(f.frame_a), self.key(f.frame_b), T, noise)
 
@@ -1109,16 +1026,6 @@ class PoseGraph:
             values.insert(self.key(frame), poses[frame])
         return values
 
-    @staticmethod
-    def _two_edge_connected(n: int, edges: list[tuple[int, int]]) -> list[int]:
-        """Label of each node's 2-edge-connected component (components after removing bridges)."""
-        br = _bridges(n, edges)
-        uf = UnionFind(n)
-        for e, (u, v) in enumerate(edges):
-            if e not in br:
-                uf.union(u, v)
-        return [uf.find(i) for i in range(n)]
-
     def _marginals(
         self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, comp: list[str]
     ) -> tuple[dict[str, np.ndarray], str | None]:
@@ -1144,22 +1051,4 @@ def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Value
         raise SolverError(f"{what} optimisation failed: {exc}") from exc
 
 
-def pose_error(T_est: gtsam.Pose3, T_true: gtsam.Pose3) -> tuple[float, float]:
-    """(rotation error rad, translation error m) between two poses."""
-    d = T_true.between(T_est)
-    return float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))), float(
-        np.linalg.norm(T_est.translation() - T_true.translation())
-    )
-
-
-__all__ = [
-    "GraphConfig",
-    "GraphSolution",
-    "PoseGraph",
-    "UnionFind",
-    "as_pose3",
-    "pose3_from_model",
-    "pose3_from_transform",
-    "pose_error",
-    "transform_from_pose3",
-]
+__all__ = ["GraphSolution", "PoseGraph"]

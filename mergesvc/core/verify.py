@@ -49,12 +49,28 @@ def align(sub_xyz: np.ndarray, map_xyz: np.ndarray) -> gtsam.Pose3 | None:
     )
 
 
+def align_weighted(sub_xyz: np.ndarray, map_xyz: np.ndarray, weights: np.ndarray
+                   ) -> gtsam.Pose3 | None:
+    """T_map_submap minimising sum_k w_k |T sub_k - map_k|^2 (weighted Kabsch). (k, 3) each,
+    w (k,) positive; None below 3 points."""
+    if len(sub_xyz) < 3:
+        return None
+    w = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+    mp, mq = w @ sub_xyz, w @ map_xyz
+    H = ((sub_xyz - mp) * w[:, None]).T @ (map_xyz - mq)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return gtsam.Pose3(gtsam.Rot3(R), mq - R @ mp)
+
+
 def transform_points(T: gtsam.Pose3, xyz: np.ndarray) -> np.ndarray:
     """(k, 3) -> (k, 3): T * p for every row."""
     return xyz @ T.rotation().matrix().T + T.translation()
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x (3, 3): skew(v) @ w = cross(v, w)."""
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
@@ -73,7 +89,7 @@ def pose_covariance(
     sig = np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(sub_xyz),))
     info = np.zeros((6, 6)) if prior_info is None else np.array(prior_info, dtype=float)
     for p, s in zip(sub_xyz, sig):
-        J = np.hstack([-R @ _skew(p), R])
+        J = np.hstack([-R @ skew(p), R])
         info += J.T @ J / s**2
     return np.linalg.inv(info)
 
@@ -110,26 +126,31 @@ def consistent_subset(
 
 
 def align_about_vertical(
-    sub_xyz: np.ndarray, map_xyz: np.ndarray, up_sub: np.ndarray, up_map: np.ndarray
+    sub_xyz: np.ndarray, map_xyz: np.ndarray, up_sub: np.ndarray, up_map: np.ndarray,
+    weights: np.ndarray | None = None,
 ) -> gtsam.Pose3 | None:
     """Gravity-aligned least squares: T_map_submap taking up_sub to up_map, then the yaw about
-    the vertical and the translation that fit best. (k, 3) each, k >= 1 (k = 1: yaw 0).
+    the vertical and the translation that fit best. (k, 3) each, k >= 1 (k = 1: yaw 0);
+    `weights` (k,): a weighted fit (default: equal).
 
     With R0 the smallest rotation up_sub -> up_map and p' = R0 p, the yaw is the angle that
     best aligns the horizontal parts of the centred p' onto those of the centred q:
-    theta = atan2(sum (p'_h x q_h) . up, sum p'_h . q_h) (2-D Procrustes).
+    theta = atan2(sum w (p'_h x q_h) . up, sum w p'_h . q_h) (2-D Procrustes).
     """
     if len(sub_xyz) == 0:
         return None
+    w = (np.full(len(sub_xyz), 1.0 / len(sub_xyz)) if weights is None
+         else np.asarray(weights, dtype=np.float64) / np.sum(weights))
+    mp, mq = w @ sub_xyz, w @ map_xyz
     R0 = rotation_between(up_sub, up_map)
-    p = (sub_xyz - sub_xyz.mean(axis=0)) @ R0.T
-    q = map_xyz - map_xyz.mean(axis=0)
-    ph = p - np.outer(p @ up_map, up_map)
+    p = (sub_xyz - mp) @ R0.T
+    q = map_xyz - mq
+    ph = (p - np.outer(p @ up_map, up_map)) * w[:, None]
     qh = q - np.outer(q @ up_map, up_map)
     theta = float(np.arctan2(np.cross(ph, qh).sum(axis=0) @ up_map, float((ph * qh).sum())))
     Ry = gtsam.Rot3.AxisAngle(np.asarray(up_map, dtype=float), theta).matrix()
     R = Ry @ R0
-    t = map_xyz.mean(axis=0) - R @ sub_xyz.mean(axis=0)
+    t = mq - R @ mp
     return gtsam.Pose3(gtsam.Rot3(R), t)
 
 

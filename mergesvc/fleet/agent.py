@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
+from mergesvc.core.odometry import chain_covariance, step_covariance
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import ConfigError, InputError, MergeError
 from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
@@ -207,13 +208,15 @@ class LocalMap:
         """The vehicle's raw odometry from one of its poses to a later one: T_from_to =
         inv(T_est[from]) T_est[to], the composition of the odometry steps in between (not the
         smoothed estimate, so that the service can use it as a factor independent of the
-        landmarks this vehicle also sends), with `odometry_covariance` of the step count."""
+        landmarks this vehicle also sends), with the steps' covariance composed to first order
+        (core/odometry.py: a heading error grows into sideways position error)."""
         if not 0 <= from_keyframe < to_keyframe < self.frames_seen:
             raise InputError(
                 f"odometry needs 0 <= from < to < {self.frames_seen}, got {from_keyframe}, "
                 f"{to_keyframe}")
         T = np.linalg.inv(self.poses_est[from_keyframe]) @ self.poses_est[to_keyframe]
-        cov = odometry_covariance(to_keyframe - from_keyframe, self.config.odometry_sigma)
+        cov = chain_covariance(self.poses_est[from_keyframe:to_keyframe + 1],
+                               step_covariance(self.config.odometry_sigma))
         return Odometry(from_keyframe=from_keyframe, T_from_to=_transform(T),
                         covariance=cov.tolist())
 

@@ -29,6 +29,7 @@ from mergesvc.core.model import Factor
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
+from mergesvc.fleet.scoring import fleet_ate
 from mergesvc.fleet.service import ServiceConfig
 from mergesvc.sim import fleet_world, image_s_dataset
 from mergesvc.wire import Profile, Projection, decode_message, keys
@@ -353,7 +354,9 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
                        local: dict[str, LocalMap], status: dict[str, Any], anchor: str,
                        out_dir: Path) -> dict[str, dict[str, Any]]:
     """Per robot: the ATE of its keyframe trajectory from odometry alone and as the service
-    merged it, and the error of the last merged keyframe pose, against the truth.
+    merged it (on the same keyframes: those the service placed; `ate_odometry_all_m` on every
+    keyframe), and the error of the last merged keyframe pose, against the truth; and the
+    fleet ATE (every robot's merged keyframes under one alignment).
 
     Keyframes are frame indices (keyframe k: frame k, true pose T_true, odometry pose T_est).
     The odometry-only trajectory is T_est at keyframe 0 and at every keyframe the vehicle cut
@@ -374,6 +377,8 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
 
     T_anchor_world = np.linalg.inv(world.session_start(FrameId.parse(anchor).robot))
     merged_all = status.get("keyframe_poses") or {}
+    fleet_poses: dict[str, dict[int, np.ndarray]] = {}
+    truths: dict[str, np.ndarray] = {}
     tum_dir = out_dir / "trajectories"
     tum_dir.mkdir(parents=True, exist_ok=True)
     out: dict[str, dict[str, Any]] = {}
@@ -387,13 +392,20 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
         keys_m = sorted(int(k) for k in merged_raw if 0 <= int(k) < len(fr))
         merged = (np.stack([np.asarray(merged_raw[str(k)], dtype=np.float64) for k in keys_m])
                   if keys_m else np.zeros((0, 4, 4)))
+        fleet_poses[r] = dict(zip(keys_m, merged, strict=True))
+        truths[r] = truth
         row: dict[str, Any] = {"keyframes": len(keys_odo), "keyframes_merged": len(keys_m),
-                               "ate_odometry_m": None, "ate_merged_m": None,
+                               "ate_odometry_m": None, "ate_odometry_all_m": None,
+                               "ate_merged_m": None, "merged_over_odometry": None,
                                "final_rot_err_odometry_deg": None,
                                "final_pos_err_m": None, "final_rot_err_deg": None}
+        same = keys_m or keys_odo  # odometry scored on the keyframes the service placed
+        odo_same = np.stack([fr[k].T_est for k in same])
         with contextlib.suppress(MergeError):  # too few or collinear keyframes: null
-            row["ate_odometry_m"] = ate_rmse(odo, truth[keys_odo])
-            row["final_rot_err_odometry_deg"] = final_pose_error(odo, truth[keys_odo])[1]
+            row["ate_odometry_all_m"] = ate_rmse(odo, truth[keys_odo])
+        with contextlib.suppress(MergeError):
+            row["ate_odometry_m"] = ate_rmse(odo_same, truth[same])
+            row["final_rot_err_odometry_deg"] = final_pose_error(odo_same, truth[same])[1]
         with contextlib.suppress(MergeError):
             row["ate_merged_m"] = ate_rmse(merged, truth[keys_m])
             m, deg = final_pose_error(merged, truth[keys_m])
@@ -403,24 +415,36 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
         if keys_m:
             tum["merged"] = write_tum(tum_dir / f"{r}_merged.tum", stamps[keys_m], merged)
         row["tum"] = {k: str(v) for k, v in tum.items()}
+        if row["ate_merged_m"] is not None and row["ate_odometry_m"]:
+            row["merged_over_odometry"] = row["ate_merged_m"] / row["ate_odometry_m"]
         out[r] = row
-    return out
+    return {"robots": out, "fleet_ate_merged_m": fleet_ate(fleet_poses, truths)}
 
 
 def trajectory_lines(summary: dict[str, Any]) -> list[str]:
-    """One line per robot of the summary's trajectory scores, for the demo's output."""
+    """The summary's trajectory scores for the demo's output: per robot its keyframe ATE from
+    odometry alone and merged (the same keyframes), saying plainly when merging made it worse;
+    then the fleet ATE in the one common frame."""
 
-    def num(x: float | None, unit: str) -> str:
-        return "n/a" if x is None else f"{x:.2f} {unit}"
+    def num(x: float | None, unit: str, digits: int = 3) -> str:
+        return "n/a" if x is None else f"{x:.{digits}f} {unit}"
 
+    traj = summary.get("trajectory", {})
     lines = []
-    for r, t in summary.get("trajectory", {}).items():
+    for r, t in traj.get("robots", {}).items():
+        ratio = t.get("merged_over_odometry")
+        verdict = ("" if ratio is None else
+                   f" ({ratio:.2f}x: WORSE than its own odometry)" if ratio > 1.0 else
+                   f" ({ratio:.2f}x)")
         lines.append(
-            f"  {r} keyframe ATE: odometry {num(t['ate_odometry_m'], 'm')} "
-            f"({t['keyframes']} keyframes), merged {num(t['ate_merged_m'], 'm')} "
-            f"({t['keyframes_merged']} keyframes); last keyframe: merged "
-            f"{num(t['final_pos_err_m'], 'm')} / {num(t['final_rot_err_deg'], 'deg')}, "
-            f"odometry {num(t['final_rot_err_odometry_deg'], 'deg')}")
+            f"  {r}: keyframe ATE odometry {num(t['ate_odometry_m'], 'm')} -> merged "
+            f"{num(t['ate_merged_m'], 'm')}{verdict}, {t['keyframes_merged']} of "
+            f"{t['keyframes']} keyframes; last keyframe merged "
+            f"{num(t['final_pos_err_m'], 'm', 2)} / {num(t['final_rot_err_deg'], 'deg', 1)} "
+            f"(odometry {num(t['final_rot_err_odometry_deg'], 'deg', 1)})")
+    if "fleet_ate_merged_m" in traj:
+        lines.append(f"  fleet ATE, every robot in the anchor frame under one alignment: "
+                     f"{num(traj['fleet_ate_merged_m'], 'm')}")
     return lines
 
 

@@ -64,8 +64,8 @@ import numpy as np
 
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId
-from mergesvc.core.graph import pose3_from_model
 from mergesvc.core.model import Factor, FactorStatus, Submap
+from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, MergeError, StoreError, one_line
 from mergesvc.fleet.service import MergeService, ServiceConfig
 from mergesvc.wire import Projection, decode_message

@@ -24,13 +24,17 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mergesvc.core.calibration import scale_covariance
 from mergesvc.core.frames import FrameId
-from mergesvc.core.graph import UnionFind, pose3_from_model
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.trajectory import ate_rmse, final_pose_error, rotation_error_deg
+from mergesvc.core.whitened import lag1_correlation, whitened_stats
 from mergesvc.errors import MergeError
 from mergesvc.fleet.agent import AgentConfig, L, LocalMap, build_submaps
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.bound import BOUND_DRAWS, closure_bound
+from mergesvc.fleet.bound import error_sigma as bound_error_sigma
+from mergesvc.fleet.scoring import OdometryEdgeRecord, align_once, fleet_ate, odometry_honesty
+from mergesvc.fleet.service import MergeService, ServiceConfig, odometry_group
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator
 from mergesvc.wire import Profile, Projection, decode_message, encode_message
@@ -39,16 +43,6 @@ log = logging.getLogger(__name__)
 
 SESSION = "s0"
 TOPSIDE = "topside"
-
-
-# what "exact" means for the closures of `closure_bound`: 1 mrad, 1 cm
-EXACT_SIGMA = (1e-3, 1e-2)
-MIN_SHARED = 3  # true objects two submaps must share for a closure between their keyframes
-BOUND_DRAWS = 10  # draws of the closures' errors for the bound at the factors' accuracy
-MIN_ERROR_SAMPLES = 10  # factors needed to estimate their error per axis (to about a third)
-MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 x its median absolute value
-SIGMA_FLOOR = 1e-4  # rad, m: an axis the factors got exactly right (the tilt, fitted about
-# gravity) is still not held infinitely stiff
 
 
 @dataclass(frozen=True)
@@ -135,12 +129,22 @@ def replay_world(
         for s in order:
             svc.ingest(s)
         status = svc.status()
-        all_factors = [Factor.model_validate_json(f.payload) for f in svc.store.factors()]
-        retracted_ids = {f.factor_id for f in svc.store.factors() if f.status == "retracted"}
+        stored = svc.store.factors()
+        sent_ids = {f.factor_id for f in stored}
+        held_rows = [f for f in svc.store.held_factors() if f.factor_id not in sent_ids]
+        all_factors = [Factor.model_validate_json(f.payload) for f in [*stored, *held_rows]]
+        retracted_ids = {f.factor_id for f in stored if f.status == "retracted"}
+        held_ids = {f.factor_id for f in held_rows}
         held = {name: {oid: (h.keyframe, np.asarray(h.position, dtype=np.float64))
                        for oid, h in st.objects.items()} for name, st in svc.sessions.items()}
         latency = list(svc.stats.latency_ms)
         matches_tried = svc.stats.matches_tried
+        edges = {name: [_edge_record(svc, e) for e in st.edges.values()]
+                 for name, st in svc.sessions.items()}
+        solved_cov = {f.factor_id: svc.graph.scaled_covariance(f.factor_id)
+                      for f in all_factors if f.factor_id not in retracted_ids
+                      and f.factor_id in svc.graph.factor_ids}
+        noise_scales = {g: v.tolist() for g, v in svc.graph.noise_scales.items()}
     finally:
         svc.close()
 
@@ -173,17 +177,20 @@ def replay_world(
             ok_T = err_m <= tolerance.metres and err_deg <= tolerance.degrees
             # the error as a right perturbation of the truth: T_est = T_true Exp(e)
             e = gtsam.Pose3.Logmap(gtsam.Pose3(T_true).between(gtsam.Pose3(T_est)))
-            nees = _nees(e, np.asarray(f.covariance, dtype=np.float64))
+            nees = _nees(e, solved_cov.get(f.factor_id,
+                                          np.asarray(f.covariance, dtype=np.float64)))
             tangent = e.tolist()
         pairs = [(truth_of(f.robot_a, c.object_a), truth_of(f.robot_b, c.object_b))
                  for c in f.correspondences]
         right = sum(a is not None and a == b for a, b in pairs)
         factor_rows.append({"id": f.factor_id, "retracted": f.factor_id in retracted_ids,
+                            "held": f.factor_id in held_ids,
                             "correct": bool(ok_T), "err_m": err_m, "err_deg": err_deg,
                             "nees": nees, "err_tangent": tangent,
-                            "keyframes": [ka, kb], "corr_right": right,
+                            "keyframes": [ka, kb], "robots": [f.robot_a, f.robot_b],
+                            "corr_right": right,
                             "corr_wrong": len(pairs) - right})
-    active = [r for r in factor_rows if not r["retracted"]]
+    active = [r for r in factor_rows if not r["retracted"] and not r["held"]]
     retracted = [r for r in factor_rows if r["retracted"]]
     right = sum(r["corr_right"] for r in active)
     wrong = sum(r["corr_wrong"] for r in active)
@@ -195,7 +202,7 @@ def replay_world(
     # over BOUND_DRAWS draws of the errors
     anchor_robot = FrameId.parse(anchor).robot
     bound = closure_bound(order, truth_T, truth_of, anchor=anchor_robot)
-    error_sigma = _error_sigma(active)
+    error_sigma = bound_error_sigma(active)
     draws = ([closure_bound(order, truth_T, truth_of, anchor=anchor_robot,
                             error_sigma=error_sigma, rng=np.random.default_rng([seed, 23, d]))
               for d in range(BOUND_DRAWS)] if error_sigma is not None else [])
@@ -217,8 +224,18 @@ def replay_world(
                                "final_rot_bound_factor_accuracy_deg": float("nan"),
                                "keyframes_bound": 0,
                                "closures_bound": bound.get(r, (None, 0))[1]}
+        # odometry and merged on the same keyframes (those the service placed), and the
+        # odometry on all of them
+        same = keys_m or keys_odo
+        row["ate_odometry_all_m"] = _scores(odo, truth_T[r][keys_odo])[0]
         row["ate_odometry_m"], row["final_rot_err_odometry_deg"] = _scores(
-            odo, truth_T[r][keys_odo])
+            np.stack([fr[k].T_est for k in same]), truth_T[r][same])
+        honesty = odometry_honesty(edges.get(str(FrameId(r, SESSION)), []), truth_T[r])
+        row["odometry_whitened_rms"] = honesty["whitened_rms"]
+        row["odometry_over_99_percent"] = honesty["over_99_percent"]
+        row["odometry_declared_whitened_rms"] = honesty["declared_whitened_rms"]
+        row["odometry_declared_over_99_percent"] = honesty["declared_over_99_percent"]
+        row["odometry_scale"] = noise_scales.get(odometry_group(r), [1.0] * 6)
         if keys_m:
             merged = np.stack([np.asarray(raw[str(k)], dtype=np.float64) for k in keys_m])
             with contextlib.suppress(MergeError):
@@ -258,12 +275,29 @@ def replay_world(
         row["object_rmse_merged_m"] = _rms(merged_err)
         robots[r] = row
     lat = np.asarray(latency, dtype=np.float64)
+    merged_poses = {r: {int(k): np.asarray(T, dtype=np.float64) for k, T in
+                        (merged_all.get(str(FrameId(r, SESSION))) or {}).items()} for r in names}
+    once = align_once([f for f in all_factors if f.keyframe_a is not None],
+                      {r: np.stack([f.T_est for f in frames[r]]) for r in names},
+                      {r: sorted(merged_poses[r]) for r in names}, truth_T,
+                      FrameId.parse(anchor).robot)
+    honest = _factor_honesty(active, solved_cov)
     return {
+        "fleet_ate_merged_m": fleet_ate(merged_poses, truth_T),
+        "fleet_ate_align_once_first_m": once["first"],
+        "fleet_ate_align_once_best_m": once["best"],
+        "factor_whitened_rms": honest["whitened_rms"],
+        "factor_over_99_percent": honest["over_99_percent"],
+        "factor_nees_median": honest["nees_median"],
+        "factor_lag1_correlation": honest["lag1_correlation"],
+        "noise_scales": noise_scales,
         "anchor": anchor,
         "robots": robots,
         "submaps": len(subs),
         "delivery": delivery,
-        "factors_accepted": len(factor_rows),
+        "factors_accepted": len(factor_rows) - len(held_ids),
+        "factors_held": len(held_ids),
+        "held_correct": sum(r["correct"] for r in factor_rows if r["held"]),
         "factors_retracted": len(retracted),
         "factors_correct": sum(r["correct"] for r in factor_rows),
         "retracted_correct": sum(r["correct"] for r in retracted),
@@ -281,159 +315,34 @@ def replay_world(
     }
 
 
-def closure_bound(
-    subs: list[Submap],
-    truth_T: dict[str, np.ndarray],
-    truth_of: Callable[[str, str], str | None],
-    *,
-    anchor: str,
-    exact_sigma: tuple[float, float] = EXACT_SIGMA,
-    min_shared: int = MIN_SHARED,
-    error_sigma: np.ndarray | None = None,
-    rng: np.random.Generator | None = None,
-) -> dict[str, tuple[dict[int, np.ndarray] | None, int]]:
-    """What merging these submaps could give with better closures: every robot's odometry chain
-    (the submaps' own odometry edges and covariances, as the service holds them) plus a closure
-    between every two keyframes of two robots whose submaps hold at least `min_shared` of the
-    same true objects (the service closes loops between robots only, as here), solved by least
-    squares. Each closure is the truth relative pose, with sigma `exact_sigma` (rad, m);
-    no closure is wrong, and there are far more of them than a matcher accepts.
-
-    It is a bound for this odometry weighting and these closures, not a minimum of ATE: exact
-    closures make two chains meet in a least-squares compromise of their odometry, which can
-    place a robot a little worse than its own odometry did (measured: 0.077 against 0.077 m,
-    the pool, 1 lap). Where it misses a target by a margin, better closures will not meet it;
-    other information (more of the paths seen twice, better odometry) would.
-
-    `error_sigma` (6, GTSAM tangent order: rotation rad, translation m): instead, each closure
-    is off the truth by a right perturbation drawn from N(0, diag(error_sigma^2)) (from `rng`)
-    and weighted by it: what closures as accurate as a matcher's factors could give were every
-    co-visible pair matched, with independent errors.
-
-    Returns per robot ({keyframe: pose (4x4) in the anchor robot's frame}, closures touching
-    the robot); None for a robot with fewer than two poses to score; {} when the solve fails.
-    A submap lost on the link leaves pieces of chain that only closures join to the rest, as
-    in the service (the start of a delivered odometry edge whose own submap was lost is a node
-    there too). The anchor's largest piece holds the gauge; a robot is scored on its nodes
-    joined to it, else on its own chain from keyframe 0 (ATE aligns each robot on its own).
-    Nodes start at their piece's true start composed with the odometry; a piece's start has a
-    loose prior there, which places nothing the links do not.
-    """
-    by_robot: dict[str, list[Submap]] = defaultdict(list)
-    for s in subs:
-        if s.keyframe is not None and s.robot_id in truth_T:
-            by_robot[s.robot_id].append(s)
-    robots = sorted(by_robot)
-    if not robots:
-        return {}
-    if anchor not in by_robot:
-        anchor = robots[0]
-    sym = {r: i for i, r in enumerate(robots)}
-
-    def key(r: str, k: int) -> int:
-        return gtsam.symbol("b", sym[r] * 1_000_000_000 + k)
-
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    seen: dict[str, dict[int, set[str]]] = {}  # robot -> keyframe -> true objects it holds
-    placed: dict[str, dict[int, np.ndarray]] = {}  # robot -> node -> initial pose
-    links: list[tuple[tuple[str, int], tuple[str, int]]] = []  # odometry edges and closures
-    loose = gtsam.noiseModel.Isotropic.Sigma(6, 1e3)
-    for r in robots:
-        T = truth_T[r]
-        odo = placed[r] = {}
-        seen[r] = defaultdict(set)
-
-        def piece(k: int, T: np.ndarray = T, r: str = r) -> None:
-            # a node no odometry reaches (keyframe 0, or the start of an edge whose submap was
-            # lost: the service holds it too) starts a piece where it truly is, loosely: only
-            # links place it relative to anything else
-            placed[r][k] = T[k]
-            values.insert(key(r, k), gtsam.Pose3(T[k]))
-            graph.add(gtsam.PriorFactorPose3(key(r, k), gtsam.Pose3(T[k]), loose))
-
-        piece(0)
-        for s in sorted(by_robot[r], key=lambda s: s.keyframe or 0):
-            k = int(s.keyframe or 0)
-            if k >= len(T):
-                continue
-            seen[r][k] |= {t for o in s.objects if (t := truth_of(r, o.id)) is not None}
-            if k in odo:
-                continue
-            od = s.odometry
-            if od is None or od.from_keyframe >= k:
-                piece(k)
-                continue
-            if od.from_keyframe not in odo:
-                piece(od.from_keyframe)
-            T_ft = pose3_from_model(od.T_from_to)
-            odo[k] = odo[od.from_keyframe] @ T_ft.matrix()
-            values.insert(key(r, k), gtsam.Pose3(odo[k]))
-            graph.add(gtsam.BetweenFactorPose3(
-                key(r, od.from_keyframe), key(r, k), T_ft,
-                gtsam.noiseModel.Gaussian.Covariance(np.asarray(od.covariance, dtype=np.float64))))
-            links.append(((r, od.from_keyframe), (r, k)))
-    if error_sigma is None:
-        sigma = np.array([exact_sigma[0]] * 3 + [exact_sigma[1]] * 3)
-    else:
-        sigma = np.asarray(error_sigma, dtype=np.float64).reshape(6)
-        rng = rng if rng is not None else np.random.default_rng(0)
-    noise = gtsam.noiseModel.Diagonal.Sigmas(sigma)
-    closures: dict[str, int] = defaultdict(int)
-    nodes = [(r, k) for r in robots for k in sorted(seen[r])]
-    for i, (ra, ka) in enumerate(nodes):
-        for rb, kb in nodes[i + 1:]:
-            if ra == rb or len(seen[ra][ka] & seen[rb][kb]) < min_shared:
-                continue
-            T_ab = gtsam.Pose3(np.linalg.inv(truth_T[ra][ka]) @ truth_T[rb][kb])
-            if error_sigma is not None:
-                assert rng is not None
-                T_ab = T_ab.compose(gtsam.Pose3.Expmap(rng.normal(0.0, sigma)))
-            graph.add(gtsam.BetweenFactorPose3(key(ra, ka), key(rb, kb), T_ab, noise))
-            links.append(((ra, ka), (rb, kb)))
-            closures[ra] += 1
-            closures[rb] += 1
-    # groups: nodes joined by links (the loose priors join nothing). The gauge: the anchor's
-    # largest group, held at its first node's true pose; each robot is scored on its nodes in
-    # the gauge's group, else on its keyframe 0's group (its own odometry: ATE aligns)
-    index = {n: i for i, n in enumerate((r, k) for r in robots for k in sorted(placed[r]))}
-    uf = UnionFind(len(index))
-    for a, b in links:
-        uf.union(index[a], index[b])
-
-    def group(r: str, g: int) -> list[int]:
-        return [k for k in sorted(placed[r]) if uf.find(index[(r, k)]) == g]
-
-    sizes: dict[int, int] = defaultdict(int)
-    for k in placed[anchor]:
-        sizes[uf.find(index[(anchor, k)])] += 1
-    gauge = min(sizes, key=lambda g: (-sizes[g], g))
-    k0 = group(anchor, gauge)[0]
-    graph.add(gtsam.PriorFactorPose3(key(anchor, k0), gtsam.Pose3(truth_T[anchor][k0]),
-                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+def _edge_record(svc: MergeService, e: Any) -> OdometryEdgeRecord:
+    """An odometry edge of the service with the covariance its graph solves with."""
     try:
-        est = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
-    except RuntimeError as exc:  # (not seen: a bench row is left empty rather than failing)
-        log.warning("closure bound: the solve failed: %s", exc)
-        return {}
-    out: dict[str, tuple[dict[int, np.ndarray] | None, int]] = {}
-    for r in robots:
-        ks = group(r, gauge) or group(r, uf.find(index[(r, 0)]))
-        out[r] = ({k: est.atPose3(key(r, k)).matrix() for k in ks} if len(ks) > 1 else None,
-                  closures[r])
+        solved = svc.graph.scaled_covariance(e.edge_id)
+    except MergeError:  # sealed (frozen): its declared covariance, scaled as its group is
+        s = svc.graph.noise_scales.get(odometry_group(e.from_.frame.robot), np.ones(6))
+        solved = scale_covariance(e.covariance, s)
+    return OdometryEdgeRecord(e.from_.k, e.to.k, np.asarray(e.T_from_to.matrix()),
+                              np.asarray(e.covariance), solved)
+
+
+def _factor_honesty(active: list[dict[str, Any]], cov: dict[str, np.ndarray]
+                    ) -> dict[str, Any]:
+    """whitened_stats of the factors in force with the covariances the graph solves with,
+    and the lag-1 correlation of successive factors' errors between the same two sessions
+    (in the order they were accepted), averaged over the pairs weighted by their size."""
+    rows = [r for r in active if r["err_tangent"] is not None and r["id"] in cov]
+    out = whitened_stats([r["err_tangent"] for r in rows], [cov[r["id"]] for r in rows])
+    pairs: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        pairs["/".join(r["robots"])].append(r)
+    corr = [(lag1_correlation([x["err_tangent"] for x in p], [cov[x["id"]] for x in p]),
+             len(p)) for p in pairs.values()]
+    corr = [(c, n) for c, n in corr if np.isfinite(c)]
+    out["lag1_correlation"] = (float(np.average([c for c, _ in corr],
+                                                weights=[n for _, n in corr]))
+                               if corr else float("nan"))
     return out
-
-
-def _error_sigma(factors: list[dict[str, Any]]) -> np.ndarray | None:
-    """Per axis (GTSAM tangent order: rotation rad, translation m) the typical error of the
-    factors whose correspondences are all right, what the objects let a factor reach: 1.4826 x
-    the median absolute error, robust to the few factors far off (a second moment would be
-    theirs: pool-long, 1 of 96 factors 4 m off in height). None with fewer than
-    MIN_ERROR_SAMPLES such factors."""
-    e = np.asarray([f["err_tangent"] for f in factors
-                    if f["corr_wrong"] == 0 and f["err_tangent"] is not None], dtype=np.float64)
-    if len(e) < MIN_ERROR_SAMPLES:
-        return None
-    return np.maximum(MAD_TO_SIGMA * np.median(np.abs(e), axis=0), SIGMA_FLOOR)
 
 
 def _scores(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
@@ -475,4 +384,4 @@ def _quat_to_R(w: float, x: float, y: float, z: float) -> np.ndarray:
     ])
 
 
-__all__ = ["FactorTolerance", "closure_bound", "replay_world"]
+__all__ = ["FactorTolerance", "replay_world"]

@@ -91,18 +91,20 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from mergesvc.core.config import MatchConfig
+from mergesvc.core.calibration import CalibrationConfig, scale_covariance
+from mergesvc.core.config import GraphConfig, MatchConfig
 from mergesvc.core.factors import (
     OdometryEdge,
     anchoring_keyframe,
     factor_from_match,
+    local_fit,
     match_factor_id,
     odometry_edge,
     yields_factor,
 )
 from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.fusion import fuse_objects
-from mergesvc.core.graph import GraphConfig, GraphSolution, PoseGraph
+from mergesvc.core.graph import GraphSolution, PoseGraph
 from mergesvc.core.model import (
     ErrorMessage,
     Factor,
@@ -113,8 +115,10 @@ from mergesvc.core.model import (
     Submap,
 )
 from mergesvc.core.pipeline import match
+from mergesvc.core.poses import compose_with_covariance, inverse_with_covariance
 from mergesvc.core.retrieval import FleetIndex
 from mergesvc.errors import ConfigError, MergeError, SchemaError, one_line
+from mergesvc.fleet.closures import ClosureSets, ConsistencyConfig
 from mergesvc.fleet.held import FactorTable, HeldObject, PackedVector
 from mergesvc.fleet.replies import (
     NO_FRAMES,
@@ -125,7 +129,7 @@ from mergesvc.fleet.replies import (
     StatusReply,
     SubmapResult,
 )
-from mergesvc.fleet.store import META_EMBEDDING_DIM, Store
+from mergesvc.fleet.store import META_EMBEDDING_DIM, META_NOISE_SCALES, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 # timestamped, unsequenced samples remembered to deliver each once (of two subscribers)
@@ -142,6 +146,12 @@ log = logging.getLogger(__name__)
 # factors): one solve 0.39 s and +63 MB of peak memory over the whole graph, 0.15 s and +16 MB
 # with 1,000 live; the merge benchmarks' graphs (under 250 keyframes) never reach it.
 LIVE_KEYFRAMES = 1000
+CLOSURE_GROUP = "closures"  # the noise group of every inter-robot factor (calibration)
+
+
+def odometry_group(robot: str) -> str:
+    """The noise group of a robot's odometry edges: every session of one robot together."""
+    return f"odometry:{robot}"
 
 
 class ServiceConfig(BaseModel):
@@ -209,6 +219,26 @@ class ServiceConfig(BaseModel):
         "a frame-level factor (old clients) ties two whole drifting frames, so a factor "
         "differs from the truth by more than the fit's own covariance says",
     )
+    consistency: ConsistencyConfig = Field(
+        ConsistencyConfig(), description="the pairwise-consistency test factors between two "
+        "sessions pass before the graph trusts them (fleet/closures.py)")
+    solve_inflation: float = Field(
+        1.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
+        "when solving (not in what is sent): successive factors share objects and errors")
+    local_fit: bool = Field(
+        True, description="fit each factor on the matched objects with the other session's "
+        "placed around its anchoring keyframe by odometry (not by the merged solution, whose "
+        "errors would become the factor's), the placements' covariance carried into the "
+        "factor's; false: the match's own transform, placed by the solution, drift_sigma added")
+    local_drift_sigma: tuple[float, float] = Field(
+        (0.0, 0.0), description="added to a locally fitted factor's covariance: rotation rad, "
+        "translation m (its placement uncertainty is in it already)")
+    local_range_weighted: bool = Field(
+        True, description="in the local fit, an object's noise grows with its range from the "
+        "keyframe that placed it (sonar, stereo): far objects weigh less")
+    local_sigma_floor_m: float = Field(
+        0.01, gt=0.0, description="the smallest object noise (m) a local fit's covariance "
+        "assumes, when two or three matches leave no residual to estimate it")
     match: MatchConfig = Field(
         default_factory=lambda: MatchConfig.model_validate(
             {"verify": {"min_matches": 4, "min_matches_vertical": 4, "gravity_aligned": True}}
@@ -218,7 +248,7 @@ class ServiceConfig(BaseModel):
         "small pool, and a wrong factor costs more than a late one)",
     )
     graph: GraphConfig = Field(
-        GraphConfig(max_live_nodes=LIVE_KEYFRAMES),
+        GraphConfig(max_live_nodes=LIVE_KEYFRAMES, calibration=CalibrationConfig()),
         description="the GNC pose graph over the sessions' keyframes (outlier thresholds; "
         f"max_live_nodes, {LIVE_KEYFRAMES} here: past that many keyframes the oldest freeze at "
         "their solved poses, core/graph.py rule 6, so a long mission's solve stays the same "
@@ -371,6 +401,33 @@ class SessionState:
         self._adjacent[pair[1]].append(pair[0])
         return edge
 
+    def placements(self, source: int, targets: set[int], scale: np.ndarray | None = None
+                   ) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
+        """Pose and covariance of each target keyframe in `source`'s frame, composed along
+        odometry edges from it (fewest edges first), each edge's covariance scaled per axis by
+        `scale` (sigma, GTSAM order); targets not joined to it are absent."""
+        def scaled(C: np.ndarray) -> np.ndarray:
+            return C if scale is None else scale_covariance(C, scale)
+
+        out = {source: (gtsam.Pose3(), np.zeros((6, 6)))}
+        todo, left = deque([source]), set(targets) - {source}
+        while todo and left:
+            k = todo.popleft()
+            T_k, S_k = out[k]
+            for j in self._adjacent.get(k, ()):
+                if j in out:
+                    continue
+                edge = self.edges.get((k, j))
+                if edge is not None:
+                    step = (edge.T_from_to, scaled(edge.covariance))
+                else:
+                    e = self.edges[(j, k)]
+                    step = inverse_with_covariance(e.T_from_to, scaled(e.covariance))
+                out[j] = compose_with_covariance(T_k, S_k, *step)
+                left.discard(j)
+                todo.append(j)
+        return {k: v for k, v in out.items() if k in targets}
+
     def propagate(self, seeds: Mapping[int, gtsam.Pose3]) -> dict[int, gtsam.Pose3]:
         """Poses of the keyframes reachable from `seeds` (keyframe -> pose) along odometry
         edges, each composed from the nearest seed (fewest edges); seeds keep their pose."""
@@ -429,6 +486,12 @@ class SessionMap:
                                                                strict=True)],
                          up=self.up)
 
+
+
+def _frames_of(factor: Factor) -> tuple[str, str]:
+    """The two frame names a factor joins, as the store keeps them."""
+    return (str(FrameId(factor.robot_a, factor.session_a)),
+            str(FrameId(factor.robot_b, factor.session_b)))
 
 
 def session_up(st: SessionState, poses: Mapping[int, gtsam.Pose3]) -> tuple[float, ...] | None:
@@ -490,8 +553,13 @@ class MergeService:
         self.stats = ServiceStats()
         self.store = Store(config.store)
         self.graph = PoseGraph(config=config.graph)
+        if config.solve_inflation != 1.0:
+            self.graph.set_noise_scale(CLOSURE_GROUP, config.solve_inflation ** 0.5)
         self.sessions: dict[str, SessionState] = {}  # "robot/session" -> its keyframes, objects
         self.factors = FactorTable()  # factor id -> Factor, held compact (fleet/held.py)
+        self._held: dict[str, Factor] = {}  # factors the consistency sets do not trust (yet)
+        self._scales_saved: dict[str, np.ndarray] = {}  # noise scales as last stored
+        self._closures = ClosureSets(config.consistency, self._chains)
         self.alive: set[str] = set()
         self._seq = 0
         self._lock = threading.RLock()
@@ -593,17 +661,56 @@ class MergeService:
         for row in self.store.iter_submaps():  # a page at a time: a mission's worth
             if row.status in ("processed", "no_match"):
                 self._add_submap(self._decode_submap(row.payload))
-        for f in self.store.iter_factors(FactorStatus.ACCEPTED):
+        # the factors in force and those held, in the order they were made: the consistency
+        # sets take them back with the verdicts they had
+        rows = [(f.created_at_s, 0, i, f, True) for i, f in
+                enumerate(self.store.iter_factors(FactorStatus.ACCEPTED))]
+        rows += [(f.created_at_s, 1, i, f, False) for i, f in
+                 enumerate(self.store.held_factors())]
+        for *_, f, trusted in sorted(rows, key=lambda r: r[:3]):
             factor = Factor.model_validate_json(f.payload)
-            self.graph.add_factor_model(factor, keyframe_nodes=True)
-            self.factors[factor.factor_id] = factor
+            self._closures.offer(factor, trusted=trusted)
+            if trusted:
+                self.graph.add_factor_model(factor, keyframe_nodes=True, group=CLOSURE_GROUP)
+                self.factors[factor.factor_id] = factor
+            else:
+                self._held[factor.factor_id] = factor
+        self._restore_scales()
         if self.factors:
-            try:  # solved as it grew: the old keyframes frozen on the way (rule 6)
+            # solved as it grew (the old keyframes frozen on the way, rule 6), with the noise
+            # scales the last solve had, calibrated again only from the next submap on
+            self.graph.calibrating = False
+            try:
                 self.graph.settle()
             except MergeError as exc:
                 log.warning("pose graph optimisation failed: %s", exc)
             self._optimize(publish=False)
+            self.graph.calibrating = True
         self._wake.set()  # the worker takes the pending rows from the store
+
+    def _restore_scales(self) -> None:
+        """The calibrated noise scales the service had (its last solve's), so that a restart
+        solves the graph as it was solved."""
+        stored = self.store.meta(META_NOISE_SCALES)
+        try:
+            scales = json.loads(stored) if stored else {}
+            for group, s in scales.items():
+                self.graph.set_noise_scale(group, s)
+        except (ValueError, TypeError, AttributeError, MergeError) as exc:
+            log.warning("stored noise scales unreadable, calibrating afresh: %s", one_line(exc))
+        self._scales_saved = self.graph.noise_scales
+
+    def _save_scales(self) -> None:
+        """Keep the noise scales the last solution was solved with, when they changed."""
+        now = self.graph.solved_noise_scales
+        if now.keys() == self._scales_saved.keys() and all(
+                np.array_equal(now[g], self._scales_saved[g]) for g in now):
+            return
+        self._scales_saved = now
+        with contextlib.suppress(MergeError):  # a read-only copy (export) keeps none
+            if not self.store.closed:
+                self.store.set_meta(META_NOISE_SCALES, json.dumps(
+                    {g: [float(x) for x in v] for g, v in now.items()}))
 
     def _restore_dim(self) -> None:
         """The fleet's embedding dimension: the setting, else the store's, else the first
@@ -990,20 +1097,28 @@ class MergeService:
         # factor behind that the running service never held (a restart would restore it).
         # A replay after a crash finds a factor stored already: it is published again (its id
         # is deterministic, so receivers see the same factor twice at most)
-        for other, factor in new_factors:
-            self.store.put_factor(factor.factor_id, other, me, factor.model_dump_json().encode(),
-                                  "accepted")
         new_factors = [f for _, f in new_factors]
         with self._lock:
             closes_loop = self._add_submap(sub)
-            for factor in new_factors:
-                if factor.factor_id not in self.factors:
-                    self.factors[factor.factor_id] = factor
-                    self.graph.add_factor_model(factor, keyframe_nodes=True)
-        for factor in new_factors:
+            sent, withdrawn = self._trust(new_factors)
+        for factor in [*new_factors, *withdrawn]:  # held: kept, not sent
+            if factor.factor_id in self._held:
+                self.store.put_held_factor(factor.factor_id, *_frames_of(factor),
+                                           factor.model_dump_json().encode())
+        for factor in sent:
+            self.store.put_factor(factor.factor_id, *_frames_of(factor),
+                                  factor.model_dump_json().encode(), "accepted")
+            self.store.set_factor_status(factor.factor_id, "accepted")
+            self.store.drop_held_factor(factor.factor_id)
+        for factor in withdrawn:
+            self.store.set_factor_status(factor.factor_id, "retracted")
+        for factor in sent:
             self._publish_factor(factor)  # a send that fails is logged: the submap is processed
             self.stats.factors_accepted += 1
-        if new_factors or closes_loop:
+        for factor in withdrawn:
+            self._publish_factor(factor.model_copy(update={"status": FactorStatus.RETRACTED}))
+            self.stats.factors_retracted += 1
+        if sent or withdrawn or closes_loop:
             self._dirty = True  # solved after the batch (_flush)
         self.store.mark_processed(row_id, "processed" if new_factors else "no_match",
                                   f"{len(new_factors)} factors")
@@ -1022,6 +1137,40 @@ class MergeService:
                  "%.0f ms", me, sub.seq, sub.keyframe, len(sub.objects), len(others),
                  len(new_factors), ms)
 
+    def _trust(self, new: list[Factor]) -> tuple[list[Factor], list[Factor]]:
+        """New factors offered to the pairwise-consistency sets (fleet/closures.py): the
+        factors to put in the graph and send now (new ones trusted, held ones trusted again),
+        and those to withdraw (trusted ones the sets dropped: out of the graph, retracted)."""
+        involved: dict[str, None] = {}
+        for f in new:
+            if f.factor_id in self.factors or f.factor_id in self._held:
+                continue  # a replay
+            self._held[f.factor_id] = f
+            v = self._closures.offer(f)
+            involved.update(dict.fromkeys([f.factor_id, *v.trusted, *v.withdrawn]))
+        sent, withdrawn = [], []
+        for fid in involved:
+            if self._closures.is_trusted(fid) and fid in self._held:
+                f = self._held.pop(fid)
+                self.factors[fid] = f
+                self.graph.add_factor_model(f, keyframe_nodes=True, group=CLOSURE_GROUP)
+                sent.append(f)
+            elif not self._closures.is_trusted(fid) and fid in self.factors:
+                f = self.factors.pop(fid)
+                self.graph.remove_factor(fid)
+                self._held[fid] = f
+                withdrawn.append(f)
+        return sent, withdrawn
+
+    def _chains(self, frame: str, k: int, targets: set[int]
+                ) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
+        """Odometry from keyframe k of a session to each target (fleet/closures.py)."""
+        st = self.sessions.get(frame)
+        if st is None:
+            return {}
+        scale = self.graph.noise_scales.get(odometry_group(st.frame.robot))
+        return st.placements(k, targets, scale)
+
     def _factor(self, res: Any, sm: SessionMap, other: FrameId, sub: Submap) -> Factor:
         """The factor of an accepted match of `sub` against session `other`'s map: pose level
         (keyframe Ka of other -> the submap's keyframe) unless both ends are keyframe 0 and the
@@ -1033,10 +1182,41 @@ class MergeService:
         if sub.keyframe is None and ka == 0:
             return factor_from_match(res, other, me, factor_id=fid,
                                      drift_sigma=self.config.drift_sigma)
+        measured = self._local_fit(res, other, ka, sub) if self.config.local_fit else None
+        if measured is not None:
+            return factor_from_match(res, other, me, factor_id=fid,
+                                     drift_sigma=self.config.local_drift_sigma,
+                                     keyframe_a=ka, keyframe_b=sub.keyframe or 0,
+                                     measured=measured)
         return factor_from_match(
             res, other, me, factor_id=fid, drift_sigma=self.config.drift_sigma,
             keyframe_a=ka, keyframe_b=sub.keyframe or 0, T_a_keyframe_a=sm.poses[ka],
         )
+
+    def _local_fit(self, res: Any, other: FrameId, ka: int, sub: Submap
+                   ) -> tuple[gtsam.Pose3, np.ndarray] | None:
+        """T_{Ka,Kb} fitted on the matched objects with the other session's placed around Ka
+        by its odometry (core/factors.py local_fit); None when that cannot be done (a matched
+        object's keyframe not joined to Ka by odometry, too few pairs)."""
+        st = self.sessions[str(other)]
+        mine = {o.id: o for o in sub.objects}
+        pairs = [(st.objects[m.map_object], mine[m.submap_object]) for m in res.matches
+                 if m.map_object in st.objects and m.submap_object in mine]
+        if not pairs:
+            return None
+        scale = self.graph.noise_scales.get(odometry_group(other.robot))
+        placed = st.placements(ka, {h.keyframe for h, _ in pairs}, scale)
+        v = self.config.match.verify
+        up_map = st.up.get(ka) if v.gravity_aligned and sub.up is not None else None
+        return local_fit(
+            np.array([o.position for _, o in pairs], dtype=np.float64),
+            np.array([h.position for h, _ in pairs], dtype=np.float64),
+            [h.keyframe for h, _ in pairs], placed,
+            up_sub=None if up_map is None else np.asarray(sub.up, dtype=np.float64),
+            up_map=up_map,
+            vertical_sigma_rad=np.radians(v.vertical_sigma_deg),
+            sigma_floor_m=self.config.local_sigma_floor_m,
+            range_weighted=self.config.local_range_weighted)
 
     def _set_anchor(self, name: str) -> None:
         self._anchor = name
@@ -1060,7 +1240,7 @@ class MergeService:
             a, b = str(edge.from_), str(edge.to)
             closes_loop = self.graph.has_node(a) and self.graph.has_node(b)
             self.graph.add_factor(edge.edge_id, a, b, edge.T_from_to, edge.covariance,
-                                  known_inlier=True)
+                                  known_inlier=True, group=odometry_group(sub.robot_id))
         self.graph.add_frame(st.node(0 if sub.keyframe is None else sub.keyframe))
         self._global = None
         return closes_loop
@@ -1129,6 +1309,7 @@ class MergeService:
             self.stats.optimizations += 1
             if sol is self.solution:
                 return  # nothing changed since the last solve
+            self._save_scales()
             self.solution = sol
             self._solutions += 1
             self._session_maps.clear()  # keyed by the solution: none could be used again
@@ -1139,6 +1320,7 @@ class MergeService:
                 self.store.set_factor_status(fid, "retracted")
                 retracted.append(self.factors.pop(fid))  # under the lock: global_map reads
                 self.graph.remove_factor(fid)
+                self._closures.forget(fid)  # judged: never trusted again
                 self.stats.factors_retracted += 1
                 log.warning("factor %s rejected by GNC: retracted", fid)
         _trim_heap()  # outside the lock: the ingress and status replies need not wait
@@ -1341,6 +1523,7 @@ class MergeService:
 
 
 __all__ = [
+    "CLOSURE_GROUP",
     "HeldObject",
     "MergeService",
     "RefusedError",
@@ -1350,5 +1533,6 @@ __all__ = [
     "SessionMap",
     "SessionState",
     "TokenBucket",
+    "odometry_group",
     "session_up",
 ]

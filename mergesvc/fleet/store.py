@@ -94,15 +94,29 @@ CREATE TABLE IF NOT EXISTS meta (
     key TEXT PRIMARY KEY,
     value TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS held_factors (
+    factor_id TEXT PRIMARY KEY,
+    frame_a TEXT NOT NULL,
+    frame_b TEXT NOT NULL,
+    payload BLOB NOT NULL,
+    created_at_s REAL NOT NULL
+);
 """
 # `meta` (fleet-wide facts fixed once, e.g. the embedding dimension) came after version 1 was
 # out: a version-1 file without it gets it when opened writable (an added table, nothing else
 # changes); opened read-only, `meta()` answers None.
 _META = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)"
-_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames", "meta")
+# `held_factors` (factors the service keeps but does not trust yet: not sent, or withdrawn)
+# came later still, added the same way.
+_HELD = ("CREATE TABLE IF NOT EXISTS held_factors (factor_id TEXT PRIMARY KEY, frame_a TEXT "
+         "NOT NULL, frame_b TEXT NOT NULL, payload BLOB NOT NULL, created_at_s REAL NOT NULL)")
+_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames", "meta",
+           "held_factors")
 #: Meta key of the fleet's embedding dimension (fixed by the first accepted submap or the
 #: service's setting).
 META_EMBEDDING_DIM = "embedding_dim"
+#: Meta key of the pose graph's calibrated noise scales (JSON: group -> 6 sigma scales).
+META_NOISE_SCALES = "noise_scales"
 
 
 def _read_only(exc: sqlite3.Error) -> bool:
@@ -277,9 +291,13 @@ class Store:
             )
         if version < STORE_SCHEMA_VERSION:  # no older versions exist yet: nothing to migrate
             raise StoreError(f"store {self.path} has unknown old schema version {version}")
-        if "meta" not in tables:
-            with self._transaction() as c:
-                c.execute(_META)
+        for table, create in (("meta", _META), ("held_factors", _HELD)):
+            if table not in tables:
+                try:
+                    with self._transaction() as c:
+                        c.execute(create)
+                except StoreError:  # a read-only copy (export) reads what is there
+                    log.debug("store %s: no %s table (read-only)", self.path, table)
 
     def _create(self, c: sqlite3.Connection) -> None:
         c.execute(f"PRAGMA application_id={APPLICATION_ID}")
@@ -582,6 +600,39 @@ class Store:
         """Stored factors in creation order, optionally only one status."""
         return list(self.iter_factors(status))
 
+    def put_held_factor(self, factor_id: str, frame_a: str, frame_b: str,
+                        payload_bytes: bytes) -> bool:
+        """Keep a factor the service does not trust (yet): not sent, or withdrawn; True if
+        new. It keeps its first creation time across holds."""
+        factor_id = _check_id(factor_id, "factor_id")
+        args = (factor_id, _check_id(frame_a, "frame_a"), _check_id(frame_b, "frame_b"),
+                _check_bytes(payload_bytes, "payload_bytes"))
+        with self._transaction() as c:
+            first = c.execute("SELECT created_at_s FROM factors WHERE factor_id = ?",
+                              (factor_id,)).fetchone()
+            cur = c.execute("INSERT OR IGNORE INTO held_factors (factor_id, frame_a, frame_b, "
+                            "payload, created_at_s) VALUES (?, ?, ?, ?, ?)",
+                            (*args, first[0] if first else self._clock()))
+            return cur.rowcount == 1
+
+    def drop_held_factor(self, factor_id: str) -> bool:
+        """A held factor is trusted now (or gone); True if it was held."""
+        with self._transaction() as c:
+            cur = c.execute("DELETE FROM held_factors WHERE factor_id = ?", (factor_id,))
+            return cur.rowcount == 1
+
+    def held_factors(self) -> list[StoredFactor]:
+        """The held factors in creation order (status: retracted, as none is in force)."""
+        with self._transaction(write=False) as c:
+            present = c.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = "
+                                "'held_factors'").fetchone()
+            rows = c.execute("SELECT factor_id, frame_a, frame_b, payload, created_at_s FROM "
+                             "held_factors ORDER BY created_at_s, rowid").fetchall() if present \
+                else []
+        return [StoredFactor(factor_id=r[0], frame_a=r[1], frame_b=r[2], payload=bytes(r[3]),
+                             status=FactorStatus.RETRACTED, created_at_s=float(r[4]),
+                             updated_at_s=float(r[4])) for r in rows]
+
     # -- frames ----------------------------------------------------------------------------------
 
     @staticmethod
@@ -641,6 +692,15 @@ class Store:
             c.execute("INSERT OR IGNORE INTO meta (key, value) VALUES (?, ?)", (key, value))
             return str(c.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()[0])
 
+    def set_meta(self, key: str, value: str) -> None:
+        """Store `value` under `key`, replacing what was there (state derived as the service
+        runs, e.g. its calibrated noise scales)."""
+        key = _check_id(key, "meta key")
+        if not isinstance(value, str):
+            raise InputError("meta value must be a string")
+        with self._transaction() as c:
+            c.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+
     # -- status ----------------------------------------------------------------------------------
 
     def counts(self) -> dict[str, Any]:
@@ -690,6 +750,7 @@ class Store:
 __all__ = [
     "APPLICATION_ID",
     "META_EMBEDDING_DIM",
+    "META_NOISE_SCALES",
     "PENDING",
     "STORE_SCHEMA_VERSION",
     "Store",

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 
 from mergesvc.core.tracking import Frame, TrackingConfig
@@ -48,6 +49,10 @@ class FleetWorld:
     model: EmbeddingModel
     robots: list[FleetRobot]
     cfg: RunConfig
+    # per-step odometry noise (rotation rad, translation m) drawn white on all six axes, as
+    # the pose graph's odometry model assumes (`white_odometry`); None: the pool's dead
+    # reckoning (2 % scale error, a heading random walk and a gyro bias)
+    white_odometry: tuple[float, float] | None = None
 
     def robot(self, name: str) -> FleetRobot:
         for r in self.robots:
@@ -71,11 +76,15 @@ class FleetWorld:
             path, yaw = np.roll(path, -shift, axis=0), np.roll(yaw, -shift)
         n = len(path)
         stamps = np.arange(n) * self.cfg.frame_dt_s
-        est_xy, est_yaw = _odometry(path, yaw, self.cfg, rng)
         T0 = _pose(*path[0], r.z_m, yaw[0])
         T0_inv = np.linalg.inv(T0)
         poses_true = np.stack([_pose(*path[k], r.z_m, yaw[k]) for k in range(n)])
-        poses_est = np.stack([T0_inv @ _pose(*est_xy[k], r.z_m, est_yaw[k]) for k in range(n)])
+        if self.white_odometry is None:
+            est_xy, est_yaw = _odometry(path, yaw, self.cfg, rng)
+            poses_est = np.stack([T0_inv @ _pose(*est_xy[k], r.z_m, est_yaw[k])
+                                  for k in range(n)])
+        else:
+            poses_est = white_odometry(poses_true, self.white_odometry, rng)
         yield from _frames(Family.UNDERWATER, poses_true, poses_est, stamps, self.objects_xyz_m,
                            self.truth_emb, self.object_ids, len(UNDERWATER_CLASSES), self.cfg,
                            rng, self.model)
@@ -90,11 +99,26 @@ class FleetWorld:
         return _pose(*r.path_xy[k], r.z_m, r.yaw[k])
 
 
+def white_odometry(poses_true: np.ndarray, sigma: tuple[float, float],
+                   rng: np.random.Generator) -> np.ndarray:
+    """(n, 4, 4) dead-reckoned poses from the first: each true step D_k composed with
+    Exp(eta_k), eta_k ~ N(0, diag(r, r, r, t, t, t)^2) (rotation rad, translation m)."""
+    r, t = sigma
+    out = [np.eye(4)]
+    noise = rng.normal(0.0, 1.0, size=(len(poses_true) - 1, 6)) * ([r] * 3 + [t] * 3)
+    for k in range(1, len(poses_true)):
+        D = np.linalg.solve(poses_true[k - 1], poses_true[k])
+        out.append(out[-1] @ D @ gtsam.Pose3.Expmap(noise[k - 1]).matrix())
+    return np.stack(out)
+
+
 def fleet_world(seed: int = 0, robots: Sequence[str] = ("auv1", "auv2", "auv3"),
-                laps: int = 2, n_objects: int = 24) -> FleetWorld:
+                laps: int = 2, n_objects: int = 24,
+                white: tuple[float, float] | None = None) -> FleetWorld:
     """A 30 x 16 m pool with n_objects objects and one vehicle per name, each on its own
     pattern (loops and lawnmowers over overlapping parts of the pool), starting in its own
-    place, so their odometry frames differ by an unknown rigid transform."""
+    place, so their odometry frames differ by an unknown rigid transform. `white`: the
+    odometry noise per step on all six axes (FleetWorld.white_odometry)."""
     rng = np.random.default_rng([seed, 5])
     classes, objects = _pool_objects(n_objects, np.array([30.0, 16.0]), rng)
     model = world_embedding_model(Family.UNDERWATER, seed)
@@ -118,7 +142,7 @@ def fleet_world(seed: int = 0, robots: Sequence[str] = ("auv1", "auv2", "auv3"),
         path, yaw = _sample_path(way, cfg.speed_mps * cfg.frame_dt_s)
         zr = -2.0 + 0.3 * i
         out.append(FleetRobot(name, path, yaw, zr, _pose(*path[0], zr, yaw[0])))
-    return FleetWorld(seed, objects, ids, classes, truth_emb, model, out, cfg)
+    return FleetWorld(seed, objects, ids, classes, truth_emb, model, out, cfg, white)
 
 
-__all__ = ["FleetRobot", "FleetWorld", "fleet_world"]
+__all__ = ["FleetRobot", "FleetWorld", "fleet_world", "white_odometry"]

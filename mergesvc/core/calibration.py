@@ -1,0 +1,181 @@
+"""Noise calibration of a pose graph from its own residuals: variance-component estimation.
+
+Factors fall into groups (a robot's odometry, the inter-robot closures); each group's declared
+covariances are scaled per axis s (GTSAM order: rotation, then translation) in decorrelated
+coordinates: the rotation error, and the translation error less the part the rotation error
+explains (`scale_covariance`), so that scaling a robot's heading noise also scales the sideways
+drift it causes. After a solve, each group and axis gets the REML fixed point of a per-axis
+variance component (Foerstner's estimator), in those coordinates:
+
+    s_a^2 <- (s_a^2 * sum_i e_ia (W_i e_i)_a + nu) / (sum_i (W_i Q_i)_aa + nu)
+
+e_i the factor's residual, W_i = Sigma_i^-1, Q_i = Sigma_i - J_i Sigma_x J_i^T its covariance
+under the model (so sum_a (W_i Q_i)_aa is the factor's redundancy number: what the rest of the
+graph can check of it). The redundancies come from a seeded Monte-Carlo trace estimate over the
+linearised, whitened system (noise drawn, solved, the residuals' second moments), so the cost is
+one sparse factorisation and a few solves. nu pseudo-observations at the declared scale (s = 1)
+keep an axis the graph can hardly check near what was declared. Factors whose NEES is beyond
+`gross_quantile` (wrong closures
+GNC will reject) are left out. Nothing here uses the truth. Pure: no I/O.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
+
+from mergesvc.errors import SolverError
+
+
+class CalibrationConfig(BaseModel):
+    """Settings of the noise calibration (variance-component estimation)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(True, description="scale each group's covariances per axis to what "
+                          "the residuals show (variance-component estimation)")
+    samples: int = Field(32, ge=4, le=1024, description="Monte-Carlo draws of the redundancy "
+                         "numbers' estimate")
+    prior_redundancy: float = Field(
+        2.0, ge=0.0, description="pseudo-observations at the current scale: an axis the graph "
+        "checks less than this keeps most of its declared scale")
+    min_scale: float = Field(0.05, gt=0.0, description="smallest sigma scale of an axis")
+    max_scale: float = Field(20.0, gt=0.0, description="largest sigma scale of an axis")
+    gross_quantile: float = Field(
+        0.999, gt=0.0, lt=1.0, description="a factor whose NEES exceeds this chi-square "
+        "quantile (6 dof) is left out of the estimate (a gross error, not noise)")
+    seed: int = Field(0, description="the Monte-Carlo draws' seed")
+    groups: tuple[str, ...] = Field(
+        ("odometry",), description="the noise groups calibrated, by the name before any ':' "
+        "(odometry:auv1 is odometry); the others keep their declared scale. Inter-robot "
+        "factors ('closures') are left out by default: successive ones share objects, and "
+        "their residuals understate their errors (docs/uncertainty.md)")
+    resolves: int = Field(2, ge=0, le=10, description="solves again at most this many times "
+                          "after one that moved a scale by more than resolve_change")
+    resolve_change: float = Field(0.1, gt=0.0, description="relative change of a sigma "
+                                  "scale that makes the graph solve again with it")
+
+
+@dataclass
+class Component:
+    """One group's sums for one estimate: per axis, the residual part and the redundancy."""
+
+    residual: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    redundancy: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    factors: int = 0
+    left_out: int = 0
+
+
+def decorrelation(C: np.ndarray) -> np.ndarray:
+    """L (6, 6) with L x = (r, t - B r), B = C_tr C_rr^-1: the translation error less the part
+    the rotation error explains (a heading error moved the position sideways along the path),
+    so that L C L^T is block diagonal. Identity for a covariance without cross terms."""
+    L = np.eye(6)
+    C_rr, C_tr = C[:3, :3], C[3:, :3]
+    if np.any(C_tr):
+        L[3:, :3] = -np.linalg.solve(C_rr, C_tr.T).T
+    return L
+
+
+def scale_covariance(C: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
+    """C scaled per axis in the decorrelated coordinates (`decorrelation`): rotation errors by
+    s[:3], and with them the position error they cause; the rest of the translation error by
+    s[3:]. M C M^T with M = L^-1 diag(s) L."""
+    L = decorrelation(C)
+    M = np.linalg.solve(L, np.asarray(sigma_scale)[:, None] * L)
+    out = M @ C @ M.T
+    return 0.5 * (out + out.T)
+
+
+def variance_components(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    groups: Sequence[str | None],
+    config: CalibrationConfig,
+) -> dict[str, Component]:
+    """Per group, the per-axis sums of the estimator (module docstring) at `values`.
+
+    groups[i] names the group of graph factor i (None: not calibrated, e.g. a prior; it still
+    counts in the solve). Every factor must be 6-dimensional (Pose3). Raises SolverError when
+    the linearised system is singular."""
+    if len(groups) != graph.size():
+        raise SolverError(f"{len(groups)} groups for {graph.size()} factors")
+    cols: dict[int, int] = {}
+    rows, cs, vals = [], [], []
+    b_all = np.zeros(6 * graph.size())
+    sqrt_info: list[np.ndarray] = []
+    for i in range(graph.size()):
+        f = graph.at(i)
+        jf = f.linearize(values)
+        A, b = jf.jacobian()
+        if A.shape[0] != 6:
+            raise SolverError(f"factor {i} is {A.shape[0]}-dimensional, not a Pose3 factor")
+        b_all[6 * i:6 * i + 6] = b
+        for j, key in enumerate(jf.keys()):
+            c0 = cols.setdefault(key, 6 * len(cols))
+            blk = A[:, 6 * j:6 * j + 6]
+            r, c = np.nonzero(blk)
+            rows.append(6 * i + r)
+            cs.append(c0 + c)
+            vals.append(blk[r, c])
+        sqrt_info.append(np.asarray(f.noiseModel().R(), dtype=np.float64)
+                         if groups[i] is not None else np.eye(6))
+    A_s = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cs))),
+                        shape=(6 * graph.size(), 6 * len(cols)))
+    H = (A_s.T @ A_s).tocsc()
+    try:
+        lu = sla.splu(H, permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError as exc:  # singular: a direction no factor fixes
+        raise SolverError(f"calibration: the linearised system is singular: {exc}") from exc
+    rng = np.random.default_rng(config.seed)
+    Z = rng.standard_normal((A_s.shape[0], config.samples))
+    res = Z - A_s @ lu.solve(np.asarray(A_s.T @ Z))  # residuals of pure noise: I - A H^-1 A^T
+    gross = float(chi2.ppf(config.gross_quantile, 6))
+    out: dict[str, Component] = defaultdict(Component)
+    for i, g in enumerate(groups):
+        if g is None:
+            continue
+        comp = out[g]
+        r_w = -b_all[6 * i:6 * i + 6]  # whitened residual R e
+        if float(r_w @ r_w) > gross:
+            comp.left_out += 1
+            continue
+        R = sqrt_info[i]
+        R_inv = np.linalg.inv(R)
+        e = R_inv @ r_w
+        We = R.T @ r_w
+        blk = res[6 * i:6 * i + 6]
+        Q_w = blk @ blk.T / config.samples  # whitened residual covariance, R Q R^T
+        WQ = R.T @ Q_w @ R_inv.T  # W Q = R^T (R Q R^T) R^-T
+        # per axis of the decorrelated coordinates z = L e (scale_covariance's axes):
+        # e_z (W_z e_z) and (W_z Q_z), with W_z = L^-T W L^-1, Q_z = L Q L^T
+        L = decorrelation(R_inv @ R_inv.T)
+        L_invT = np.linalg.inv(L).T
+        comp.residual += (L @ e) * (L_invT @ We)
+        comp.redundancy += np.diag(L_invT @ WQ @ L.T)
+        comp.factors += 1
+    return dict(out)
+
+
+def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig) -> np.ndarray:
+    """A group's sigma scale (6,) after one estimate at `scale`: the fixed-point step with
+    `prior_redundancy` pseudo-observations at the declared scale (1), so an axis the graph
+    checks little stays near what was declared; clamped to [min_scale, max_scale]."""
+    nu = config.prior_redundancy
+    s2 = np.square(np.asarray(scale, dtype=np.float64))
+    num = s2 * np.maximum(comp.residual, 0.0) + nu  # the residuals at the declared scale
+    den = np.maximum(comp.redundancy, 0.0) + nu
+    var = np.divide(num, den, out=s2.copy(), where=den > 0)
+    return np.clip(np.sqrt(var), config.min_scale, config.max_scale)
+
+
+__all__ = ["CalibrationConfig", "Component", "decorrelation", "scale_covariance",
+           "updated_scale", "variance_components"]
