@@ -31,7 +31,8 @@ _CHUNK_ELEMS = 4_000_000
 
 
 def unit_rows(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows scaled to unit norm. Returns (X / |X|, |X|); zero rows stay zero."""
+    """Rows scaled to unit norm, in float64. Returns (X / |X|, |X|); zero rows stay zero."""
+    X = np.asarray(X, dtype=np.float64)
     norms = np.linalg.norm(X, axis=1)
     return X / np.where(norms > 0, norms, 1.0)[:, None], norms
 
@@ -48,10 +49,22 @@ def weighted_cosine(
     return cosine(emb1_nd, emb2_nd) / (1.0 + (s1_n[:, None] + s2_n[None, :]) / 2.0)
 
 
+def ucos(sub: ObjectArrays, map_: ObjectArrays, map_index: np.ndarray | None = None
+         ) -> np.ndarray:
+    """`weighted_cosine` of every submap object to every (or the indexed) map object, from the
+    arrays' cached norms and uncertainties (no normalised copy of the map). (n1, n2)."""
+    idx = slice(None) if map_index is None else map_index
+    e2 = map_.embeddings_nd[idx].astype(np.float64)
+    n2 = map_.norms_n[idx]
+    cos = (sub.unit_rows() @ e2.T) / np.where(n2 > 0, n2, 1.0)[None, :]
+    s1, s2 = sub.uncertainty_s, map_.uncertainty_s[idx]
+    return cos / (1.0 + (s1[:, None] + s2[None, :]) / 2.0)
+
+
 def _gaussian_inputs(
     objs: ObjectArrays, index: np.ndarray | None, normalize: bool, appearance: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    mu = objs.embeddings_nd if index is None else objs.embeddings_nd[index]
+    mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(np.float64)
     var = objs.variances_nd if index is None else objs.variances_nd[index]
     if appearance:
         # The fused variance shrinks as 1/n_obs; times n_obs it is the spread of single views
@@ -148,9 +161,7 @@ def node_affinity(
         model = same_object or fit_same_object_model(sub, map_, normalize)
         return log_likelihood_ratio(sub, map_, model, map_index)
     if kind is NodeAffinity.UCOS:
-        emb2 = map_.embeddings_nd if map_index is None else map_.embeddings_nd[map_index]
-        s2 = map_.uncertainty_s if map_index is None else map_.uncertainty_s[map_index]
-        return weighted_cosine(sub.embeddings_nd, sub.uncertainty_s, emb2, s2)
+        return ucos(sub, map_, map_index)
     D = node_distance(kind, sub, map_, map_index, normalize)
     return distance_to_similarity(D, float(np.median(D)) if D_ref is None else D_ref)
 
@@ -232,11 +243,11 @@ def _lr_inputs(objs: ObjectArrays, index: np.ndarray | None, normalize: bool
     Unlike _gaussian_inputs the variance is not divided by the mean's squared norm: the image
     uncertainty s is relative (the head predicts |y - x| / |x|), so dividing it by |mu|^2 would
     make an object look surer for being bright. One common unit is absorbed by c (eq. LR-4)."""
-    # unit_embeddings_nd is cached per map: a service matching many submaps normalises once
-    mu = objs.unit_embeddings_nd if normalize else objs.embeddings_nd
-    if index is None:
-        return mu, objs.variances_nd
-    return mu[index], objs.variances_nd[index]
+    if normalize:
+        mu = objs.unit_rows(index)
+    else:
+        mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(float)
+    return mu, objs.variances_nd if index is None else objs.variances_nd[index]
 
 
 def _sqdist(mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
@@ -247,6 +258,8 @@ def _sqdist(mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
 
 def is_isotropic(var_nd: np.ndarray) -> bool:
     """Whether every row of (n, d) variances is one number (the likelihood ratio's fast path)."""
+    if var_nd.ndim == 2 and var_nd.strides[1] == 0:  # ObjectArrays holds it as one column
+        return True
     return bool(np.all(var_nd == var_nd[:, :1]))
 
 

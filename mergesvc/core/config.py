@@ -40,6 +40,14 @@ class SolverName(str, Enum):
     EXACT = "exact"
 
 
+class SearchKind(str, Enum):
+    """How the candidate stage finds a submap object's nearest map objects (core/search.py)."""
+
+    AUTO = "auto"  # exact below index_min_objects (and index_min_pairs), the index above
+    EXACT = "exact"  # chunked float32 products over every map object
+    IVF = "ivf"  # inverted-file index (faiss), re-ranked exactly
+
+
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -57,6 +65,22 @@ class CandidatesConfig(_Section):
     ceiling_quantile: float = Field(
         0.5, ge=0, le=1, description="quantile of the best-candidate lifts that scores 1"
     )
+    index: SearchKind = Field(
+        SearchKind.AUTO, description="cosine shortlist: exact, ivf (an index built once per "
+        "map), or auto (the index for maps of index_min_objects or more, or for "
+        "index_min_pairs submap x map pairs on maps of index_min_pairs_map or more)"
+    )
+    index_min_objects: int = Field(200_000, ge=1, description="auto: the index from here on")
+    index_min_pairs: int = Field(
+        50_000_000, ge=1, description="auto: the index when submap x map objects reach this")
+    index_min_pairs_map: int = Field(
+        20_000, ge=1, description="auto: index_min_pairs counts on maps this large only")
+    index_lists: int | None = Field(
+        None, ge=1, description="index: inverted lists (None: about 4 sqrt(map objects))")
+    index_probe: int = Field(32, ge=1, description="index: lists probed per query")
+    index_min_lists: int = Field(
+        64, ge=1, description="index: maps with fewer than twice this many objects are searched "
+        "exactly")
 
 
 class AffinityConfig(_Section):
