@@ -22,7 +22,6 @@ from mergesvc.core.config import AffinityConfig, NodeAffinity
 from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
 from mergesvc.core.solvers import dense
-from mergesvc.core.solvers.consistency import pairwise_conflicts
 from mergesvc.core.solvers.problem import AssignmentProblem
 
 # Chunk of map nodes per vectorised step of the per-dimension Gaussian distances; bounds the
@@ -448,16 +447,34 @@ def candidate_K(
     are local (indices into `local`, the sorted distinct map_nodes).
     """
     local, cols = np.unique(map_nodes, return_inverse=True)
-    R = rows
+    R = np.asarray(rows, dtype=np.int64)
+    m = len(R)
     e_sub = pairwise_lengths(sub.position_xyz_m)
-    e_map = pairwise_lengths(map_.position_xyz_m[local])
-    E1 = e_sub[np.ix_(R, R)]
-    E2 = e_map[np.ix_(cols, cols)]
-    tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
+    # -1 / (2 tol_ij^2) per submap pair, gathered once with the lengths; the map lengths of
+    # the candidates directly (no map-wide matrix)
+    neg_inv = -0.5 / (sigma_m**2 + (aff.edge_rel_tol * e_sub) ** 2)
+    grouped = m > 0 and bool(np.all(R[1:] >= R[:-1]))
+    if grouped:  # candidates sorted by row (retrieve's order): repeats instead of a gather
+        counts = np.bincount(R, minlength=sub.n)
+        E1 = np.repeat(np.repeat(e_sub, counts, axis=0), counts, axis=1)
+        X = np.repeat(np.repeat(neg_inv, counts, axis=0), counts, axis=1)
+    else:
+        E1 = e_sub[np.ix_(R, R)]
+        X = neg_inv[np.ix_(R, R)]
+    xyz = map_.position_xyz_m[local[cols]]
+    D = pairwise_lengths(xyz)  # e_ab of every candidate pair
+    D -= E1
+    np.square(D, out=D)
+    X *= D  # -(e_ij - e_ab)^2 / (2 tol_ij^2)
     w = edge_pair_weight(sub.n, aff)
-    K_pos = edge_affinity(E1, E2, 2.0 * tol2)
+    K_pos = np.exp(X)
     K_pos *= w
-    invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
+    invalid = cols[:, None] == cols[None, :]
+    if grouped:
+        for lo, hi in zip(np.r_[0, np.cumsum(counts)[:-1]], np.cumsum(counts)):
+            invalid[lo:hi, lo:hi] = True
+    else:
+        invalid |= R[:, None] == R[None, :]
     K_pos[invalid] = 0.0
     K_signed = K_pos - w * aff.edge_threshold
     K_signed[invalid] = 0.0
@@ -466,10 +483,13 @@ def candidate_K(
     n2 = len(local)
     conflict = None
     if conflict_sigmas is not None:
-        conflict = pairwise_conflicts(E1, E2, np.sqrt(tol2), conflict_sigmas, R, cols)
+        # |e_ij - e_ab| > k tol_ij  <=>  (e_ij - e_ab)^2 / (2 tol_ij^2) > k^2 / 2: symmetric
+        # by construction (both length matrices are), pairs sharing a row or a col left out
+        conflict = -0.5 * conflict_sigmas**2 > X
+        conflict[invalid] = False
     return CandidateK(
-        AssignmentProblem(sub.n, n2, R, cols, K_signed, conflict),
-        AssignmentProblem(sub.n, n2, R, cols, K_pos),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_signed, conflict, invalid_zero=True),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_pos, invalid_zero=True),
         local,
     )
 

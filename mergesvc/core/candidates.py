@@ -133,6 +133,13 @@ def retrieve(
     # typical unrelated map object: median affinity over the map (or a sample of it)
     if sample is None and n2 <= cand_cfg.prefilter:
         floor = np.median(A, axis=1)
+    elif kind is NodeAffinity.UCOS:
+        # the median of a sample needs no float64: one float32 product
+        idx = np.arange(n2) if sample is None else sample
+        q = sub.unit_rows().astype(np.float32)
+        n_idx = map_.norms_n[idx]
+        cos_s = (q @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
+        floor = np.median(_ucos_pairs(sub, map_, cos_s, idx[None, :]), axis=1)
     else:
         idx = np.arange(n2) if sample is None else sample
         floor = np.median(

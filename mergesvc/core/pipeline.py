@@ -40,6 +40,7 @@ from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.threads import blas_threads
 from mergesvc.core.verify import (
     RigidFit,
     align,
@@ -108,9 +109,10 @@ def match(
             f"embedding dimensions differ: map has {m_arr.dim}, submap has {s_arr.dim}"
         )
     timer.lap("prepare")
-    if config.mode is MatchMode.PAPER:
-        return _match_paper(m_arr, s_arr, config, timer)
-    return _match_verified(m_arr, s_arr, config, timer)
+    with blas_threads(m_arr.n * s_arr.n):
+        if config.mode is MatchMode.PAPER:
+            return _match_paper(m_arr, s_arr, config, timer)
+        return _match_verified(m_arr, s_arr, config, timer)
 
 
 # ------------------------------------------------------------------ verified mode
@@ -202,12 +204,21 @@ def _propose(
         config.verify.conflict_sigmas,
     )
     timer.lap("affinity")
-    assignment = _solve_candidates(signed, positive, config)
+    seed = None
     if start is not None:
-        pos = {int(b): k for k, b in enumerate(local)}
-        seed = np.array([pos.get(int(b), UNMATCHED) if b != UNMATCHED else UNMATCHED
-                         for b in start])
-        if signed.is_feasible(seed) and signed.score(seed) > signed.score(assignment):
+        at = np.searchsorted(local, start)
+        hit = (start != UNMATCHED) & (at < len(local))
+        hit[hit] = local[at[hit]] == start[hit]
+        seed = np.where(hit, at, UNMATCHED)
+        if not signed.is_feasible(seed):
+            seed = None
+    if seed is not None and (config.verify.exact or config.solver.name is SolverName.EXACT):
+        # the exact search follows and starts from the seed (improved by its local search):
+        # a second heuristic solve would only hand it another incumbent
+        assignment = prune_negative(signed, seed)
+    else:
+        assignment = _solve_candidates(signed, positive, config)
+        if seed is not None and signed.score(seed) > signed.score(assignment):
             assignment = seed
     timer.lap("solve")
     return _Proposal(cands, signed, positive, local, assignment)
