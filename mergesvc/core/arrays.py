@@ -92,7 +92,7 @@ class ObjectArrays:
     n_obs: np.ndarray
     up_xyz: np.ndarray | None = None
     # what the stages derive from a map once and keep with it (core/search.py: its index)
-    cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.ids)

@@ -153,9 +153,13 @@ def retrieve(
         # the chosen pairs' affinity in float64, as pair_scores (guided matching) computes it
         nodes = np.take_along_axis(shortlist, top, axis=1)
         q = sub.unit_rows()
-        e = map_.embeddings_nd[nodes.ravel()].astype(np.float64).reshape(*nodes.shape, -1)
         n2 = map_.norms_n[nodes]
-        exact_cos = np.einsum("nkd,nd->nk", e, q) / np.where(n2 > 0, n2, 1.0)
+        exact_cos = np.empty(nodes.shape)
+        for lo in range(0, n1, 512):  # (512, k, d) float64 at a time
+            blk = nodes[lo:lo + 512]
+            e = map_.embeddings_nd[blk.ravel()].astype(np.float64).reshape(*blk.shape, -1)
+            exact_cos[lo:lo + 512] = np.einsum("nkd,nd->nk", e, q[lo:lo + 512])
+        exact_cos /= np.where(n2 > 0, n2, 1.0)
         A_top = _ucos_pairs(sub, map_, exact_cos, nodes)
     # scale: a typical submap object's best candidate scores 1; an object whose best candidate
     # is unusually weak (a false detection, a never-seen object) scores below 1 throughout

@@ -174,6 +174,20 @@ class VerifyConfig(_Section):
     )
 
 
+class WindowsConfig(_Section):
+    above_objects: int = Field(
+        48, ge=4, description="submaps with more objects are matched in spatial windows "
+        "(core/windows.py), each verified, then one transform for all"
+    )
+    window_objects: int = Field(
+        32, ge=4, description="most objects per window (windows hold half to all of this)"
+    )
+    time_limit_s: float = Field(
+        0.02, gt=0, description="exact search budget per window (an unproven window's "
+        "matches still count where the common transform takes them)"
+    )
+
+
 class MatchConfig(_Section):
     mode: MatchMode = MatchMode.VERIFIED
     seed: int = 0
@@ -181,6 +195,7 @@ class MatchConfig(_Section):
     affinity: AffinityConfig = AffinityConfig()
     solver: SolverConfig = SolverConfig()
     verify: VerifyConfig = VerifyConfig()
+    windows: WindowsConfig = WindowsConfig()
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

@@ -14,8 +14,9 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import gtsam
 import numpy as np
 
 from mergesvc.core.affinity import (
@@ -25,8 +26,14 @@ from mergesvc.core.affinity import (
     paper_K,
     paper_node_affinity,
 )
-from mergesvc.core.candidates import Candidates, expand_near, retrieve
-from mergesvc.core.config import MatchConfig, MatchMode, SolverName
+from mergesvc.core.candidates import (
+    Calibration,
+    Candidates,
+    expand_near,
+    pair_scores,
+    retrieve,
+)
+from mergesvc.core.config import MatchConfig, MatchMode, SolverName, match_config
 from mergesvc.core.model import (
     Match,
     MatchResult,
@@ -50,6 +57,7 @@ from mergesvc.core.verify import (
     transform_points,
 )
 from mergesvc.core.vertical import FrameVertical, VerticalRelation, frame_vertical, relate
+from mergesvc.core.windows import consensus, one_to_one, partition
 from mergesvc.errors import SchemaError
 
 log = logging.getLogger(__name__)
@@ -290,7 +298,11 @@ def vertical_relation(
     def one(arr: ObjectArrays) -> FrameVertical | None:
         if arr.up_xyz is None and not v.infer_vertical:
             return None
-        return frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
+        # a map's layout is the same for every submap: its vertical is found once
+        key = ("vertical", v.infer_min_objects, v.infer_max_flatness)
+        if key not in arr.cache:
+            arr.cache[key] = frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
+        return arr.cache[key]
 
     # only a submap too small to show its vertical shares the map's: a larger one whose layout
     # is not flat enough has no vertical
@@ -477,6 +489,28 @@ def _match_verified(
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
     sigma_m, _ = edge_scales(map_, config.affinity)
     rel = vertical_relation(sub, map_, config)
+    if sub.n > config.windows.above_objects:
+        return _match_windowed(map_, sub, cands, calib, config, sigma_m, timer, rel)
+    result = _verified_pass(map_, sub, cands, calib, config, sigma_m, timer, rel)
+    outcome = _finish(
+        result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
+    )
+    outcome.exact = result.exact
+    outcome.n_candidates = result.cands.m
+    return outcome
+
+
+def _verified_pass(
+    map_: ObjectArrays,
+    sub: ObjectArrays,
+    cands: Candidates,
+    calib: Calibration,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+    rel: VerticalRelation | None,
+) -> _Pass:
+    """Solve, guided step, exact search and fit of one submap (or one window of one)."""
     prop = _propose(sub, map_, cands, config, sigma_m, timer)
     if config.candidates.guided:
         # Guided matching: when the solver's answer fits a rigid transform, add the map objects
@@ -495,13 +529,118 @@ def _match_verified(
                 rows = np.flatnonzero(start != UNMATCHED)
                 start[rows[~probe.inliers]] = UNMATCHED
                 prop = _propose(sub, map_, more, config, sigma_m, timer, start=start)
-    result = _verify(sub, map_, prop, config, sigma_m, timer, rel)
-    outcome = _finish(
-        result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
-    )
-    outcome.exact = result.exact
-    outcome.n_candidates = result.cands.m
+    return _verify(sub, map_, prop, config, sigma_m, timer, rel)
+
+
+def _match_windowed(
+    map_: ObjectArrays,
+    sub: ObjectArrays,
+    cands: Candidates,
+    calib: Calibration,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+    rel: VerticalRelation | None,
+) -> MatchOutcome:
+    """A large submap in spatial windows (core/windows.py): each window verified on its own
+    (its exact search on a short budget), then the transform most windows' matches agree on,
+    every proposed match that fits it (one map object per submap object), and one fit."""
+    wcfg = match_config(config, verify={"time_limit_s": min(
+        config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
+    proposed = np.full(sub.n, UNMATCHED, dtype=np.int64)
+    scores: dict[int, float] = {}
+    hypotheses = []
+    n_cands = 0
+    for w in partition(sub.position_xyz_m, config.windows.window_objects):
+        local = np.full(sub.n, -1, dtype=np.int64)
+        local[w] = np.arange(len(w))
+        keep = local[cands.rows] >= 0
+        if not keep.any():
+            continue
+        wc = Candidates(local[cands.rows[keep]], cands.map_nodes[keep], cands.affinity[keep],
+                        cands.score[keep])
+        wcal = replace(calib, floor_n=calib.floor_n[w])
+        res = _verified_pass(map_, sub.subset(w), wc, wcal, wcfg, sigma_m, timer, rel)
+        n_cands += res.cands.m
+        # a window whose matches fit (proven optimal or not) offers its transform and its
+        # inliers, any other its proposal: the common transform judges them all
+        got = res.final if res.fit.accepted else res.proposed
+        hit = got != UNMATCHED
+        proposed[w[hit]] = got[hit]
+        scores.update({int(w[i]): v for i, v in res.scores.items()})
+        if res.fit.accepted:
+            hypotheses.append(res.fit.T_map_submap)
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
+    gate = _inlier_gate(sub_xyz, sigma_m, config)
+    T, inl = consensus(sub_xyz, map_xyz, gate, hypotheses)
+    final = np.full(sub.n, UNMATCHED, dtype=np.int64)
+    if T is not None:
+        residual = np.linalg.norm(transform_points(T, sub_xyz) - map_xyz, axis=1)
+        inl &= one_to_one(rows, proposed[rows], np.where(inl, residual, np.inf))
+        final[rows[inl]] = proposed[rows[inl]]
+        # objects whose window was not verified (or left them out): the map object the
+        # common transform puts them on, when it looks like them (score >= node_threshold)
+        final = _fill_by_transform(sub, map_, final, T, sigma_m, calib, config)
+    timer.lap("windows")
+    fit = _fit_large(sub, map_, final, sigma_m, config, rel)
+    reason = fit.reason if T is not None else RejectReason.AMBIGUOUS
+    if fit.accepted:
+        kept = np.flatnonzero(final != UNMATCHED)
+        final[kept[~fit.inliers]] = UNMATCHED
+    else:
+        final[:] = UNMATCHED
+    timer.lap("verify")
+    outcome = _finish(reason, sub, map_, final, proposed, scores, timer, fit)
+    outcome.n_candidates = n_cands
     return outcome
+
+
+def _fill_by_transform(
+    sub: ObjectArrays, map_: ObjectArrays, final: np.ndarray, T: gtsam.Pose3, sigma_m: float,
+    calib: Calibration, config: MatchConfig,
+) -> np.ndarray:
+    """(n1,) assignment with each unmatched submap object given the best-scoring free map
+    object within its residual gate of where T puts it, if that scores node_threshold or
+    more; best scores first, one map object each."""
+    open_rows = np.flatnonzero(final == UNMATCHED)
+    if len(open_rows) == 0:
+        return final
+    gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)[open_rows]
+    near = map_.kdtree.query_ball_point(
+        transform_points(T, sub.position_xyz_m[open_rows]), gate)
+    rows = np.repeat(open_rows, [len(v) for v in near])
+    nodes = np.fromiter((b for v in near for b in v), dtype=np.int64, count=len(rows))
+    taken = np.zeros(map_.n, dtype=bool)
+    taken[final[final != UNMATCHED]] = True
+    free = ~taken[nodes]
+    rows, nodes = rows[free], nodes[free]
+    if len(rows) == 0:
+        return final
+    _, score = pair_scores(sub, map_, rows, nodes, calib)
+    good = score >= config.affinity.node_threshold
+    out = final.copy()
+    for p in np.flatnonzero(good)[np.argsort(-score[good], kind="stable")].tolist():
+        r, b = int(rows[p]), int(nodes[p])
+        if out[r] == UNMATCHED and not taken[b]:
+            out[r], taken[b] = b, True
+    return out
+
+
+def _fit_large(
+    sub: ObjectArrays, map_: ObjectArrays, proposed: np.ndarray, sigma_m: float,
+    config: MatchConfig, rel: VerticalRelation | None,
+) -> RigidFit:
+    """`_fit` for matches already consistent with one transform (windows' consensus): no
+    pairwise consistency peeling (O(k^2)), the 6-DoF fit and its tilt test."""
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
+    gate = _inlier_gate(sub_xyz, sigma_m, config)
+    fit = fit_rigid(sub_xyz, map_xyz, gate, min_matches=config.verify.min_matches,
+                    sigma_floor_m=0.1 * sigma_m)
+    if fit.accepted:
+        fit = _upright(fit, sub_xyz, map_xyz, gate, rel, sigma_m, config)
+    return fit
 
 
 # ------------------------------------------------------------------ paper mode

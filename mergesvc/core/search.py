@@ -24,6 +24,7 @@ from mergesvc.errors import InputError
 log = logging.getLogger(__name__)
 
 _SEARCH_KEY = "search"  # where map_search keeps a map's index in ObjectArrays.cache
+_QUERY_BLOCK = 256  # queries per product: (256 x 65,536) float32 scores, 64 MB
 
 
 class MapSearch(Protocol):
@@ -76,6 +77,10 @@ class ExactSearch:
 
     def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(q_unit, dtype=np.float32)
+        if len(q) > _QUERY_BLOCK:  # bounds the (queries x chunk) products
+            parts = [self.search(q[lo:lo + _QUERY_BLOCK], k) for lo in chunks(len(q),
+                                                                              _QUERY_BLOCK)]
+            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
         m = len(q)
         k = max(1, min(k, self.n))
         best_rows = np.zeros((m, 0), dtype=np.int64)
@@ -163,6 +168,10 @@ class IvfSearch:
 
     def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         q = np.ascontiguousarray(q_unit, dtype=np.float32)
+        block = max(1, _QUERY_BLOCK // 4)
+        if len(q) > block:  # bounds the re-ranking's (queries x found x d) gather
+            parts = [self.search(q[lo:lo + block], k) for lo in chunks(len(q), block)]
+            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
         k = max(1, min(k, self.n))
         self.index.nprobe = self.n_probe
         _, found = self.index.search(q, min(self.n, self.rerank * k))
