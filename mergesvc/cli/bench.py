@@ -25,7 +25,7 @@ from mergesvc.cli.options import (
     settings_file,
     write_settings_beside,
 )
-from mergesvc.core.config import NodeAffinity
+from mergesvc.core.names import NodeAffinity
 
 if TYPE_CHECKING:
     from mergesvc.settings import Settings
