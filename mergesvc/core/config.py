@@ -49,8 +49,9 @@ class CandidatesConfig(_Section):
     index_min_pairs_map: int = Field(
         20_000, ge=1, description="auto: index_min_pairs counts on maps this large only")
     index_lists: int | None = Field(
-        None, ge=1, description="index: inverted lists (None: about 4 sqrt(map objects))")
-    index_probe: int = Field(32, ge=1, description="index: lists probed per query")
+        None, ge=1, description="index: inverted lists (None: sqrt(map objects), at most 1024)")
+    index_probe: int | None = Field(
+        None, ge=1, description="index: lists probed per query (None: a sixteenth, at least 8)")
     index_min_lists: int = Field(
         64, ge=1, description="index: maps with fewer than twice this many objects are searched "
         "exactly")
