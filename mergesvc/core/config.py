@@ -51,7 +51,7 @@ class CandidatesConfig(_Section):
     index_lists: int | None = Field(
         None, ge=1, description="index: inverted lists (None: sqrt(map objects), at most 1024)")
     index_probe: int | None = Field(
-        None, ge=1, description="index: lists probed per query (None: a sixteenth, at least 8)")
+        None, ge=1, description="index: lists probed per query (None: an eighth, at least 8)")
     index_min_lists: int = Field(
         64, ge=1, description="index: maps with fewer than twice this many objects are searched "
         "exactly")
