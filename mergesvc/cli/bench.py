@@ -247,7 +247,7 @@ def bench_scale(
                 raise typer.BadParameter(f"not in the plan: {sorted(unknown)} (plan: "
                                          f"{sorted(plan.cells)})", param_hint="--map-size")
             plan.cells = {k: v for k, v in plan.cells.items() if k in map_size}
-        report = run_scale(plan, echo=typer.echo, work_dir=work_dir)
+        report = run_scale(plan, echo=typer.echo, work_dir=work_dir, partial=out)
     if out is not None:
         write_report(report, out)
         write_settings_beside(tree, out, folder=False)
