@@ -460,3 +460,30 @@ def test_paper_node_affinity(kind: NodeAffinity) -> None:
     np.testing.assert_array_equal(A, distance_to_similarity(D, float(np.median(D))))
     raw = paper_node_affinity(sub, map_, AffinityConfig(kind=kind, raw_distances=True))
     np.testing.assert_array_equal(raw, D)  # the authors' code: the distance as the affinity
+
+
+def test_extend_K_equals_candidate_K_over_the_enlarged_set(kitti_scenario) -> None:
+    """Guided matching keeps K over the first candidates and computes only the new entries:
+    the same numbers (and conflicts) as building K over all of them."""
+    from mergesvc.core.affinity import edge_scales, extend_K
+    from mergesvc.core.candidates import expand_near, retrieve
+    from mergesvc.core.config import MatchConfig
+
+    cfg = MatchConfig()
+    m, s = kitti_scenario.map.arrays(), kitti_scenario.submap.arrays()
+    cands, calib = retrieve(s, m, cfg.candidates, cfg.affinity, np.random.default_rng(0))
+    sigma, _ = edge_scales(m, cfg.affinity)
+    first = candidate_K(s, m, cands.rows, cands.map_nodes, cands.score, cfg.affinity, sigma,
+                        6.0)
+    rng = np.random.default_rng(1)
+    predicted = m.position_xyz_m[rng.integers(0, m.n, s.n)]
+    more = expand_near(cands, s, m, predicted, np.full(s.n, 30.0), calib)
+    assert more.m > cands.m
+    np.testing.assert_array_equal(more.rows[:cands.m], cands.rows)
+    full = candidate_K(s, m, more.rows, more.map_nodes, more.score, cfg.affinity, sigma, 6.0)
+    ext = extend_K(first, s, m, more.rows, more.map_nodes, more.score, cfg.affinity, sigma, 6.0)
+    for a, b in ((full.signed, ext.signed), (full.positive, ext.positive)):
+        np.testing.assert_array_equal(a.K, b.K)
+        np.testing.assert_array_equal(a.cols, b.cols)
+    np.testing.assert_array_equal(full.signed.conflict, ext.signed.conflict)
+    np.testing.assert_array_equal(full.local, ext.local)

@@ -47,6 +47,8 @@ def bench_match(
     repeats: Annotated[int, typer.Option(min=1, help="runs per scenario")] = 5,
     seeds: Annotated[int, typer.Option(min=1, help="scenarios per family")] = 5,
     paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
+    one_thread: Annotated[bool, typer.Option(
+        help="verified mode also with the BLAS on one thread, interleaved")] = True,
     affinity: Annotated[
         list[NodeAffinity] | None,
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
@@ -62,6 +64,7 @@ def bench_match(
         tree = resolve_settings(settings)
         report = run_match_bench(
             repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
+            one_thread=one_thread,
             base=tree.match,
         )
     if out is not None:

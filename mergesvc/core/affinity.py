@@ -494,6 +494,71 @@ def candidate_K(
     )
 
 
+def extend_K(
+    prev: CandidateK,
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    rows: np.ndarray,
+    map_nodes: np.ndarray,
+    node_score: np.ndarray,
+    aff: AffinityConfig,
+    sigma_m: float,
+    conflict_sigmas: float | None = None,
+) -> CandidateK:
+    """candidate_K over candidates whose first m are those of `prev` (same order, same
+    scores): prev's K is copied and only the entries of the new candidates computed, to the
+    same numbers candidate_K gives. rows, map_nodes, node_score: (M,), M >= m."""
+    m, M = prev.signed.m, len(rows)
+    R = np.asarray(rows, dtype=np.int64)
+    local, cols = np.unique(map_nodes, return_inverse=True)
+    e_sub = pairwise_lengths(sub.position_xyz_m)
+    neg_inv = -0.5 / (sigma_m**2 + (aff.edge_rel_tol * e_sub) ** 2)
+    xyz = map_.position_xyz_m[map_nodes]
+    new = np.arange(m, M)
+    # entries (p, q) with q new: every row against the new columns, one (M, M - m) block
+    D = _cross_lengths(xyz, xyz[new])
+    D -= e_sub[np.ix_(R, R[new])]
+    np.square(D, out=D)
+    X = neg_inv[np.ix_(R, R[new])] * D
+    invalid = (R[:, None] == R[new][None, :]) | (cols[:, None] == cols[new][None, :])
+    w = edge_pair_weight(sub.n, aff)
+    pos = np.exp(X)
+    pos *= w
+    pos[invalid] = 0.0
+    signed = pos - w * aff.edge_threshold
+    signed[invalid] = 0.0
+    K_pos = np.empty((M, M))
+    K_signed = np.empty((M, M))
+    for K, old, blk in ((K_pos, prev.positive.K, pos), (K_signed, prev.signed.K, signed)):
+        K[:m, :m] = old
+        K[:, m:] = blk
+        K[m:, :m] = blk[:m].T
+    np.fill_diagonal(K_pos, node_score)
+    np.fill_diagonal(K_signed, node_score - aff.node_threshold)
+    conflict = None
+    if conflict_sigmas is not None and prev.signed.conflict is not None:
+        c = -0.5 * conflict_sigmas**2 > X
+        c[invalid] = False
+        conflict = np.empty((M, M), dtype=bool)
+        conflict[:m, :m] = prev.signed.conflict
+        conflict[:, m:] = c
+        conflict[m:, :m] = c[:m].T
+        np.fill_diagonal(conflict, False)
+    n2 = len(local)
+    return CandidateK(
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_signed, conflict, invalid_zero=True),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_pos, invalid_zero=True),
+        local,
+    )
+
+
+def _cross_lengths(a_xyz: np.ndarray, b_xyz: np.ndarray) -> np.ndarray:
+    """(k, 3), (l, 3) -> (k, l) distances between the two sets' points."""
+    from scipy.spatial.distance import cdist
+
+    return cdist(a_xyz, b_xyz)
+
+
 def paper_node_affinity(sub: ObjectArrays, map_: ObjectArrays, aff: AffinityConfig
                         ) -> np.ndarray:
     """Paper mode's node affinity of every submap x map node, the diagonal of its K. (n1, n2).

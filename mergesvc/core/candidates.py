@@ -197,7 +197,8 @@ def expand_near(
     predicted_xyz_m: (n1, 3) submap centres mapped into the map frame; radius_m: (n1,) gate.
     Guided matching: once a transform is known, an object whose true match ranked below the
     top-k by appearance alone (look-alike instances of a class) is found by where it is.
-    New pairs keep their calibrated appearance score, floored at `min_score`.
+    New pairs keep their calibrated appearance score, floored at `min_score`; they follow the
+    given candidates, which keep their order.
     """
     near = map_.kdtree.query_ball_point(predicted_xyz_m, radius_m)
     rows = np.repeat(np.arange(sub.n), [len(v) for v in near])
@@ -208,9 +209,11 @@ def expand_near(
         return cands
     rows, nodes = rows[new], nodes[new]
     aff, score = pair_scores(sub, map_, rows, nodes, calib)
-    return _sorted(
-        np.concatenate([cands.rows, rows]),
-        np.concatenate([cands.map_nodes, nodes]),
-        np.concatenate([cands.affinity, aff]),
-        np.concatenate([cands.score, np.maximum(score, min_score)]),
+    added = _sorted(rows, nodes, aff, np.maximum(score, min_score))
+    # the earlier candidates first, in their order: K over them is kept (affinity.extend_K)
+    return Candidates(
+        np.concatenate([cands.rows, added.rows]),
+        np.concatenate([cands.map_nodes, added.map_nodes]),
+        np.concatenate([cands.affinity, added.affinity]),
+        np.concatenate([cands.score, added.score]),
     )

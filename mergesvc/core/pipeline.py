@@ -20,9 +20,11 @@ import gtsam
 import numpy as np
 
 from mergesvc.core.affinity import (
+    CandidateK,
     candidate_K,
     edge_pair_weight,
     edge_scales,
+    extend_K,
     paper_K,
     paper_node_affinity,
 )
@@ -203,14 +205,22 @@ def _propose(
     sigma_m: float,
     timer: StageTimer,
     start: np.ndarray | None = None,
+    prev: _Proposal | None = None,
 ) -> _Proposal:
     """Affinity K over the candidates -> solver -> hard assignment with no-match.
 
-    start: (n1,) map indices of an earlier answer, kept when it scores better here."""
-    signed, positive, local = candidate_K(
-        sub, map_, cands.rows, cands.map_nodes, cands.score, config.affinity, sigma_m,
-        config.verify.conflict_sigmas,
-    )
+    start: (n1,) map indices of an earlier answer, kept when it scores better here.
+    prev: the proposal over the first prev.cands.m of these candidates: its K is kept."""
+    if prev is not None:
+        signed, positive, local = extend_K(
+            CandidateK(prev.signed, prev.positive, prev.local), sub, map_, cands.rows,
+            cands.map_nodes, cands.score, config.affinity, sigma_m,
+            config.verify.conflict_sigmas)
+    else:
+        signed, positive, local = candidate_K(
+            sub, map_, cands.rows, cands.map_nodes, cands.score, config.affinity, sigma_m,
+            config.verify.conflict_sigmas,
+        )
     timer.lap("affinity")
     seed = None
     if start is not None:
@@ -528,7 +538,8 @@ def _verified_pass(
                 start = prop.to_map(prop.assignment)
                 rows = np.flatnonzero(start != UNMATCHED)
                 start[rows[~probe.inliers]] = UNMATCHED
-                prop = _propose(sub, map_, more, config, sigma_m, timer, start=start)
+                prop = _propose(sub, map_, more, config, sigma_m, timer, start=start,
+                                prev=prop)
     return _verify(sub, map_, prop, config, sigma_m, timer, rel)
 
 

@@ -160,12 +160,13 @@ def dominated(
         return gone
     order = np.argsort(problem.rows, kind="stable")
     rows, cols = problem.rows[order], problem.cols[order]
-    if problem.invalid_zero and np.array_equal(order, np.arange(m)):
+    if problem.invalid_zero:
         # candidate_K's problems: K symmetric, 0 where two candidates share a row or a col
-        P = problem.K * 2.0
+        sorted_ = bool(np.all(problem.rows[1:] >= problem.rows[:-1]))
+        P = problem.K * 2.0 if sorted_ else problem.K[np.ix_(order, order)] * 2.0
         np.fill_diagonal(P, 0.0)
         if problem.conflict is not None:
-            P[problem.conflict] = 0.0
+            P[problem.conflict if sorted_ else problem.conflict[np.ix_(order, order)]] = 0.0
     else:
         P = problem.K[np.ix_(order, order)]
         P += P.T.copy()
