@@ -156,6 +156,16 @@ class WindowsConfig(_Section):
     window_objects: int = Field(
         32, ge=4, description="most objects per window (windows hold half to all of this)"
     )
+    shortlist: int = Field(
+        64, ge=1, description="cosine shortlist per object of a windowed submap (an ordinary "
+        "one's is candidates.prefilter): its windows' geometry, not a wide shortlist, finds "
+        "look-alikes"
+    )
+    exact: bool = Field(
+        False, description="exact search in each window too (verify.exact); off: the windows "
+        "verify each other through the transform most of their matches fit (measured: the "
+        "same node accuracy at half the time, docs/benchmarks/scale.md)"
+    )
     time_limit_s: float = Field(
         0.02, gt=0, description="exact search budget per window (an unproven window's "
         "matches still count where the common transform takes them)"

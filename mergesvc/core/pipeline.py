@@ -493,13 +493,18 @@ def _match_verified(
 ) -> MatchOutcome:
     rng = np.random.default_rng(config.seed)
     unmatched = np.full(sub.n, UNMATCHED, dtype=np.int64)
-    cands, calib = retrieve(sub, map_, config.candidates, config.affinity, rng)
+    windowed = sub.n > config.windows.above_objects
+    cand_cfg = config.candidates
+    if windowed:
+        cand_cfg = cand_cfg.model_copy(
+            update={"prefilter": min(cand_cfg.prefilter, config.windows.shortlist)})
+    cands, calib = retrieve(sub, map_, cand_cfg, config.affinity, rng)
     timer.lap("candidates")
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
     sigma_m, _ = edge_scales(map_, config.affinity)
     rel = vertical_relation(sub, map_, config)
-    if sub.n > config.windows.above_objects:
+    if windowed:
         return _match_windowed(map_, sub, cands, calib, config, sigma_m, timer, rel)
     result = _verified_pass(map_, sub, cands, calib, config, sigma_m, timer, rel)
     outcome = _finish(
@@ -553,11 +558,13 @@ def _match_windowed(
     timer: StageTimer,
     rel: VerticalRelation | None,
 ) -> MatchOutcome:
-    """A large submap in spatial windows (core/windows.py): each window verified on its own
-    (its exact search on a short budget), then the transform most windows' matches agree on,
-    every proposed match that fits it (one map object per submap object), and one fit."""
-    wcfg = match_config(config, verify={"time_limit_s": min(
-        config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
+    """A large submap in spatial windows (core/windows.py): each window solved and fitted on
+    its own (an exact search on a short budget when windows.exact), then the transform most
+    windows' matches agree on, every proposed match that fits it (one map object per submap
+    object), the objects left placed by that transform, and one fit."""
+    wcfg = match_config(config, verify={
+        "exact": config.verify.exact and config.windows.exact,
+        "time_limit_s": min(config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
     proposed = np.full(sub.n, UNMATCHED, dtype=np.int64)
     scores: dict[int, float] = {}
     hypotheses = []
