@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -76,7 +77,14 @@ def match(
     if given(ctx, affinity=affinity):
         flags["affinity"] = {"kind": affinity.value}
     with exit_on_error():
-        cfg = resolve_settings(settings, {"match": flags}).match
+        if settings is None and not any(k.startswith("MERGESVC_") for k in os.environ):
+            # no file, no environment: the tree's `match` section is the defaults, built
+            # without loading the whole settings tree (it imports the service: ~1 s)
+            from mergesvc.core.config import match_config
+
+            cfg = match_config(**flags)
+        else:
+            cfg = resolve_settings(settings, {"match": flags}).match
         map_ = load(map_path, ObjectMap)
         sub = load(submap_path, Submap)
         outcome = run_match(map_, sub, cfg)
