@@ -20,6 +20,7 @@ import numpy as np
 
 from mergesvc.core.arrays import ObjectArrays, chunks
 from mergesvc.core.config import CandidatesConfig, SearchKind
+from mergesvc.core.threads import PIN_BELOW_PAIRS
 from mergesvc.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -182,6 +183,9 @@ class IvfSearch:
             return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
         k = max(1, min(k, self.n))
         self.index.nprobe = self.n_probe
+        # a few queries: one thread (waking more costs more); a large submap's: every core
+        big = len(q) * self.n >= PIN_BELOW_PAIRS
+        self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
         _, found = self.index.search(q, min(self.n, self.rerank * k))
         found = found.astype(np.int64)
         # exact float32 cosines of what the probe found: sorted rows read the map in order

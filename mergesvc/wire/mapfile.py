@@ -218,6 +218,7 @@ def load_arrays(path: Path | str, mmap_large: bool = True
         raise SchemaError(f"invalid {p}: {one_line(exc)}") from exc
     except (ValueError, TypeError) as exc:
         raise SchemaError(f"invalid {p}: {one_line(exc)}") from exc
+    release_pages(arrays)  # the checks read every mapped page: not this process's memory
     labels = None
     if "has_label" in views:
         text = _texts(read("labels"), read("label_ends"), f"{p}: labels")
