@@ -161,6 +161,11 @@ class WindowsConfig(_Section):
         "one's is candidates.prefilter): its windows' geometry, not a wide shortlist, finds "
         "look-alikes"
     )
+    guided: bool = Field(
+        False, description="guided step in each window too (candidates.guided); off: the "
+        "common transform places every object the windows left (the same node accuracy at "
+        "about half the CPU, docs/benchmarks/scale.md)"
+    )
     exact: bool = Field(
         False, description="exact search in each window too (verify.exact); off: the windows "
         "verify each other through the transform most of their matches fit (measured: the "

@@ -562,7 +562,8 @@ def _match_windowed(
     its own (an exact search on a short budget when windows.exact), then the transform most
     windows' matches agree on, every proposed match that fits it (one map object per submap
     object), the objects left placed by that transform, and one fit."""
-    wcfg = match_config(config, verify={
+    wcfg = match_config(config, candidates={
+        "guided": config.candidates.guided and config.windows.guided}, verify={
         "exact": config.verify.exact and config.windows.exact,
         "time_limit_s": min(config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
     proposed = np.full(sub.n, UNMATCHED, dtype=np.int64)
