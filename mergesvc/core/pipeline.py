@@ -570,14 +570,17 @@ def _match_windowed(
     scores: dict[int, float] = {}
     hypotheses = []
     n_cands = 0
+    # each row's candidates are one run of the list (retrieve sorts it by row)
+    order = np.argsort(cands.rows, kind="stable")
+    starts = np.searchsorted(cands.rows[order], np.arange(sub.n + 1))
     for w in partition(sub.position_xyz_m, config.windows.window_objects):
-        local = np.full(sub.n, -1, dtype=np.int64)
-        local[w] = np.arange(len(w))
-        keep = local[cands.rows] >= 0
-        if not keep.any():
+        counts = starts[w + 1] - starts[w]
+        if not counts.any():
             continue
-        wc = Candidates(local[cands.rows[keep]], cands.map_nodes[keep], cands.affinity[keep],
-                        cands.score[keep])
+        first = np.repeat(starts[w] - np.cumsum(counts) + counts, counts)
+        keep = order[first + np.arange(int(counts.sum()))]
+        wc = Candidates(np.repeat(np.arange(len(w)), counts), cands.map_nodes[keep],
+                        cands.affinity[keep], cands.score[keep])
         wcal = replace(calib, floor_n=calib.floor_n[w])
         res = _verified_pass(map_, sub.subset(w), wc, wcal, wcfg, sigma_m, timer, rel)
         n_cands += res.cands.m
