@@ -23,6 +23,13 @@ def test_small_problems_pin_the_blas_and_restore_it() -> None:
             assert set(blas_thread_counts()) == {2}
 
 
+def test_a_blas_loaded_after_the_first_pin_is_pinned_too() -> None:
+    import faiss  # noqa: F401  (brings its own BLAS: loaded here, after earlier pins)
+
+    with threadpool_limits(2, user_api="blas"), blas_threads(100):
+        assert set(blas_thread_counts()) == {1}
+
+
 def test_match_runs_on_one_thread(monkeypatch: pytest.MonkeyPatch, small_kitti_scenario) -> None:
     seen: list[list[int]] = []
     inner = pipeline._match_verified

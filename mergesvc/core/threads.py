@@ -10,6 +10,7 @@ leaves it alone above, where a whole-map product does gain from threads.
 from __future__ import annotations
 
 import contextlib
+import sys
 from collections.abc import Iterator
 from typing import Any
 
@@ -18,16 +19,19 @@ from typing import Any
 PIN_BELOW_PAIRS = 20_000_000
 
 _controller: Any = None
+_modules_seen = -1
 
 
 def _threadpools() -> Any:
-    """threadpoolctl's controller over the BLAS libraries loaded now (made once: listing the
-    loaded libraries costs milliseconds, switching their thread count microseconds)."""
-    global _controller
-    if _controller is None:
+    """threadpoolctl's controller over the BLAS libraries loaded now: listing them costs
+    milliseconds, switching their thread count microseconds, so the list is made again only
+    when modules were imported since (one may have brought its own BLAS, as faiss does)."""
+    global _controller, _modules_seen
+    if _controller is None or len(sys.modules) != _modules_seen:
         from threadpoolctl import ThreadpoolController
 
         _controller = ThreadpoolController()
+        _modules_seen = len(sys.modules)
     return _controller
 
 
