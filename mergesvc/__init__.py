@@ -18,46 +18,39 @@ The names below are the public API for Python users: `mergesvc.match(map, submap
 and message models, and the codec's entry points.
 """
 
+import importlib
 import logging
+import typing
 
-from mergesvc.core.config import MatchConfig, MatchMode, NodeAffinity, SolverName
-from mergesvc.core.model import (
-    Correspondence,
-    ErrorMessage,
-    Factor,
-    FactorStatus,
-    Match,
-    MatchResult,
-    ObjectArrays,
-    ObjectMap,
-    ObjectNode,
-    RejectReason,
-    Submap,
-    Transform,
-)
-from mergesvc.core.pipeline import MatchOutcome, match
-from mergesvc.errors import (
-    CodecError,
-    ConfigError,
-    DecodeError,
-    InputError,
-    MergeError,
-    SchemaError,
-    SolverError,
-)
-from mergesvc.wire import (
-    CODEC_VERSION,
-    CodecLimits,
-    CodecSettings,
-    MessageType,
-    Profile,
-    Projection,
-    decode_file,
-    decode_message,
-    encode_file,
-    encode_message,
-    load_model,
-)
+# name -> the module that defines it. Imported on first use (PEP 562), so `import mergesvc`
+# (and `mergesvc --help`) does not load numpy, scipy, gtsam and pydantic up front.
+_WHERE = {
+    **dict.fromkeys(("MatchConfig", "MatchMode", "NodeAffinity", "SolverName"),
+                    "mergesvc.core.config"),
+    **dict.fromkeys(("Correspondence", "ErrorMessage", "Factor", "FactorStatus", "Match",
+                     "MatchResult", "ObjectArrays", "ObjectMap", "ObjectNode", "RejectReason",
+                     "Submap", "Transform"), "mergesvc.core.model"),
+    **dict.fromkeys(("MatchOutcome", "match"), "mergesvc.core.pipeline"),
+    **dict.fromkeys(("CodecError", "ConfigError", "DecodeError", "InputError", "MergeError",
+                     "SchemaError", "SolverError"), "mergesvc.errors"),
+    **dict.fromkeys(("CODEC_VERSION", "CodecLimits", "CodecSettings", "MessageType", "Profile",
+                     "Projection", "decode_file", "decode_message", "encode_file",
+                     "encode_message", "load_model"), "mergesvc.wire"),
+}
+
+
+def __getattr__(name: str) -> typing.Any:
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module 'mergesvc' has no attribute {name!r}")
+    value = getattr(importlib.import_module(where), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
 
 __version__ = "0.1.0"
 

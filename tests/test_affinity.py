@@ -38,6 +38,11 @@ def _objs(rng: np.random.Generator, n: int, d: int) -> ObjectArrays:
     )
 
 
+def _f64(objs: ObjectArrays) -> np.ndarray:
+    """The embeddings as held (float32), in float64 for the references' arithmetic."""
+    return objs.embeddings_nd.astype(np.float64)
+
+
 def _bhattacharyya_ref(mu1, var1, mu2, var2) -> float:
     S1, S2 = np.diag(var1), np.diag(var2)
     S = (S1 + S2) / 2
@@ -54,7 +59,7 @@ def test_weighted_cosine_matches_formula() -> None:
     W = weighted_cosine(a.embeddings_nd, a.uncertainty_s, b.embeddings_nd, b.uncertainty_s)
     for i in range(4):
         for j in range(5):
-            f1, f2 = a.embeddings_nd[i], b.embeddings_nd[j]
+            f1, f2 = _f64(a)[i], _f64(b)[j]
             cos = f1 @ f2 / np.linalg.norm(f1) / np.linalg.norm(f2)
             ref = cos / (1 + (a.uncertainty_s[i] + b.uncertainty_s[j]) / 2)
             assert W[i, j] == pytest.approx(ref, rel=1e-12)
@@ -68,8 +73,8 @@ def test_gaussian_distances_match_dense_reference(normalize: bool) -> None:
     DM = node_distance(NodeAffinity.MAHALANOBIS, a, b, normalize=normalize)
     for i in range(3):
         for j in range(4):
-            mu1, var1 = a.embeddings_nd[i], a.variances_nd[i]
-            mu2, var2 = b.embeddings_nd[j], b.variances_nd[j]
+            mu1, var1 = _f64(a)[i], a.variances_nd[i]
+            mu2, var2 = _f64(b)[j], b.variances_nd[j]
             if normalize:
                 n1, n2 = np.linalg.norm(mu1), np.linalg.norm(mu2)
                 mu1, var1, mu2, var2 = mu1 / n1, var1 / n1**2, mu2 / n2, var2 / n2**2
@@ -175,8 +180,8 @@ def _lr_reference(mu1, var1, mu2, var2, c: float, D: float, nu: float) -> tuple[
 
 def _fit_reference(sub: ObjectArrays, map_: ObjectArrays) -> tuple[float, float]:
     """Eqs. LR-2 and LR-4 by a direct loop: (c, D)."""
-    u1 = sub.embeddings_nd / np.linalg.norm(sub.embeddings_nd, axis=1, keepdims=True)
-    u2 = map_.embeddings_nd / np.linalg.norm(map_.embeddings_nd, axis=1, keepdims=True)
+    u1 = _f64(sub) / np.linalg.norm(_f64(sub), axis=1, keepdims=True)
+    u2 = _f64(map_) / np.linalg.norm(_f64(map_), axis=1, keepdims=True)
     d = sub.dim
     sq = [[float(np.sum((u1[i] - u2[a]) ** 2)) for a in range(map_.n)] for i in range(sub.n)]
     D = float(np.median(sq)) / d
@@ -203,8 +208,8 @@ def test_likelihood_ratio_matches_direct_reference(isotropic: bool, d: int) -> N
     for c_scale, D_scale in ((1.0, 1.0), (30.0, 1.0), (1.0, 0.05)):
         m = SameObjectModel(c=model.c * c_scale, D=model.D * D_scale, normalize=True)
         L = log_likelihood_ratio(a, b, m)
-        u1 = a.embeddings_nd / np.linalg.norm(a.embeddings_nd, axis=1, keepdims=True)
-        u2 = b.embeddings_nd / np.linalg.norm(b.embeddings_nd, axis=1, keepdims=True)
+        u1 = _f64(a) / np.linalg.norm(_f64(a), axis=1, keepdims=True)
+        u2 = _f64(b) / np.linalg.norm(_f64(b), axis=1, keepdims=True)
         for i in range(a.n):
             for j in range(b.n):
                 ref, beyond = _lr_reference(u1[i], a.variances_nd[i], u2[j],
@@ -235,15 +240,16 @@ def test_likelihood_ratio_invariances(isotropic: bool) -> None:
     kind = NodeAffinity.LIKELIHOOD_RATIO
     L = node_affinity(kind, a, b)
     # each embedding's norm (brightness) and one common unit of all variances: no effect
-    a2 = _with(a, embeddings_nd=a.embeddings_nd * rng.uniform(0.1, 10, (a.n, 1)),
+    # (powers of two: the float32 embeddings scale exactly)
+    a2 = _with(a, embeddings_nd=a.embeddings_nd * 2.0 ** rng.integers(-3, 4, (a.n, 1)),
                variances_nd=a.variances_nd * 7.0)
-    b2 = _with(b, embeddings_nd=b.embeddings_nd * rng.uniform(0.1, 10, (b.n, 1)),
+    b2 = _with(b, embeddings_nd=b.embeddings_nd * 2.0 ** rng.integers(-3, 4, (b.n, 1)),
                variances_nd=b.variances_nd * 7.0)
     np.testing.assert_allclose(node_affinity(kind, a2, b2), L, rtol=1e-9, atol=1e-9)
     # without normalisation: one scale of all embeddings (and their variances with its square)
     raw = node_affinity(kind, a, b, normalize=False)
-    a3 = _with(a, embeddings_nd=a.embeddings_nd * 40.0, variances_nd=a.variances_nd * 1600.0)
-    b3 = _with(b, embeddings_nd=b.embeddings_nd * 40.0, variances_nd=b.variances_nd * 1600.0)
+    a3 = _with(a, embeddings_nd=a.embeddings_nd * 32.0, variances_nd=a.variances_nd * 1024.0)
+    b3 = _with(b, embeddings_nd=b.embeddings_nd * 32.0, variances_nd=b.variances_nd * 1024.0)
     np.testing.assert_allclose(node_affinity(kind, a3, b3, normalize=False), raw, rtol=1e-9,
                                atol=1e-9)
     # permuting either side permutes the rows / columns
@@ -290,8 +296,9 @@ def test_likelihood_ratio_monotone() -> None:
 def test_likelihood_ratio_finite_on_extreme_inputs(isotropic: bool, d: int) -> None:
     rng = np.random.default_rng(14)
     n1, n2 = 5, 12
-    emb1 = rng.normal(size=(n1, d)) * np.array([1e-150, 1e150, 1.0, 1.0, 0.0])[:, None]
-    emb2 = rng.normal(size=(n2, d)) * 10.0 ** rng.uniform(-100, 100, (n2, 1))
+    # embeddings are held in float32: extremes of its range (beyond it they are refused)
+    emb1 = rng.normal(size=(n1, d)) * np.array([1e-30, 1e30, 1.0, 1.0, 0.0])[:, None]
+    emb2 = rng.normal(size=(n2, d)) * 10.0 ** rng.uniform(-30, 30, (n2, 1))
     emb2[0] = emb1[2]  # one identical pair
     var1 = 10.0 ** rng.choice([-300.0, -5.0, 0.0, 300.0], size=(n1, 1 if isotropic else d))
     var2 = 10.0 ** rng.choice([-300.0, -5.0, 0.0, 300.0], size=(n2, 1 if isotropic else d))
@@ -453,3 +460,30 @@ def test_paper_node_affinity(kind: NodeAffinity) -> None:
     np.testing.assert_array_equal(A, distance_to_similarity(D, float(np.median(D))))
     raw = paper_node_affinity(sub, map_, AffinityConfig(kind=kind, raw_distances=True))
     np.testing.assert_array_equal(raw, D)  # the authors' code: the distance as the affinity
+
+
+def test_extend_K_equals_candidate_K_over_the_enlarged_set(kitti_scenario) -> None:
+    """Guided matching keeps K over the first candidates and computes only the new entries:
+    the same numbers (and conflicts) as building K over all of them."""
+    from mergesvc.core.affinity import edge_scales, extend_K
+    from mergesvc.core.candidates import expand_near, retrieve
+    from mergesvc.core.config import MatchConfig
+
+    cfg = MatchConfig()
+    m, s = kitti_scenario.map.arrays(), kitti_scenario.submap.arrays()
+    cands, calib = retrieve(s, m, cfg.candidates, cfg.affinity, np.random.default_rng(0))
+    sigma, _ = edge_scales(m, cfg.affinity)
+    first = candidate_K(s, m, cands.rows, cands.map_nodes, cands.score, cfg.affinity, sigma,
+                        6.0)
+    rng = np.random.default_rng(1)
+    predicted = m.position_xyz_m[rng.integers(0, m.n, s.n)]
+    more = expand_near(cands, s, m, predicted, np.full(s.n, 30.0), calib)
+    assert more.m > cands.m
+    np.testing.assert_array_equal(more.rows[:cands.m], cands.rows)
+    full = candidate_K(s, m, more.rows, more.map_nodes, more.score, cfg.affinity, sigma, 6.0)
+    ext = extend_K(first, s, m, more.rows, more.map_nodes, more.score, cfg.affinity, sigma, 6.0)
+    for a, b in ((full.signed, ext.signed), (full.positive, ext.positive)):
+        np.testing.assert_array_equal(a.K, b.K)
+        np.testing.assert_array_equal(a.cols, b.cols)
+    np.testing.assert_array_equal(full.signed.conflict, ext.signed.conflict)
+    np.testing.assert_array_equal(full.local, ext.local)

@@ -90,7 +90,7 @@ def test_monte_carlo_redundancy_matches_the_exact_one() -> None:
         jf = gfg.at(i)
         A, _ = jf.jacobian()
         blocks.append((i, jf.keys(), A))
-        for k in jf.keys():
+        for k in list(jf.keys()):
             cols.setdefault(k, 6 * len(cols))
     A_full = np.zeros((6 * g.size(), 6 * len(cols)))
     for i, keys, A in blocks:
@@ -181,7 +181,7 @@ def test_the_pose_graph_calibrates_its_groups() -> None:
     """Through PoseGraph: groups named on add_factor, scales after solves, only the
     configured groups moved, and the factors' covariances as solved come out scaled."""
     true_o0 = np.array([0.5] * 3 + [1.0] * 3)
-    truth, odo, pairs = _world(5, 80, 120, true_o0, 1.0)
+    _, odo, pairs = _world(5, 80, 120, true_o0, 1.0)
     cfg = GraphConfig(calibration=dict(enabled=True, groups=("odometry",),
                                        prior_redundancy=1.0, resolves=3))
     pg = PoseGraph(anchor="a#0", config=cfg)

@@ -128,9 +128,13 @@ def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stderr
     report = json.loads(out.read_text())
-    assert set(report["results"]) == {"kitti/verified/ucos", "underwater/verified/ucos"}
+    # verified mode with default threads and, interleaved, on one BLAS thread
+    assert set(report["results"]) == {
+        "kitti/verified/ucos", "underwater/verified/ucos",
+        "kitti/verified (1 thread)/ucos", "underwater/verified (1 thread)/ucos"}
     kitti = report["results"]["kitti/verified/ucos"]
     assert kitti["runs"] == 2 and kitti["scenarios"] == 1
+    assert report["results"]["kitti/verified (1 thread)/ucos"]["runs"] == 2
     assert kitti["node_accuracy"] >= 0.9  # seed 0 is an easy, fully recoverable scenario
     assert "| kitti/verified/ucos |" in r.stdout
 

@@ -16,7 +16,8 @@ def _scene(seed: int, vertical: bool):
     T_true = gtsam.Pose3(gtsam.Rot3.Yaw(0.4) if vertical else gtsam.Rot3.Ypr(0.4, 0.05, -0.03),
                          np.array([3.0, -2.0, 0.5]))
     kfs = [7, 7, 7, 9, 9, 12, 12, 12]
-    placements_true = {7: gtsam.Pose3(), 9: gtsam.Pose3(gtsam.Rot3.Yaw(0.2), np.array([2.0, 0.5, 0])),
+    placements_true = {7: gtsam.Pose3(),
+                       9: gtsam.Pose3(gtsam.Rot3.Yaw(0.2), np.array([2.0, 0.5, 0])),
                        12: gtsam.Pose3(gtsam.Rot3.Yaw(0.5), np.array([4.0, 1.5, 0.1]))}
     S = {7: np.zeros((6, 6)), 9: np.diag([1e-6, 1e-6, 4e-4, 1e-4, 1e-4, 1e-6]),
          12: np.diag([2e-6, 2e-6, 1e-3, 4e-4, 4e-4, 2e-6])}
@@ -70,7 +71,7 @@ def test_exact_points_give_the_transform_and_far_objects_weigh_less() -> None:
         assert T.equals(T_true, 1e-9)
     # one far object with a gross error: the weighted fit is pulled less
     far = np.array([40.0, 0.0, 0.0])
-    sub2 = np.vstack([sub, T_true.transformTo(far) + [0, 3.0, 0]])
+    sub2 = np.vstack([sub, T_true.transformTo(far) + np.array([0.0, 3.0, 0.0])])
     body2 = np.vstack([body, far])
     errs = []
     for weighted in (False, True):
@@ -81,7 +82,7 @@ def test_exact_points_give_the_transform_and_far_objects_weigh_less() -> None:
 
 
 def test_what_cannot_be_fitted() -> None:
-    T_true, kfs, P, S, sub, body = _scene(4, False)
+    _, kfs, P, S, sub, body = _scene(4, False)
     placed = {g: (T, S[g]) for g, T in P.items()}
     assert local_fit(sub[:2], body[:2], kfs[:2], placed) is None  # 6-DoF needs 3
     assert local_fit(sub, body, [99] * len(kfs), placed) is None  # a keyframe not placed

@@ -14,6 +14,7 @@ from mergesvc.core.model import (
     ObjectMap,
     RejectReason,
     Submap,
+    arrays_to_nodes,
     json_schemas,
     parse_model,
 )
@@ -56,10 +57,10 @@ def test_valid_file_and_uncertainty() -> None:
 def test_arrays_round_trip() -> None:
     m = parse_model(ObjectMap, json.dumps(_doc()))
     arr = m.arrays()
-    back = ObjectArrays.from_objects(arr.to_nodes())
+    back = ObjectArrays.from_objects(arrays_to_nodes(arr))
     for name in ("position_xyz_m", "embeddings_nd", "variances_nd", "n_obs"):
         np.testing.assert_array_equal(getattr(back, name), getattr(arr, name))
-    assert isinstance(arr.to_nodes()[1].variance, float)
+    assert isinstance(arrays_to_nodes(arr)[1].variance, float)
 
 
 def _mutate(path: list, value) -> dict:

@@ -323,6 +323,14 @@ def via_bench_generalize(monkeypatch, tmp, pair, settings: list[str]) -> MatchCo
     return _invoke(["bench", "generalize", "--quick", *settings])
 
 
+def via_bench_scale(monkeypatch, tmp, pair, settings: list[str]) -> MatchConfig:
+    import mergesvc.bench.scale
+
+    monkeypatch.setattr(mergesvc.bench.scale, "run_scale",
+                        lambda plan, **kw: _reach(MatchConfig.model_validate(plan.config)))
+    return _invoke(["bench", "scale", "--quick", *settings])
+
+
 def via_bench_merge(monkeypatch, tmp, pair, settings: list[str]) -> tuple[Any, LinkConfig]:
     monkeypatch.setattr(mergesvc.bench, "run_merge_bench",
                         lambda *a, **kw: _reach((kw["service"], kw["link_config"])))
@@ -400,6 +408,7 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
         (via_bench_uncertainty, lambda got: got),
         (via_bench_link, lambda got: got[0]),
         (via_bench_generalize, lambda got: got),
+        (via_bench_scale, lambda got: got),
     ],
     "service": [(via_serve, lambda got: got), (via_bench_merge, lambda got: got[0]),
                 (via_bench_soak, lambda got: got), (via_bench_cost, lambda got: got)],
@@ -411,7 +420,7 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
 BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge", "soak", "cost",
-                  "fuzz"}
+                  "fuzz", "scale"}
 # fields a command sets itself, whatever the settings say
 SET_BY_THE_COMMAND = {"via_bench_cost": {("service", "store")}}  # a fresh store per run
 # the decoders at their built-in limits (what a service without a settings file refuses)

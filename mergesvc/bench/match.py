@@ -12,6 +12,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from mergesvc.bench.scoring import _cpu_count, _spread, check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
@@ -20,10 +21,11 @@ from mergesvc.sim import Family, Scenario, make_scenario
 
 
 def run_case(
-    sc: Scenario, config: MatchConfig, repeats: int
+    sc: Scenario, config: MatchConfig, repeats: int, one_thread: list[float] | None = None
 ) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
     """Run one scenario `repeats` (>= 1, else InputError) times; (scores of the first run,
-    totals ms, stage ms)."""
+    totals ms, stage ms). With `one_thread` (a list), each run is followed by one with the
+    BLAS held to one thread, its total appended there: both under the same machine load."""
     check_count("repeats", repeats)
     totals: list[float] = []
     stages: dict[str, list[float]] = {}
@@ -35,6 +37,9 @@ def run_case(
         for k, v in outcome.result.timings_ms.items():
             stages.setdefault(k, []).append(v)
         totals.append(outcome.result.timings_ms["total"])
+        if one_thread is not None:
+            with threadpool_limits(1):
+                one_thread.append(match(sc.map, sc.submap, config).result.timings_ms["total"])
     return scores, totals, stages
 
 
@@ -68,10 +73,12 @@ def run_match_bench(
     families: tuple[Family, ...] = (Family.KITTI, Family.UNDERWATER),
     affinities: tuple[str, ...] = ("ucos",),
     base: MatchConfig | None = None,
+    one_thread: bool = True,
 ) -> dict[str, Any]:
-    """Both modes on `seeds` scenarios per family and affinity. Paper mode runs once per
-    scenario (it takes seconds); verified mode `repeats` times. Every configuration is `base`
-    (default: the defaults) with its mode and affinity set. Returns a JSON-ready report
+    """Both modes on `seeds` scenarios per family and affinity; verified mode also with the
+    BLAS held to one thread, interleaved with the default runs (`one_thread`). Paper mode runs
+    once per scenario (it takes seconds); verified mode `repeats` times. Every configuration is
+    `base` (default: the defaults) with its mode and affinity set. Returns a JSON-ready report
     (results keyed family/mode/affinity) and echoes a table. InputError for repeats or seeds
     below 1."""
     check_count("repeats", repeats)
@@ -90,13 +97,14 @@ def run_match_bench(
             for name, cfg, once in _modes(paper, affinity, base):
                 report["settings"][f"{name}/{affinity}"] = cfg.model_dump(mode="json")
                 rows, totals, stages = [], [], {}
+                single: list[float] | None = [] if (one_thread and not once) else None
                 for seed in range(seeds):
                     sc = scenarios[family, seed]
                     run_cfg = cfg
                     if name.startswith("paper"):  # the paper's radius for this kind of world
                         run_cfg = cfg.model_copy(deep=True)
                         run_cfg.affinity.edge_radius_m = sc.paper_radius_m
-                    scores, t, st = run_case(sc, run_cfg, 1 if once else repeats)
+                    scores, t, st = run_case(sc, run_cfg, 1 if once else repeats, single)
                     rows.append(scores)
                     totals += t
                     for k, v in st.items():
@@ -110,6 +118,9 @@ def run_match_bench(
                 report["results"][f"{family.value}/{name}/{affinity}"] = _summary(
                     rows, totals, stages
                 )
+                if single:  # the same runs, interleaved, with the BLAS on one thread
+                    report["results"][f"{family.value}/{name} (1 thread)/{affinity}"] = \
+                        _summary(rows, single, {})
     echo("")
     echo(markdown_table(report))
     return report

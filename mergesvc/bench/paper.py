@@ -28,7 +28,7 @@ from mergesvc.bench.scoring import (
     score_case,
 )
 from mergesvc.core.config import MatchConfig, match_config
-from mergesvc.core.model import ObjectArrays, ObjectMap
+from mergesvc.core.model import ObjectArrays, ObjectMap, arrays_to_nodes
 from mergesvc.core.pipeline import MatchOutcome, match
 from mergesvc.sim import Scenario
 
@@ -324,7 +324,7 @@ def grow_map(sc: Scenario, n_total: int, rng: np.random.Generator) -> Scenario:
         np.concatenate(nobs),
     )
     big = ObjectMap(robot_id=sc.map.robot_id, session_id=sc.map.session_id,
-                    objects=grown.to_nodes())
+                    objects=arrays_to_nodes(grown))
     return Scenario(big, sc.submap, sc.truth, sc.R_map_submap, sc.t_map_submap,
                     sc.paper_radius_m, sc.equivalent)
 

@@ -1,5 +1,6 @@
-"""Command line: `mergesvc match`, `example`, `schemas`, `config`, `serve`, `agent`, `demo`,
-`export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+"""Command line: `mergesvc match`, `convert`, `example`, `schemas`, `config`, `serve`, `agent`,
+`demo`, `export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package
+exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
 `config --dump`), `bench` (benchmarks), `fleet` (the service, vehicles, the demo and the
@@ -21,7 +22,16 @@ from mergesvc.cli import bench, files, fleet, view
 
 __all__ = ["app", "hoist_verbose", "main"]
 
+class _PlainTopHelp(typer.core.TyperGroup):
+    """`mergesvc --help` in plain text: rich's help renderer alone costs ~0.3 s of start-up
+    (every command's own --help keeps it)."""
+
+    def format_help(self, ctx, formatter) -> None:  # type: ignore[no-untyped-def]
+        super(typer.core.TyperGroup, self).format_help(ctx, formatter)
+
+
 app = typer.Typer(
+    cls=_PlainTopHelp,
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -41,8 +51,8 @@ def _main(
 
 
 for _command in (
-    files.match, files.example, files.schemas, files.config, fleet.serve, fleet.agent, fleet.demo,
-    fleet.export, view.view,
+    files.match, files.convert, files.example, files.schemas, files.config, fleet.serve,
+    fleet.agent, fleet.demo, fleet.export, view.view,
 ):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")

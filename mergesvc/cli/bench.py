@@ -1,4 +1,4 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize|merge|soak|cost|fuzz` (see
+"""`mergesvc bench match|paper|uncertainty|link|generalize|scale|merge|soak|cost|fuzz` (see
 docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
@@ -25,7 +25,7 @@ from mergesvc.cli.options import (
     settings_file,
     write_settings_beside,
 )
-from mergesvc.core.config import NodeAffinity
+from mergesvc.core.names import NodeAffinity
 
 if TYPE_CHECKING:
     from mergesvc.settings import Settings
@@ -47,6 +47,8 @@ def bench_match(
     repeats: Annotated[int, typer.Option(min=1, help="runs per scenario")] = 5,
     seeds: Annotated[int, typer.Option(min=1, help="scenarios per family")] = 5,
     paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
+    one_thread: Annotated[bool, typer.Option(
+        help="verified mode also with the BLAS on one thread, interleaved")] = True,
     affinity: Annotated[
         list[NodeAffinity] | None,
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
@@ -62,6 +64,7 @@ def bench_match(
         tree = resolve_settings(settings)
         report = run_match_bench(
             repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
+            one_thread=one_thread,
             base=tree.match,
         )
     if out is not None:
@@ -208,6 +211,50 @@ def bench_generalize(
     typer.echo(f"\n{len(plan.cells)} cells x {seeds} seed(s) in {report['elapsed_s']:.0f} s")
     if out is not None:
         _write_report(report, out, tree)
+
+
+@app.command("scale")
+def bench_scale(
+    quick: Annotated[bool, typer.Option(help="900- and 5,000-object maps (a few minutes)")] = (
+        False),
+    repeats: Annotated[int, typer.Option(min=1, help="matches per submap and thread mode")] = 5,
+    cases: Annotated[int, typer.Option(min=1, help="submaps per size (up to 100 objects)")] = 5,
+    seed: Annotated[int, typer.Option(min=0, help="world seed")] = 0,
+    map_size: Annotated[list[int] | None, typer.Option(
+        "--map-size", min=2, help="only these map sizes of the plan (repeat)")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="write the report as JSON here (and .md beside it)")
+    ] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="the shared data folder (default: ../shared/data)")
+    ] = None,
+    work_dir: Annotated[Path | None, typer.Option(
+        help="where the worlds' binary map files are written while they are matched")] = None,
+    settings: BenchSettings = None,
+) -> None:
+    """Cost against map size (1k-1M objects) and submap size (2-10,000 objects): p50/p99
+    latency with default BLAS threads and with one, peak RSS, node accuracy, candidate recall
+    of the exact top-k (look-alikes apart)."""
+    from mergesvc.bench.scale import ScalePlan, run_scale, write_report
+
+    with exit_on_error():
+        tree = resolve_settings(settings)
+        kw: dict[str, Any] = {"repeats": repeats, "cases": cases, "seed": seed,
+                              "config": tree.match.model_dump(mode="json")}
+        if data is not None:
+            kw["data_dir"] = data
+        plan = ScalePlan.quick(**kw) if quick else ScalePlan.full(**kw)
+        if map_size:
+            unknown = set(map_size) - set(plan.cells)
+            if unknown:
+                raise typer.BadParameter(f"not in the plan: {sorted(unknown)} (plan: "
+                                         f"{sorted(plan.cells)})", param_hint="--map-size")
+            plan.cells = {k: v for k, v in plan.cells.items() if k in map_size}
+        report = run_scale(plan, echo=typer.echo, work_dir=work_dir, partial=out)
+    if out is not None:
+        write_report(report, out)
+        write_settings_beside(tree, out, folder=False)
+        typer.echo(f"wrote {out} and {out.with_suffix('.md')}")
 
 
 MergeBenchSettings = settings_file(

@@ -1,9 +1,10 @@
-"""Commands that read and write files: `match`, `example`, `schemas`, `config --dump`,
+"""Commands that read and write files: `match`, `convert`, `example`, `schemas`, `config --dump`,
 `codec encode|decode`, `scenario underwater|drive`, `uncertainty train|eval`."""
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -21,9 +22,9 @@ from mergesvc.cli.options import (
     resolve_settings,
     settings_file,
 )
-from mergesvc.core.config import MatchMode, NodeAffinity, SolverName
+from mergesvc.core.names import MatchMode, NodeAffinity, SolverName
 from mergesvc.errors import InputError, MergeError
-from mergesvc.wire import Profile
+from mergesvc.wire.names import Profile
 
 if TYPE_CHECKING:
     from mergesvc.core.model import MatchResult
@@ -43,8 +44,9 @@ UncertaintySettings = settings_file("`uncertainty`", bare="UncertaintyConfig")
 
 def match(
     ctx: typer.Context,
-    map_path: Annotated[Path, typer.Option("--map", help="map JSON file")],
-    submap_path: Annotated[Path, typer.Option("--submap", help="submap JSON file")],
+    map_path: Annotated[Path, typer.Option(
+        "--map", help="map file: JSON, or binary (.npz, see `mergesvc convert`)")],
+    submap_path: Annotated[Path, typer.Option("--submap", help="submap file: JSON or .npz")],
     mode: Annotated[MatchMode, typer.Option(help="verified (ours) or paper (baseline)")] = (
         MatchMode.VERIFIED
     ),
@@ -59,7 +61,14 @@ def match(
     Settings: the `match` section (mergesvc config --dump --section match)."""
     from mergesvc.core.model import ObjectMap, Submap
     from mergesvc.core.pipeline import match as run_match
-    from mergesvc.wire import load_model
+    from mergesvc.wire.mapfile import is_binary_map, load_arrays
+
+    def load(path: Path, model: type[ObjectMap]) -> Any:
+        if is_binary_map(path):
+            return load_arrays(path)[0]  # memory-mapped: no per-object models
+        from mergesvc.wire.files import load_model
+
+        return load_model(model, path)
 
     settings = deprecated_config(settings, config, "match")
     flags = given(ctx, mode=mode)
@@ -68,9 +77,16 @@ def match(
     if given(ctx, affinity=affinity):
         flags["affinity"] = {"kind": affinity.value}
     with exit_on_error():
-        cfg = resolve_settings(settings, {"match": flags}).match
-        map_ = load_model(ObjectMap, map_path)
-        sub = load_model(Submap, submap_path)
+        if settings is None and not any(k.startswith("MERGESVC_") for k in os.environ):
+            # no file, no environment: the tree's `match` section is the defaults, built
+            # without loading the whole settings tree (it imports the service: ~1 s)
+            from mergesvc.core.config import match_config
+
+            cfg = match_config(**flags)
+        else:
+            cfg = resolve_settings(settings, {"match": flags}).match
+        map_ = load(map_path, ObjectMap)
+        sub = load(submap_path, Submap)
         outcome = run_match(map_, sub, cfg)
     result = outcome.result
     if as_json:
@@ -85,6 +101,34 @@ def match(
         typer.echo(f"  T_map_submap: t = [{t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}] m, "
                    f"q_wxyz = [{q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}]")
     typer.echo("  timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items()))
+
+
+def convert(
+    in_path: Annotated[Path, typer.Argument(help="map or submap: .json or .npz")],
+    out_path: Annotated[Path, typer.Argument(help="file to write: .npz or .json")],
+) -> None:
+    """Convert a map or submap between JSON and the binary map format (.npz: uncompressed
+    numpy arrays, float32 embeddings, memory-mapped by `match`), either way, by suffix."""
+    from mergesvc.wire.mapfile import file_to_model, is_binary_map, model_to_file
+
+    with exit_on_error():
+        if is_binary_map(in_path) == is_binary_map(out_path):
+            raise InputError("convert goes from .json to .npz or from .npz to .json")
+        if is_binary_map(out_path):
+            from mergesvc.core.model import ObjectMap
+            from mergesvc.wire.files import _read_json_model
+
+            model = _read_json_model(in_path)
+            if not isinstance(model, ObjectMap):
+                raise InputError(f"{in_path} is not a map or submap")
+            model_to_file(model, out_path)
+        else:
+            model = file_to_model(in_path)
+            try:
+                out_path.write_text(model.model_dump_json(exclude_none=True))
+            except OSError as exc:
+                raise InputError(f"cannot write {out_path}: {exc.strerror or exc}") from exc
+    typer.echo(f"wrote {out_path}: {len(model.objects)} objects")
 
 
 def match_json(result: MatchResult) -> dict[str, Any]:

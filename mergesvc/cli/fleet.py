@@ -40,7 +40,7 @@ from mergesvc.cli.options import (
     zenoh_mode,
 )
 from mergesvc.errors import ConfigError
-from mergesvc.wire import Profile
+from mergesvc.wire.names import Profile
 
 if TYPE_CHECKING:
     from mergesvc.core.tracking import Frame

@@ -22,7 +22,6 @@ from mergesvc.core.config import AffinityConfig, NodeAffinity
 from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
 from mergesvc.core.solvers import dense
-from mergesvc.core.solvers.consistency import pairwise_conflicts
 from mergesvc.core.solvers.problem import AssignmentProblem
 
 # Chunk of map nodes per vectorised step of the per-dimension Gaussian distances; bounds the
@@ -31,7 +30,8 @@ _CHUNK_ELEMS = 4_000_000
 
 
 def unit_rows(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows scaled to unit norm. Returns (X / |X|, |X|); zero rows stay zero."""
+    """Rows scaled to unit norm, in float64. Returns (X / |X|, |X|); zero rows stay zero."""
+    X = np.asarray(X, dtype=np.float64)
     norms = np.linalg.norm(X, axis=1)
     return X / np.where(norms > 0, norms, 1.0)[:, None], norms
 
@@ -48,10 +48,22 @@ def weighted_cosine(
     return cosine(emb1_nd, emb2_nd) / (1.0 + (s1_n[:, None] + s2_n[None, :]) / 2.0)
 
 
+def ucos(sub: ObjectArrays, map_: ObjectArrays, map_index: np.ndarray | None = None
+         ) -> np.ndarray:
+    """`weighted_cosine` of every submap object to every (or the indexed) map object, from the
+    arrays' cached norms and uncertainties (no normalised copy of the map). (n1, n2)."""
+    idx = slice(None) if map_index is None else map_index
+    e2 = map_.embeddings_nd[idx].astype(np.float64)
+    n2 = map_.norms_n[idx]
+    cos = (sub.unit_rows() @ e2.T) / np.where(n2 > 0, n2, 1.0)[None, :]
+    s1, s2 = sub.uncertainty_s, map_.uncertainty_s[idx]
+    return cos / (1.0 + (s1[:, None] + s2[None, :]) / 2.0)
+
+
 def _gaussian_inputs(
     objs: ObjectArrays, index: np.ndarray | None, normalize: bool, appearance: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    mu = objs.embeddings_nd if index is None else objs.embeddings_nd[index]
+    mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(np.float64)
     var = objs.variances_nd if index is None else objs.variances_nd[index]
     if appearance:
         # The fused variance shrinks as 1/n_obs; times n_obs it is the spread of single views
@@ -148,9 +160,7 @@ def node_affinity(
         model = same_object or fit_same_object_model(sub, map_, normalize)
         return log_likelihood_ratio(sub, map_, model, map_index)
     if kind is NodeAffinity.UCOS:
-        emb2 = map_.embeddings_nd if map_index is None else map_.embeddings_nd[map_index]
-        s2 = map_.uncertainty_s if map_index is None else map_.uncertainty_s[map_index]
-        return weighted_cosine(sub.embeddings_nd, sub.uncertainty_s, emb2, s2)
+        return ucos(sub, map_, map_index)
     D = node_distance(kind, sub, map_, map_index, normalize)
     return distance_to_similarity(D, float(np.median(D)) if D_ref is None else D_ref)
 
@@ -232,11 +242,11 @@ def _lr_inputs(objs: ObjectArrays, index: np.ndarray | None, normalize: bool
     Unlike _gaussian_inputs the variance is not divided by the mean's squared norm: the image
     uncertainty s is relative (the head predicts |y - x| / |x|), so dividing it by |mu|^2 would
     make an object look surer for being bright. One common unit is absorbed by c (eq. LR-4)."""
-    # unit_embeddings_nd is cached per map: a service matching many submaps normalises once
-    mu = objs.unit_embeddings_nd if normalize else objs.embeddings_nd
-    if index is None:
-        return mu, objs.variances_nd
-    return mu[index], objs.variances_nd[index]
+    if normalize:
+        mu = objs.unit_rows(index)
+    else:
+        mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(float)
+    return mu, objs.variances_nd if index is None else objs.variances_nd[index]
 
 
 def _sqdist(mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
@@ -247,6 +257,8 @@ def _sqdist(mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
 
 def is_isotropic(var_nd: np.ndarray) -> bool:
     """Whether every row of (n, d) variances is one number (the likelihood ratio's fast path)."""
+    if var_nd.ndim == 2 and var_nd.strides[1] == 0:  # ObjectArrays holds it as one column
+        return True
     return bool(np.all(var_nd == var_nd[:, :1]))
 
 
@@ -435,16 +447,34 @@ def candidate_K(
     are local (indices into `local`, the sorted distinct map_nodes).
     """
     local, cols = np.unique(map_nodes, return_inverse=True)
-    R = rows
+    R = np.asarray(rows, dtype=np.int64)
+    m = len(R)
     e_sub = pairwise_lengths(sub.position_xyz_m)
-    e_map = pairwise_lengths(map_.position_xyz_m[local])
-    E1 = e_sub[np.ix_(R, R)]
-    E2 = e_map[np.ix_(cols, cols)]
-    tol2 = sigma_m**2 + (aff.edge_rel_tol * E1) ** 2
+    # -1 / (2 tol_ij^2) per submap pair, gathered once with the lengths; the map lengths of
+    # the candidates directly (no map-wide matrix)
+    neg_inv = -0.5 / (sigma_m**2 + (aff.edge_rel_tol * e_sub) ** 2)
+    grouped = m > 0 and bool(np.all(R[1:] >= R[:-1]))
+    if grouped:  # candidates sorted by row (retrieve's order): repeats instead of a gather
+        counts = np.bincount(R, minlength=sub.n)
+        E1 = np.repeat(np.repeat(e_sub, counts, axis=0), counts, axis=1)
+        X = np.repeat(np.repeat(neg_inv, counts, axis=0), counts, axis=1)
+    else:
+        E1 = e_sub[np.ix_(R, R)]
+        X = neg_inv[np.ix_(R, R)]
+    xyz = map_.position_xyz_m[local[cols]]
+    D = pairwise_lengths(xyz)  # e_ab of every candidate pair
+    D -= E1
+    np.square(D, out=D)
+    X *= D  # -(e_ij - e_ab)^2 / (2 tol_ij^2)
     w = edge_pair_weight(sub.n, aff)
-    K_pos = edge_affinity(E1, E2, 2.0 * tol2)
+    K_pos = np.exp(X)
     K_pos *= w
-    invalid = (R[:, None] == R[None, :]) | (cols[:, None] == cols[None, :])
+    invalid = cols[:, None] == cols[None, :]
+    if grouped:
+        for lo, hi in zip(np.r_[0, np.cumsum(counts)[:-1]], np.cumsum(counts)):
+            invalid[lo:hi, lo:hi] = True
+    else:
+        invalid |= R[:, None] == R[None, :]
     K_pos[invalid] = 0.0
     K_signed = K_pos - w * aff.edge_threshold
     K_signed[invalid] = 0.0
@@ -453,12 +483,80 @@ def candidate_K(
     n2 = len(local)
     conflict = None
     if conflict_sigmas is not None:
-        conflict = pairwise_conflicts(E1, E2, np.sqrt(tol2), conflict_sigmas, R, cols)
+        # |e_ij - e_ab| > k tol_ij  <=>  (e_ij - e_ab)^2 / (2 tol_ij^2) > k^2 / 2: symmetric
+        # by construction (both length matrices are), pairs sharing a row or a col left out
+        conflict = -0.5 * conflict_sigmas**2 > X
+        conflict[invalid] = False
     return CandidateK(
-        AssignmentProblem(sub.n, n2, R, cols, K_signed, conflict),
-        AssignmentProblem(sub.n, n2, R, cols, K_pos),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_signed, conflict, invalid_zero=True),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_pos, invalid_zero=True),
         local,
     )
+
+
+def extend_K(
+    prev: CandidateK,
+    sub: ObjectArrays,
+    map_: ObjectArrays,
+    rows: np.ndarray,
+    map_nodes: np.ndarray,
+    node_score: np.ndarray,
+    aff: AffinityConfig,
+    sigma_m: float,
+    conflict_sigmas: float | None = None,
+) -> CandidateK:
+    """candidate_K over candidates whose first m are those of `prev` (same order, same
+    scores): prev's K is copied and only the entries of the new candidates computed, to the
+    same numbers candidate_K gives. rows, map_nodes, node_score: (M,), M >= m."""
+    m, M = prev.signed.m, len(rows)
+    R = np.asarray(rows, dtype=np.int64)
+    local, cols = np.unique(map_nodes, return_inverse=True)
+    e_sub = pairwise_lengths(sub.position_xyz_m)
+    neg_inv = -0.5 / (sigma_m**2 + (aff.edge_rel_tol * e_sub) ** 2)
+    xyz = map_.position_xyz_m[map_nodes]
+    new = np.arange(m, M)
+    # entries (p, q) with q new: every row against the new columns, one (M, M - m) block
+    D = _cross_lengths(xyz, xyz[new])
+    D -= e_sub[np.ix_(R, R[new])]
+    np.square(D, out=D)
+    X = neg_inv[np.ix_(R, R[new])] * D
+    invalid = (R[:, None] == R[new][None, :]) | (cols[:, None] == cols[new][None, :])
+    w = edge_pair_weight(sub.n, aff)
+    pos = np.exp(X)
+    pos *= w
+    pos[invalid] = 0.0
+    signed = pos - w * aff.edge_threshold
+    signed[invalid] = 0.0
+    K_pos = np.empty((M, M))
+    K_signed = np.empty((M, M))
+    for K, old, blk in ((K_pos, prev.positive.K, pos), (K_signed, prev.signed.K, signed)):
+        K[:m, :m] = old
+        K[:, m:] = blk
+        K[m:, :m] = blk[:m].T
+    np.fill_diagonal(K_pos, node_score)
+    np.fill_diagonal(K_signed, node_score - aff.node_threshold)
+    conflict = None
+    if conflict_sigmas is not None and prev.signed.conflict is not None:
+        c = -0.5 * conflict_sigmas**2 > X
+        c[invalid] = False
+        conflict = np.empty((M, M), dtype=bool)
+        conflict[:m, :m] = prev.signed.conflict
+        conflict[:, m:] = c
+        conflict[m:, :m] = c[:m].T
+        np.fill_diagonal(conflict, False)
+    n2 = len(local)
+    return CandidateK(
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_signed, conflict, invalid_zero=True),
+        AssignmentProblem.trusted(sub.n, n2, R, cols, K_pos, invalid_zero=True),
+        local,
+    )
+
+
+def _cross_lengths(a_xyz: np.ndarray, b_xyz: np.ndarray) -> np.ndarray:
+    """(k, 3), (l, 3) -> (k, l) distances between the two sets' points."""
+    from scipy.spatial.distance import cdist
+
+    return cdist(a_xyz, b_xyz)
 
 
 def paper_node_affinity(sub: ObjectArrays, map_: ObjectArrays, aff: AffinityConfig

@@ -19,10 +19,10 @@ from mergesvc.core.affinity import (
     log_likelihood_ratio_pairs,
     node_affinity,
     reference_distance,
-    unit_rows,
 )
 from mergesvc.core.config import AffinityConfig, CandidatesConfig, NodeAffinity
 from mergesvc.core.model import ObjectArrays
+from mergesvc.core.search import map_search
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,13 @@ def pair_scores(
     return aff, np.minimum((aff - calib.floor_n[rows]) / calib.ceil, 1.0)
 
 
+def _ucos_pairs(sub: ObjectArrays, map_: ObjectArrays, cos: np.ndarray, nodes: np.ndarray
+                ) -> np.ndarray:
+    """The weighted cosine (affinity.ucos) of (n1, c) map nodes from their (n1, c) cosines."""
+    s2 = map_.uncertainty_s[nodes]
+    return cos.astype(np.float64) / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0)
+
+
 def retrieve(
     sub: ObjectArrays,
     map_: ObjectArrays,
@@ -88,28 +95,29 @@ def retrieve(
     kind = NodeAffinity(aff_cfg.kind)
     n1, n2 = sub.n, map_.n
     # shortlist: every map node for small maps, else the best `prefilter` by plain cosine
+    # (core/search.py: exact chunked products, or the map's index when it is large)
     cos = None
     if n2 <= cand_cfg.prefilter:
         shortlist = np.broadcast_to(np.arange(n2), (n1, n2))
     else:
-        cos = unit_rows(sub.embeddings_nd)[0] @ map_.unit_embeddings_nd.T
-        shortlist = np.argpartition(-cos, cand_cfg.prefilter - 1, axis=1)[:, : cand_cfg.prefilter]
-    union, inverse = np.unique(shortlist, return_inverse=True)
-    inverse = inverse.reshape(shortlist.shape)
+        search = map_search(map_, cand_cfg, n1)
+        shortlist, cos = search.search(sub.unit_rows().astype(np.float32), cand_cfg.prefilter)
     sample = _sample(n2, cand_cfg.sample, rng)
     D_ref = None
     same = None
     if kind is NodeAffinity.LIKELIHOOD_RATIO:
         # on unit-norm embeddings the nearest map object is the best by cosine: reuse the
         # shortlist's product instead of a second pass over the map
-        nearest = None if cos is None or not aff_cfg.normalize_embeddings else cos.argmax(axis=1)
+        nearest = None if cos is None or not aff_cfg.normalize_embeddings else shortlist[:, 0]
         same = fit_same_object_model(sub, map_, aff_cfg.normalize_embeddings, sample, nearest)
     elif kind is not NodeAffinity.UCOS:
         D_ref = reference_distance(
             kind, sub, map_, rng, cand_cfg.sample, aff_cfg.normalize_embeddings
         )
-    if same is not None and not (
-        is_isotropic(sub.variances_nd) and is_isotropic(map_.variances_nd[union])
+    if kind is NodeAffinity.UCOS and cos is not None:
+        A = _ucos_pairs(sub, map_, cos, shortlist)  # (n1, shortlist), no second product
+    elif same is not None and not (
+        is_isotropic(sub.variances_nd) and is_isotropic(map_.variances_nd[np.unique(shortlist)])
     ):
         # per-dimension variances: the likelihood ratio of the shortlisted pairs only, not of
         # every submap object x the shortlists' union (up to n1 times the work)
@@ -117,13 +125,21 @@ def retrieve(
         A = log_likelihood_ratio_pairs(sub, map_, same, rows.ravel(), shortlist.ravel())
         A = A.reshape(shortlist.shape)
     else:
+        union, inverse = np.unique(shortlist, return_inverse=True)
         A_union = node_affinity(
             kind, sub, map_, union, aff_cfg.normalize_embeddings, D_ref, same
         )
-        A = np.take_along_axis(A_union, inverse, axis=1)  # (n1, shortlist)
+        A = np.take_along_axis(A_union, inverse.reshape(shortlist.shape), axis=1)
     # typical unrelated map object: median affinity over the map (or a sample of it)
     if sample is None and n2 <= cand_cfg.prefilter:
         floor = np.median(A, axis=1)
+    elif kind is NodeAffinity.UCOS:
+        # the median of a sample needs no float64: one float32 product
+        idx = np.arange(n2) if sample is None else sample
+        q = sub.unit_rows().astype(np.float32)
+        n_idx = map_.norms_n[idx]
+        cos_s = (q @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
+        floor = np.median(_ucos_pairs(sub, map_, cos_s, idx[None, :]), axis=1)
     else:
         idx = np.arange(n2) if sample is None else sample
         floor = np.median(
@@ -133,6 +149,18 @@ def retrieve(
     k = min(cand_cfg.top_k, A.shape[1])
     top = np.argpartition(-A, k - 1, axis=1)[:, :k]
     A_top = np.take_along_axis(A, top, axis=1)
+    if kind is NodeAffinity.UCOS and cos is not None:
+        # the chosen pairs' affinity in float64, as pair_scores (guided matching) computes it
+        nodes = np.take_along_axis(shortlist, top, axis=1)
+        q = sub.unit_rows()
+        n2 = map_.norms_n[nodes]
+        exact_cos = np.empty(nodes.shape)
+        for lo in range(0, n1, 512):  # (512, k, d) float64 at a time
+            blk = nodes[lo:lo + 512]
+            e = map_.embeddings_nd[blk.ravel()].astype(np.float64).reshape(*blk.shape, -1)
+            exact_cos[lo:lo + 512] = np.einsum("nkd,nd->nk", e, q[lo:lo + 512])
+        exact_cos /= np.where(n2 > 0, n2, 1.0)
+        A_top = _ucos_pairs(sub, map_, exact_cos, nodes)
     # scale: a typical submap object's best candidate scores 1; an object whose best candidate
     # is unusually weak (a false detection, a never-seen object) scores below 1 throughout
     lift = A_top.max(axis=1) - floor
@@ -169,7 +197,8 @@ def expand_near(
     predicted_xyz_m: (n1, 3) submap centres mapped into the map frame; radius_m: (n1,) gate.
     Guided matching: once a transform is known, an object whose true match ranked below the
     top-k by appearance alone (look-alike instances of a class) is found by where it is.
-    New pairs keep their calibrated appearance score, floored at `min_score`.
+    New pairs keep their calibrated appearance score, floored at `min_score`; they follow the
+    given candidates, which keep their order.
     """
     near = map_.kdtree.query_ball_point(predicted_xyz_m, radius_m)
     rows = np.repeat(np.arange(sub.n), [len(v) for v in near])
@@ -180,9 +209,11 @@ def expand_near(
         return cands
     rows, nodes = rows[new], nodes[new]
     aff, score = pair_scores(sub, map_, rows, nodes, calib)
-    return _sorted(
-        np.concatenate([cands.rows, rows]),
-        np.concatenate([cands.map_nodes, nodes]),
-        np.concatenate([cands.affinity, aff]),
-        np.concatenate([cands.score, np.maximum(score, min_score)]),
+    added = _sorted(rows, nodes, aff, np.maximum(score, min_score))
+    # the earlier candidates first, in their order: K over them is kept (affinity.extend_K)
+    return Candidates(
+        np.concatenate([cands.rows, added.rows]),
+        np.concatenate([cands.map_nodes, added.map_nodes]),
+        np.concatenate([cands.affinity, added.affinity]),
+        np.concatenate([cands.score, added.score]),
     )

@@ -13,32 +13,13 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
-from enum import Enum
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from mergesvc.core.calibration import CalibrationConfig
+from mergesvc.core.names import MatchMode, NodeAffinity, SearchKind, SolverName
 from mergesvc.errors import ConfigError
-
-
-class NodeAffinity(str, Enum):
-    UCOS = "ucos"
-    BHATTACHARYYA = "bhattacharyya"
-    MAHALANOBIS = "mahalanobis"
-    LIKELIHOOD_RATIO = "likelihood_ratio"  # eq. LR-3: same object vs unrelated, log-odds
-
-
-class MatchMode(str, Enum):
-    PAPER = "paper"
-    VERIFIED = "verified"
-
-
-class SolverName(str, Enum):
-    RRWM = "rrwm"
-    SM = "sm"
-    IPFP = "ipfp"
-    EXACT = "exact"
 
 
 class _Section(BaseModel):
@@ -58,6 +39,23 @@ class CandidatesConfig(_Section):
     ceiling_quantile: float = Field(
         0.5, ge=0, le=1, description="quantile of the best-candidate lifts that scores 1"
     )
+    index: SearchKind = Field(
+        SearchKind.AUTO, description="cosine shortlist: exact, ivf (an index built once per "
+        "map), or auto (the index for maps of index_min_objects or more, or for "
+        "index_min_pairs submap x map pairs on maps of index_min_pairs_map or more)"
+    )
+    index_min_objects: int = Field(200_000, ge=1, description="auto: the index from here on")
+    index_min_pairs: int = Field(
+        50_000_000, ge=1, description="auto: the index when submap x map objects reach this")
+    index_min_pairs_map: int = Field(
+        20_000, ge=1, description="auto: index_min_pairs counts on maps this large only")
+    index_lists: int | None = Field(
+        None, ge=1, description="index: inverted lists (None: sqrt(map objects), at most 1024)")
+    index_probe: int | None = Field(
+        None, ge=1, description="index: lists probed per query (None: an eighth, at least 8)")
+    index_min_lists: int = Field(
+        64, ge=1, description="index: maps with fewer than twice this many objects are searched "
+        "exactly")
 
 
 class AffinityConfig(_Section):
@@ -151,6 +149,35 @@ class VerifyConfig(_Section):
     )
 
 
+class WindowsConfig(_Section):
+    above_objects: int = Field(
+        48, ge=4, description="submaps with more objects are matched in spatial windows "
+        "(core/windows.py), each verified, then one transform for all"
+    )
+    window_objects: int = Field(
+        32, ge=4, description="most objects per window (windows hold half to all of this)"
+    )
+    shortlist: int = Field(
+        64, ge=1, description="cosine shortlist per object of a windowed submap (an ordinary "
+        "one's is candidates.prefilter): its windows' geometry, not a wide shortlist, finds "
+        "look-alikes"
+    )
+    guided: bool = Field(
+        False, description="guided step in each window too (candidates.guided); off: the "
+        "common transform places every object the windows left (the same node accuracy at "
+        "about half the CPU, docs/benchmarks/scale.md)"
+    )
+    exact: bool = Field(
+        False, description="exact search in each window too (verify.exact); off: the windows "
+        "verify each other through the transform most of their matches fit (measured: the "
+        "same node accuracy at half the time, docs/benchmarks/scale.md)"
+    )
+    time_limit_s: float = Field(
+        0.02, gt=0, description="exact search budget per window (an unproven window's "
+        "matches still count where the common transform takes them)"
+    )
+
+
 class MatchConfig(_Section):
     mode: MatchMode = MatchMode.VERIFIED
     seed: int = 0
@@ -158,6 +185,7 @@ class MatchConfig(_Section):
     affinity: AffinityConfig = AffinityConfig()
     solver: SolverConfig = SolverConfig()
     verify: VerifyConfig = VerifyConfig()
+    windows: WindowsConfig = WindowsConfig()
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

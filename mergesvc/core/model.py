@@ -6,9 +6,7 @@ embedding dimension per map, unique ids, bounded sizes. The core works on `Objec
 
 from __future__ import annotations
 
-import functools
 import json
-from dataclasses import dataclass
 from enum import Enum
 from typing import Annotated, Any
 
@@ -23,9 +21,8 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from scipy.spatial import cKDTree
 
-from mergesvc.core.geometry import median_spacing
+from mergesvc.core.arrays import MAX_COORDINATE_M, ObjectArrays
 from mergesvc.errors import DecodeError, SchemaError
 
 SCHEMA_VERSION = 1
@@ -33,10 +30,9 @@ MAX_EMBEDDING_DIM = 4096
 MAX_OBJECTS = 200_000
 MAX_ID_LENGTH = 128
 MAX_FILE_BYTES = 2 * 1024**3
-# |coordinate| of an object, metres: beyond the Moon's orbit, so any map on or around the Earth
-# (ECEF ~6.4e6 m) fits; beyond it, squared distances lose all precision and a finite 1e300
-# made the solver's affinity matrix inf (found by `bench fuzz`)
-MAX_COORDINATE_M = 1e9
+# |coordinate| of an object, metres (MAX_COORDINATE_M, 1e9): beyond the Moon's orbit, so any
+# map on or around the Earth (ECEF ~6.4e6 m) fits; beyond it, squared distances lose all
+# precision and a finite 1e300 made the solver's affinity matrix inf (found by `bench fuzz`)
 MAX_SEQ = 2**63 - 1  # seq, keyframe and about_seq: the wire's int64 (docs/wire.md §2)
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
@@ -315,122 +311,24 @@ class MatchResult(BaseModel):
         return self.model_dump(mode="json", exclude={"schema_version"})
 
 
-@dataclass(frozen=True)
-class ObjectArrays:
-    """Objects as arrays, the representation the core stages compute on.
-
-    ids: n object ids; position_xyz_m: (n, 3); embeddings_nd: (n, d);
-    variances_nd: (n, d) per-dimension variance; n_obs: (n,); up_xyz: (3,) unit vector
-    opposite to gravity when the frame declares it, else None (see `mergesvc.core.vertical`)
-    """
-
-    ids: list[str]
-    position_xyz_m: np.ndarray
-    embeddings_nd: np.ndarray
-    variances_nd: np.ndarray
-    n_obs: np.ndarray
-    up_xyz: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        n = len(self.ids)
-        if self.position_xyz_m.shape != (n, 3):
-            raise SchemaError(f"position_xyz_m must be ({n}, 3), got {self.position_xyz_m.shape}")
-        if self.embeddings_nd.ndim != 2 or self.embeddings_nd.shape[0] != n:
-            raise SchemaError(f"embeddings_nd must be ({n}, d), got {self.embeddings_nd.shape}")
-        if self.variances_nd.shape != self.embeddings_nd.shape:
-            raise SchemaError("variances_nd must have the shape of embeddings_nd")
-        if n == 0:
-            raise SchemaError("no objects")
-        for name in ("position_xyz_m", "embeddings_nd", "variances_nd"):
-            if not np.all(np.isfinite(getattr(self, name))):
-                raise SchemaError(f"{name} has NaN or inf")
-        if np.any(np.abs(self.position_xyz_m) > MAX_COORDINATE_M):
-            raise SchemaError(f"position_xyz_m beyond +-{MAX_COORDINATE_M:g} m")
-        if np.any(self.variances_nd <= 0):
-            raise SchemaError("variances_nd must be positive")
-        if self.up_xyz is not None:
-            up = np.asarray(self.up_xyz, dtype=np.float64)
-            peak = float(np.abs(up).max()) if up.shape == (3,) else 0.0
-            if not (np.isfinite(peak) and peak > 0.0):
-                raise SchemaError("up_xyz must be a finite non-zero 3-vector")
-            up = up / peak  # scaled first: no overflow for huge components
-            object.__setattr__(self, "up_xyz", up / np.linalg.norm(up))
-
-    @property
-    def n(self) -> int:
-        return len(self.ids)
-
-    @functools.cached_property
-    def unit_embeddings_nd(self) -> np.ndarray:
-        """(n, d) embeddings scaled to unit norm; computed once per map."""
-        norms = np.linalg.norm(self.embeddings_nd, axis=1, keepdims=True)
-        return self.embeddings_nd / np.where(norms > 0, norms, 1.0)
-
-    @functools.cached_property
-    def kdtree(self) -> cKDTree:
-        """KD-tree over the object centres; built once per map."""
-        return cKDTree(self.position_xyz_m)
-
-    @functools.cached_property
-    def median_spacing_m(self) -> float:
-        """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
-        return median_spacing(self.position_xyz_m, self.kdtree)
-
-    @property
-    def dim(self) -> int:
-        return self.embeddings_nd.shape[1]
-
-    @property
-    def uncertainty_s(self) -> np.ndarray:
-        """(n,) scalar uncertainty s: mean of the per-dimension variances (see ObjectNode)."""
-        return self.variances_nd.mean(axis=1)
-
-    @classmethod
-    def from_objects(
-        cls, objects: list[ObjectNode], up: tuple[float, float, float] | None = None
-    ) -> ObjectArrays:
-        d = len(objects[0].embedding)
-        var = np.empty((len(objects), d))
-        for k, o in enumerate(objects):
-            var[k] = o.variance  # a scalar broadcasts: isotropic
-        return cls(
-            ids=[o.id for o in objects],
-            position_xyz_m=np.array([o.position for o in objects], dtype=np.float64),
-            embeddings_nd=np.array([o.embedding for o in objects], dtype=np.float64),
-            variances_nd=var,
-            n_obs=np.array([o.n_obs for o in objects], dtype=np.int64),
-            up_xyz=None if up is None else np.asarray(up, dtype=np.float64),
+def arrays_to_nodes(arr: ObjectArrays, isotropic_tol: float = 0.0) -> list[ObjectNode]:
+    """Arrays back to file objects; a variance row that is constant becomes one number."""
+    nodes = []
+    for k, oid in enumerate(arr.ids):
+        v = arr.variances_nd[k]
+        var: float | list[float] = (
+            float(v[0]) if np.ptp(v) <= isotropic_tol * v[0] else v.tolist()
         )
-
-    def subset(self, index: np.ndarray) -> ObjectArrays:
-        index = np.asarray(index, dtype=np.int64)
-        return ObjectArrays(
-            ids=[self.ids[k] for k in index],
-            position_xyz_m=self.position_xyz_m[index],
-            embeddings_nd=self.embeddings_nd[index],
-            variances_nd=self.variances_nd[index],
-            n_obs=self.n_obs[index],
-            up_xyz=self.up_xyz,
+        nodes.append(
+            ObjectNode(
+                id=oid,
+                position=tuple(float(x) for x in arr.position_xyz_m[k]),
+                embedding=arr.embeddings_nd[k].astype(np.float64).tolist(),
+                variance=var,
+                n_obs=int(arr.n_obs[k]),
+            )
         )
-
-    def to_nodes(self, isotropic_tol: float = 0.0) -> list[ObjectNode]:
-        """Back to file objects; a variance row that is constant becomes one number."""
-        nodes = []
-        for k, oid in enumerate(self.ids):
-            v = self.variances_nd[k]
-            var: float | list[float] = (
-                float(v[0]) if np.ptp(v) <= isotropic_tol * v[0] else v.tolist()
-            )
-            nodes.append(
-                ObjectNode(
-                    id=oid,
-                    position=tuple(float(x) for x in self.position_xyz_m[k]),
-                    embedding=self.embeddings_nd[k].tolist(),
-                    variance=var,
-                    n_obs=int(self.n_obs[k]),
-                )
-            )
-        return nodes
+    return nodes
 
 
 def _format_validation_error(exc: ValidationError, what: str) -> str:
@@ -555,6 +453,7 @@ __all__ = [
     "RejectReason",
     "Submap",
     "Transform",
+    "arrays_to_nodes",
     "json_schemas",
     "parse_model",
 ]

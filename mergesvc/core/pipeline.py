@@ -14,19 +14,28 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import gtsam
 import numpy as np
 
 from mergesvc.core.affinity import (
+    CandidateK,
     candidate_K,
     edge_pair_weight,
     edge_scales,
+    extend_K,
     paper_K,
     paper_node_affinity,
 )
-from mergesvc.core.candidates import Candidates, expand_near, retrieve
-from mergesvc.core.config import MatchConfig, MatchMode, SolverName
+from mergesvc.core.candidates import (
+    Calibration,
+    Candidates,
+    expand_near,
+    pair_scores,
+    retrieve,
+)
+from mergesvc.core.config import MatchConfig, MatchMode, SolverName, match_config
 from mergesvc.core.model import (
     Match,
     MatchResult,
@@ -40,6 +49,7 @@ from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.threads import blas_threads
 from mergesvc.core.verify import (
     RigidFit,
     align,
@@ -49,6 +59,7 @@ from mergesvc.core.verify import (
     transform_points,
 )
 from mergesvc.core.vertical import FrameVertical, VerticalRelation, frame_vertical, relate
+from mergesvc.core.windows import consensus, one_to_one, partition
 from mergesvc.errors import SchemaError
 
 log = logging.getLogger(__name__)
@@ -108,9 +119,10 @@ def match(
             f"embedding dimensions differ: map has {m_arr.dim}, submap has {s_arr.dim}"
         )
     timer.lap("prepare")
-    if config.mode is MatchMode.PAPER:
-        return _match_paper(m_arr, s_arr, config, timer)
-    return _match_verified(m_arr, s_arr, config, timer)
+    with blas_threads(m_arr.n * s_arr.n):
+        if config.mode is MatchMode.PAPER:
+            return _match_paper(m_arr, s_arr, config, timer)
+        return _match_verified(m_arr, s_arr, config, timer)
 
 
 # ------------------------------------------------------------------ verified mode
@@ -193,21 +205,38 @@ def _propose(
     sigma_m: float,
     timer: StageTimer,
     start: np.ndarray | None = None,
+    prev: _Proposal | None = None,
 ) -> _Proposal:
     """Affinity K over the candidates -> solver -> hard assignment with no-match.
 
-    start: (n1,) map indices of an earlier answer, kept when it scores better here."""
-    signed, positive, local = candidate_K(
-        sub, map_, cands.rows, cands.map_nodes, cands.score, config.affinity, sigma_m,
-        config.verify.conflict_sigmas,
-    )
+    start: (n1,) map indices of an earlier answer, kept when it scores better here.
+    prev: the proposal over the first prev.cands.m of these candidates: its K is kept."""
+    if prev is not None:
+        signed, positive, local = extend_K(
+            CandidateK(prev.signed, prev.positive, prev.local), sub, map_, cands.rows,
+            cands.map_nodes, cands.score, config.affinity, sigma_m,
+            config.verify.conflict_sigmas)
+    else:
+        signed, positive, local = candidate_K(
+            sub, map_, cands.rows, cands.map_nodes, cands.score, config.affinity, sigma_m,
+            config.verify.conflict_sigmas,
+        )
     timer.lap("affinity")
-    assignment = _solve_candidates(signed, positive, config)
+    seed = None
     if start is not None:
-        pos = {int(b): k for k, b in enumerate(local)}
-        seed = np.array([pos.get(int(b), UNMATCHED) if b != UNMATCHED else UNMATCHED
-                         for b in start])
-        if signed.is_feasible(seed) and signed.score(seed) > signed.score(assignment):
+        at = np.searchsorted(local, start)
+        hit = (start != UNMATCHED) & (at < len(local))
+        hit[hit] = local[at[hit]] == start[hit]
+        seed = np.where(hit, at, UNMATCHED)
+        if not signed.is_feasible(seed):
+            seed = None
+    if seed is not None and (config.verify.exact or config.solver.name is SolverName.EXACT):
+        # the exact search follows and starts from the seed (improved by its local search):
+        # a second heuristic solve would only hand it another incumbent
+        assignment = prune_negative(signed, seed)
+    else:
+        assignment = _solve_candidates(signed, positive, config)
+        if seed is not None and signed.score(seed) > signed.score(assignment):
             assignment = seed
     timer.lap("solve")
     return _Proposal(cands, signed, positive, local, assignment)
@@ -279,7 +308,11 @@ def vertical_relation(
     def one(arr: ObjectArrays) -> FrameVertical | None:
         if arr.up_xyz is None and not v.infer_vertical:
             return None
-        return frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
+        # a map's layout is the same for every submap: its vertical is found once
+        key = ("vertical", v.infer_min_objects, v.infer_max_flatness)
+        if key not in arr.cache:
+            arr.cache[key] = frame_vertical(arr, v.infer_min_objects, v.infer_max_flatness)
+        return arr.cache[key]
 
     # only a submap too small to show its vertical shares the map's: a larger one whose layout
     # is not flat enough has no vertical
@@ -460,12 +493,39 @@ def _match_verified(
 ) -> MatchOutcome:
     rng = np.random.default_rng(config.seed)
     unmatched = np.full(sub.n, UNMATCHED, dtype=np.int64)
-    cands, calib = retrieve(sub, map_, config.candidates, config.affinity, rng)
+    windowed = sub.n > config.windows.above_objects
+    cand_cfg = config.candidates
+    if windowed:
+        cand_cfg = cand_cfg.model_copy(
+            update={"prefilter": min(cand_cfg.prefilter, config.windows.shortlist)})
+    cands, calib = retrieve(sub, map_, cand_cfg, config.affinity, rng)
     timer.lap("candidates")
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
     sigma_m, _ = edge_scales(map_, config.affinity)
     rel = vertical_relation(sub, map_, config)
+    if windowed:
+        return _match_windowed(map_, sub, cands, calib, config, sigma_m, timer, rel)
+    result = _verified_pass(map_, sub, cands, calib, config, sigma_m, timer, rel)
+    outcome = _finish(
+        result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
+    )
+    outcome.exact = result.exact
+    outcome.n_candidates = result.cands.m
+    return outcome
+
+
+def _verified_pass(
+    map_: ObjectArrays,
+    sub: ObjectArrays,
+    cands: Candidates,
+    calib: Calibration,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+    rel: VerticalRelation | None,
+) -> _Pass:
+    """Solve, guided step, exact search and fit of one submap (or one window of one)."""
     prop = _propose(sub, map_, cands, config, sigma_m, timer)
     if config.candidates.guided:
         # Guided matching: when the solver's answer fits a rigid transform, add the map objects
@@ -483,14 +543,126 @@ def _match_verified(
                 start = prop.to_map(prop.assignment)
                 rows = np.flatnonzero(start != UNMATCHED)
                 start[rows[~probe.inliers]] = UNMATCHED
-                prop = _propose(sub, map_, more, config, sigma_m, timer, start=start)
-    result = _verify(sub, map_, prop, config, sigma_m, timer, rel)
-    outcome = _finish(
-        result.reason, sub, map_, result.final, result.proposed, result.scores, timer, result.fit
-    )
-    outcome.exact = result.exact
-    outcome.n_candidates = result.cands.m
+                prop = _propose(sub, map_, more, config, sigma_m, timer, start=start,
+                                prev=prop)
+    return _verify(sub, map_, prop, config, sigma_m, timer, rel)
+
+
+def _match_windowed(
+    map_: ObjectArrays,
+    sub: ObjectArrays,
+    cands: Candidates,
+    calib: Calibration,
+    config: MatchConfig,
+    sigma_m: float,
+    timer: StageTimer,
+    rel: VerticalRelation | None,
+) -> MatchOutcome:
+    """A large submap in spatial windows (core/windows.py): each window solved and fitted on
+    its own (an exact search on a short budget when windows.exact), then the transform most
+    windows' matches agree on, every proposed match that fits it (one map object per submap
+    object), the objects left placed by that transform, and one fit."""
+    wcfg = match_config(config, candidates={
+        "guided": config.candidates.guided and config.windows.guided}, verify={
+        "exact": config.verify.exact and config.windows.exact,
+        "time_limit_s": min(config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
+    proposed = np.full(sub.n, UNMATCHED, dtype=np.int64)
+    scores: dict[int, float] = {}
+    hypotheses = []
+    n_cands = 0
+    # each row's candidates are one run of the list (retrieve sorts it by row)
+    order = np.argsort(cands.rows, kind="stable")
+    starts = np.searchsorted(cands.rows[order], np.arange(sub.n + 1))
+    for w in partition(sub.position_xyz_m, config.windows.window_objects):
+        counts = starts[w + 1] - starts[w]
+        if not counts.any():
+            continue
+        first = np.repeat(starts[w] - np.cumsum(counts) + counts, counts)
+        keep = order[first + np.arange(int(counts.sum()))]
+        wc = Candidates(np.repeat(np.arange(len(w)), counts), cands.map_nodes[keep],
+                        cands.affinity[keep], cands.score[keep])
+        wcal = replace(calib, floor_n=calib.floor_n[w])
+        res = _verified_pass(map_, sub.subset(w), wc, wcal, wcfg, sigma_m, timer, rel)
+        n_cands += res.cands.m
+        # a window whose matches fit (proven optimal or not) offers its transform and its
+        # inliers, any other its proposal: the common transform judges them all
+        got = res.final if res.fit.accepted else res.proposed
+        hit = got != UNMATCHED
+        proposed[w[hit]] = got[hit]
+        scores.update({int(w[i]): v for i, v in res.scores.items()})
+        if res.fit.accepted:
+            hypotheses.append(res.fit.T_map_submap)
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
+    gate = _inlier_gate(sub_xyz, sigma_m, config)
+    T, inl = consensus(sub_xyz, map_xyz, gate, hypotheses)
+    final = np.full(sub.n, UNMATCHED, dtype=np.int64)
+    if T is not None:
+        residual = np.linalg.norm(transform_points(T, sub_xyz) - map_xyz, axis=1)
+        inl &= one_to_one(rows, proposed[rows], np.where(inl, residual, np.inf))
+        final[rows[inl]] = proposed[rows[inl]]
+        # objects whose window was not verified (or left them out): the map object the
+        # common transform puts them on, when it looks like them (score >= node_threshold)
+        final = _fill_by_transform(sub, map_, final, T, sigma_m, calib, config)
+    timer.lap("windows")
+    fit = _fit_large(sub, map_, final, sigma_m, config, rel)
+    reason = fit.reason if T is not None else RejectReason.AMBIGUOUS
+    if fit.accepted:
+        kept = np.flatnonzero(final != UNMATCHED)
+        final[kept[~fit.inliers]] = UNMATCHED
+    else:
+        final[:] = UNMATCHED
+    timer.lap("verify")
+    outcome = _finish(reason, sub, map_, final, proposed, scores, timer, fit)
+    outcome.n_candidates = n_cands
     return outcome
+
+
+def _fill_by_transform(
+    sub: ObjectArrays, map_: ObjectArrays, final: np.ndarray, T: gtsam.Pose3, sigma_m: float,
+    calib: Calibration, config: MatchConfig,
+) -> np.ndarray:
+    """(n1,) assignment with each unmatched submap object given the best-scoring free map
+    object within its residual gate of where T puts it, if that scores node_threshold or
+    more; best scores first, one map object each."""
+    open_rows = np.flatnonzero(final == UNMATCHED)
+    if len(open_rows) == 0:
+        return final
+    gate = _inlier_gate(sub.position_xyz_m, sigma_m, config)[open_rows]
+    near = map_.kdtree.query_ball_point(
+        transform_points(T, sub.position_xyz_m[open_rows]), gate)
+    rows = np.repeat(open_rows, [len(v) for v in near])
+    nodes = np.fromiter((b for v in near for b in v), dtype=np.int64, count=len(rows))
+    taken = np.zeros(map_.n, dtype=bool)
+    taken[final[final != UNMATCHED]] = True
+    free = ~taken[nodes]
+    rows, nodes = rows[free], nodes[free]
+    if len(rows) == 0:
+        return final
+    _, score = pair_scores(sub, map_, rows, nodes, calib)
+    good = score >= config.affinity.node_threshold
+    out = final.copy()
+    for p in np.flatnonzero(good)[np.argsort(-score[good], kind="stable")].tolist():
+        r, b = int(rows[p]), int(nodes[p])
+        if out[r] == UNMATCHED and not taken[b]:
+            out[r], taken[b] = b, True
+    return out
+
+
+def _fit_large(
+    sub: ObjectArrays, map_: ObjectArrays, proposed: np.ndarray, sigma_m: float,
+    config: MatchConfig, rel: VerticalRelation | None,
+) -> RigidFit:
+    """`_fit` for matches already consistent with one transform (windows' consensus): no
+    pairwise consistency peeling (O(k^2)), the 6-DoF fit and its tilt test."""
+    rows = np.flatnonzero(proposed != UNMATCHED)
+    sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
+    gate = _inlier_gate(sub_xyz, sigma_m, config)
+    fit = fit_rigid(sub_xyz, map_xyz, gate, min_matches=config.verify.min_matches,
+                    sigma_floor_m=0.1 * sigma_m)
+    if fit.accepted:
+        fit = _upright(fit, sub_xyz, map_xyz, gate, rel, sigma_m, config)
+    return fit
 
 
 # ------------------------------------------------------------------ paper mode

@@ -85,12 +85,19 @@ def pose_covariance(
     Linearised least squares: r_k = T exp(xi) p_k - q_k has Jacobian [-R [p_k]x, R];
     Sigma = (prior_info + sum_k J_k^T J_k / sigma_k^2)^-1.
     """
-    R = T.rotation().matrix()
-    sig = np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(sub_xyz),))
+    p = np.asarray(sub_xyz, dtype=float).reshape(-1, 3)
+    w = 1.0 / np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(p),)) ** 2
     info = np.zeros((6, 6)) if prior_info is None else np.array(prior_info, dtype=float)
-    for p, s in zip(sub_xyz, sig):
-        J = np.hstack([-R @ skew(p), R])
-        info += J.T @ J / s**2
+    # sum_k J_k^T J_k / s_k^2 with J_k = [-R [p_k]x, R]: R^T R = I, so the blocks are
+    # [p]x^T [p]x (rotation), -[p]x^T = [p]x and its transpose (cross), I (translation)
+    px = np.zeros((len(p), 3, 3))
+    px[:, 0, 1], px[:, 0, 2], px[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    px -= px.transpose(0, 2, 1)
+    info[:3, :3] += np.einsum("k,kij,kjl->il", w, px.transpose(0, 2, 1), px)
+    cross = np.einsum("k,kij->ij", w, px)  # sum_k w_k [p_k]x
+    info[:3, 3:] += cross
+    info[3:, :3] += cross.T
+    info[3:, 3:] += np.eye(3) * w.sum()
     return np.linalg.inv(info)
 
 

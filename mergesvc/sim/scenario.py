@@ -18,7 +18,7 @@ from enum import Enum
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mergesvc.core.model import ObjectArrays, ObjectMap, Submap
+from mergesvc.core.model import ObjectArrays, ObjectMap, Submap, arrays_to_nodes
 from mergesvc.core.tracking import fuse_observations
 
 EMBEDDING_DIM = 384
@@ -236,9 +236,9 @@ def make_scenario(
         sub_ids, sub_pos[order], sub_mu[order], sub_var[order], sub_obs[order]
     )
     return Scenario(
-        map=ObjectMap(robot_id=f"{robot}1", session_id="s0", objects=map_arr.to_nodes()),
+        map=ObjectMap(robot_id=f"{robot}1", session_id="s0", objects=arrays_to_nodes(map_arr)),
         submap=Submap(
-            robot_id=f"{robot}2", session_id="s1", seq=0, objects=sub_arr.to_nodes()
+            robot_id=f"{robot}2", session_id="s1", seq=0, objects=arrays_to_nodes(sub_arr)
         ),
         truth=truth,
         R_map_submap=R,

@@ -156,7 +156,9 @@ def encode_objects(
         var_hdr = [lo, hi, width]
 
     emb_hdr = None
-    E = arr.embeddings_nd
+    # the files' own values (ObjectArrays holds float32): f16, int8 and compact quantise from
+    # what the model says, as they always did
+    E = np.array([o.embedding for o in m.objects], dtype=np.float64)
     if profile is Profile.FULL:
         w.write_bytes(to_raw(E, "<f4", "embeddings"))
     elif profile is Profile.F16:

@@ -20,29 +20,11 @@ and carried. Compact spends `embedding_bits` (400) per object on the coefficient
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from mergesvc.core.model import MAX_EMBEDDING_DIM
-
-
-class Profile(str, Enum):
-    """Quantisation profile of a message (see the module docstring)."""
-
-    FULL = "full"
-    F16 = "f16"
-    INT8 = "int8"
-    COMPACT = "compact"
-
-
-class MessageType(str, Enum):
-    SUBMAP = "submap"
-    MAP = "map"
-    FACTOR = "factor"
-    ERROR = "error"
-    RELOCALIZE_REQUEST = "relocalize_request"  # reserved: no model yet
-    RELOCALIZE_REPLY = "relocalize_reply"  # reserved: no model yet
+from mergesvc.wire.names import MessageType, Profile
 
 
 @dataclass(frozen=True)

@@ -160,13 +160,21 @@ def dominated(
         return gone
     order = np.argsort(problem.rows, kind="stable")
     rows, cols = problem.rows[order], problem.cols[order]
-    P = problem.K[np.ix_(order, order)]
-    P += P.T.copy()
-    apart = rows[:, None] == rows[None, :]  # same row (and the diagonal)
-    apart |= cols[:, None] == cols[None, :]  # same col: cannot coexist
-    if problem.conflict is not None:
-        apart |= problem.conflict[np.ix_(order, order)]  # conflicting: cannot coexist either
-    P[apart] = 0.0
+    if problem.invalid_zero:
+        # candidate_K's problems: K symmetric, 0 where two candidates share a row or a col
+        sorted_ = bool(np.all(problem.rows[1:] >= problem.rows[:-1]))
+        P = problem.K * 2.0 if sorted_ else problem.K[np.ix_(order, order)] * 2.0
+        np.fill_diagonal(P, 0.0)
+        if problem.conflict is not None:
+            P[problem.conflict if sorted_ else problem.conflict[np.ix_(order, order)]] = 0.0
+    else:
+        P = problem.K[np.ix_(order, order)]
+        P += P.T.copy()
+        apart = rows[:, None] == rows[None, :]  # same row (and the diagonal)
+        apart |= cols[:, None] == cols[None, :]  # same col: cannot coexist
+        if problem.conflict is not None:
+            apart |= problem.conflict[np.ix_(order, order)]  # conflicting: cannot coexist
+        P[apart] = 0.0
     np.maximum(P, 0.0, out=P)
     unary = np.diag(problem.K)[order]
     need = np.zeros(m) if slack is None else -np.asarray(slack, dtype=np.float64)[order]

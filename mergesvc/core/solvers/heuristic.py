@@ -32,6 +32,9 @@ def sinkhorn(
         rs = _group_sum(x, problem.rows, problem.n1)
         x = x / np.maximum(rs[problem.rows], 1e-300)
         cs = _group_sum(x, problem.cols, problem.n2)
+        if slack and cs.max() <= 1.0:
+            # rows sum to 1 and no col exceeds its cap: every later step divides by 1
+            return x
         cs = np.maximum(cs, 1.0) if slack else np.maximum(cs, 1e-300)
         x = x / cs[problem.cols]
     return x
@@ -44,6 +47,15 @@ def _conflict_mask(problem: AssignmentProblem) -> np.ndarray:
     )
 
 
+def _masked_K(problem: AssignmentProblem) -> np.ndarray:
+    """K with the entries of candidates sharing a row or a col zeroed (the diagonal kept)."""
+    if problem.invalid_zero:
+        return problem.K
+    K = np.where(_conflict_mask(problem), 0.0, problem.K)
+    np.fill_diagonal(K, np.diag(problem.K))
+    return K
+
+
 def rrwm(
     problem: AssignmentProblem,
     max_iter: int = 100,
@@ -52,8 +64,7 @@ def rrwm(
     tol: float = 1e-6,
 ) -> np.ndarray:
     """Reweighted random walks (Cho et al. 2010) on a non-negative K. Returns soft x (m,)."""
-    K = np.where(_conflict_mask(problem), 0.0, problem.K)
-    np.fill_diagonal(K, np.diag(problem.K))
+    K = _masked_K(problem)
     d_max = max(K.sum(axis=1).max(), 1e-12)
     P = K / d_max  # eq. 5: random walk with absorbing reweighting
     x = np.full(problem.m, 1.0 / max(problem.m, 1))
@@ -72,8 +83,7 @@ def rrwm(
 
 def spectral(problem: AssignmentProblem, max_iter: int = 100, tol: float = 1e-9) -> np.ndarray:
     """Spectral matching (Leordeanu & Hebert 2005): leading eigenvector of K by power iteration."""
-    K = np.where(_conflict_mask(problem), 0.0, problem.K)
-    np.fill_diagonal(K, np.diag(problem.K))
+    K = _masked_K(problem)
     x = np.full(problem.m, 1.0 / np.sqrt(max(problem.m, 1)))
     for _ in range(max_iter):
         x_new = K @ x
@@ -95,8 +105,7 @@ def ipfp(
     Works on any K (signed too): each step maximises the linearised objective with the
     Hungarian (no-match allowed), then a line search towards it; keeps the best discrete point.
     """
-    K = np.where(_conflict_mask(problem), 0.0, problem.K)
-    np.fill_diagonal(K, np.diag(problem.K))
+    K = _masked_K(problem)
     x = np.full(problem.m, 1.0 / max(problem.m, 1)) if x0_m is None else x0_m.astype(float)
     best, best_score = np.zeros(problem.m), 0.0
     for _ in range(max_iter):

@@ -48,12 +48,11 @@ def prune_negative(problem: AssignmentProblem, assignment: np.ndarray) -> np.nda
     objective), so the answer is always feasible.
     """
     a = repair_conflicts(problem, assignment)
-    lookup = {(int(r), int(c)): p for p, (r, c) in enumerate(zip(problem.rows, problem.cols))}
     while True:
         rows = np.flatnonzero(a != UNMATCHED)
         if len(rows) == 0:
             return a
-        idx = np.array([lookup[(int(i), int(a[i]))] for i in rows])
+        idx = problem.assignment_to_indices(a)
         sub = problem.K[np.ix_(idx, idx)]
         # contribution of p: K_pp + sum_{q != p} (K_pq + K_qp)
         gain = np.diag(sub) + sub.sum(axis=0) + sub.sum(axis=1) - 2 * np.diag(sub)

@@ -38,6 +38,21 @@ class AssignmentProblem:
     cols: np.ndarray
     K: np.ndarray
     conflict: np.ndarray | None = None
+    # K is 0 wherever two candidates share a row or a col (the solvers need not mask it)
+    invalid_zero: bool = False
+
+    @classmethod
+    def trusted(cls, n1: int, n2: int, rows: np.ndarray, cols: np.ndarray, K: np.ndarray,
+                conflict: np.ndarray | None = None, invalid_zero: bool = False
+                ) -> AssignmentProblem:
+        """A problem whose builder guarantees the invariants `__post_init__` checks (ranges,
+        no duplicate pair, finite symmetric K, a symmetric conflict matrix False on its
+        diagonal): affinity.candidate_K, whose O(m^2) checks would cost as much as K."""
+        out = object.__new__(cls)
+        for name, value in (("n1", n1), ("n2", n2), ("rows", rows), ("cols", cols), ("K", K),
+                            ("conflict", conflict), ("invalid_zero", invalid_zero)):
+            object.__setattr__(out, name, value)
+        return out
 
     def __post_init__(self) -> None:
         m = len(self.rows)
@@ -79,8 +94,10 @@ class AssignmentProblem:
         """The problem over the candidates where `keep` (m,) bool is true; same rows and cols."""
         idx = np.flatnonzero(keep)
         conflict = None if self.conflict is None else self.conflict[np.ix_(idx, idx)]
-        return AssignmentProblem(
-            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)], conflict
+        # a subset of a valid problem is valid: no O(m^2) checks again
+        return AssignmentProblem.trusted(
+            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)], conflict,
+            self.invalid_zero,
         )
 
     def conflicts_of(self, assignment: np.ndarray) -> np.ndarray:

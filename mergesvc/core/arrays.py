@@ -1,0 +1,217 @@
+"""Objects as arrays (`ObjectArrays`), the representation every core stage computes on.
+
+Memory layout, held once per map: embeddings in float32 (the wire's `full` precision); a
+variance given as one number per object kept as one number per object (a read-only (n, d)
+broadcast view, no (n, d) copy); no normalised copy of the embeddings (cosines divide by the
+cached row norms). Any array may be a read-only memory map (wire/mapfile.py): nothing here
+writes into the arrays it is given, and whole-map passes (validation, norms) run in chunks.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mergesvc.core.geometry import median_spacing
+from mergesvc.errors import SchemaError
+
+# |coordinate| of an object, metres (see model.py: the file models refuse beyond it too)
+MAX_COORDINATE_M = 1e9
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+# rows per step of a whole-map pass: bounds its temporaries to a few tens of MB
+_CHUNK_ROWS = 16_384
+
+
+def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
+    """Start rows of the chunks of a whole-map pass over n rows."""
+    return range(0, n, step)
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    return all(bool(np.isfinite(a[lo:lo + _CHUNK_ROWS]).all()) for lo in chunks(len(a)))
+
+
+def _as_float32(e: Any) -> np.ndarray:
+    """(n, d) embeddings as float32 (no copy when they already are); SchemaError when a value
+    is not finite or lies beyond float32's range."""
+    a = e if isinstance(e, np.ndarray) else np.asarray(e)
+    if a.dtype == np.float32:
+        if not _all_finite(a):
+            raise SchemaError("embeddings_nd has NaN or inf")
+        return a
+    a = np.asarray(a, dtype=np.float64)
+    if not _all_finite(a):
+        raise SchemaError("embeddings_nd has NaN or inf")
+    if a.size and float(np.abs(a).max()) > FLOAT32_MAX:
+        raise SchemaError(f"embedding values beyond +-{FLOAT32_MAX:.3g} (float32) are not "
+                          "supported")
+    return a.astype(np.float32)
+
+
+def _compact_variances(v: Any, n: int, d: int) -> np.ndarray:
+    """(n, d) variances as given ((n,), (n, 1) or (n, d)); a read-only broadcast of one column
+    when each object has one number (isotropic), else the (n, d) array itself."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 1 and a.shape == (n,):
+        a = a[:, None]
+    if a.ndim != 2 or a.shape[0] != n or a.shape[1] not in (1, d):
+        raise SchemaError(f"variances_nd must be ({n}, {d}), ({n}, 1) or ({n},), got {a.shape}")
+    if a.shape[1] == d and d > 1:
+        if a.strides[1] == 0:
+            a = a[:, :1]
+        elif all(bool((a[lo:lo + _CHUNK_ROWS] == a[lo:lo + _CHUNK_ROWS, :1]).all())
+                 for lo in chunks(n)):
+            a = np.ascontiguousarray(a[:, :1])
+    if not _all_finite(a):
+        raise SchemaError("variances_nd has NaN or inf")
+    if n and not float(a.min()) > 0:
+        raise SchemaError("variances_nd must be positive")
+    return np.broadcast_to(a, (n, d)) if a.shape[1] == 1 else a
+
+
+@dataclass(frozen=True)
+class ObjectArrays:
+    """Objects as arrays, the representation the core stages compute on.
+
+    ids: n object ids; position_xyz_m: (n, 3) float64; embeddings_nd: (n, d) float32 (given
+    any float, stored as float32); variances_nd: (n, d) per-dimension variance (given (n, d),
+    (n, 1) or (n,): one number per object is kept as one, seen through a read-only (n, d)
+    view); n_obs: (n,); up_xyz: (3,) unit vector opposite to gravity when the frame declares
+    it, else None (see `mergesvc.core.vertical`).
+    """
+
+    ids: Sequence[str]
+    position_xyz_m: np.ndarray
+    embeddings_nd: np.ndarray
+    variances_nd: np.ndarray
+    n_obs: np.ndarray
+    up_xyz: np.ndarray | None = None
+    # what the stages derive from a map once and keep with it (core/search.py: its index)
+    cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.ids)
+        if n == 0:
+            raise SchemaError("no objects")
+        pos = np.asarray(self.position_xyz_m, dtype=np.float64)
+        if pos.shape != (n, 3):
+            raise SchemaError(f"position_xyz_m must be ({n}, 3), got {pos.shape}")
+        emb = self.embeddings_nd
+        if getattr(emb, "ndim", np.ndim(emb)) != 2 or len(emb) != n:
+            raise SchemaError(f"embeddings_nd must be ({n}, d), got {np.shape(emb)}")
+        emb = _as_float32(emb)
+        var = _compact_variances(self.variances_nd, n, emb.shape[1])
+        if not np.all(np.isfinite(pos)):
+            raise SchemaError("position_xyz_m has NaN or inf")
+        if np.any(np.abs(pos) > MAX_COORDINATE_M):
+            raise SchemaError(f"position_xyz_m beyond +-{MAX_COORDINATE_M:g} m")
+        for name, value in (("position_xyz_m", pos), ("embeddings_nd", emb),
+                            ("variances_nd", var), ("n_obs", np.asarray(self.n_obs))):
+            object.__setattr__(self, name, value)
+        if self.up_xyz is not None:
+            up = np.asarray(self.up_xyz, dtype=np.float64)
+            peak = float(np.abs(up).max()) if up.shape == (3,) else 0.0
+            if not (np.isfinite(peak) and peak > 0.0):
+                raise SchemaError("up_xyz must be a finite non-zero 3-vector")
+            up = up / peak  # scaled first: no overflow for huge components
+            object.__setattr__(self, "up_xyz", up / np.linalg.norm(up))
+
+    @property
+    def n(self) -> int:
+        return len(self.ids)
+
+    @property
+    def dim(self) -> int:
+        return self.embeddings_nd.shape[1]
+
+    @property
+    def isotropic(self) -> bool:
+        """Whether every object's variance is one number (held as one column)."""
+        return self.variances_nd.strides[1] == 0 or self.dim == 1
+
+    @property
+    def variance_column(self) -> np.ndarray:
+        """(n, 1) per-object variance when isotropic, else the (n, d) variances."""
+        return self.variances_nd[:, :1] if self.isotropic else self.variances_nd
+
+    @functools.cached_property
+    def norms_n(self) -> np.ndarray:
+        """(n,) float64 embedding norms; computed once per map, in chunks."""
+        e = self.embeddings_nd
+        out = np.empty(self.n)
+        for lo in chunks(self.n):
+            blk = e[lo:lo + _CHUNK_ROWS].astype(np.float64)
+            out[lo:lo + len(blk)] = np.sqrt(np.einsum("ij,ij->i", blk, blk))
+        return out
+
+    @functools.cached_property
+    def uncertainty_s(self) -> np.ndarray:
+        """(n,) scalar uncertainty s: mean of the per-dimension variances (see ObjectNode);
+        computed once per map."""
+        if self.isotropic:
+            return np.ascontiguousarray(self.variances_nd[:, 0])
+        return self.variances_nd.mean(axis=1)
+
+    def unit_rows(self, index: np.ndarray | None = None) -> np.ndarray:
+        """(k, d) float64 unit-norm embeddings of the indexed objects (all when None); a new
+        array each call (no normalised copy of the map is kept)."""
+        e = self.embeddings_nd if index is None else self.embeddings_nd[index]
+        norms = self.norms_n if index is None else self.norms_n[index]
+        return e.astype(np.float64) / np.where(norms > 0, norms, 1.0)[:, None]
+
+    @property
+    def unit_embeddings_nd(self) -> np.ndarray:
+        """(n, d) embeddings scaled to unit norm (`unit_rows()`; computed on each call)."""
+        return self.unit_rows()
+
+    @functools.cached_property
+    def kdtree(self) -> cKDTree:
+        """KD-tree over the object centres; built once per map."""
+        return cKDTree(self.position_xyz_m)
+
+    @functools.cached_property
+    def median_spacing_m(self) -> float:
+        """Median nearest-neighbour distance between object centres; 1.0 if undefined."""
+        return median_spacing(self.position_xyz_m, self.kdtree)
+
+    @classmethod
+    def from_objects(
+        cls, objects: Sequence[Any], up: tuple[float, float, float] | None = None
+    ) -> ObjectArrays:
+        """From the file models' objects (model.ObjectNode: id, position, embedding, variance,
+        n_obs)."""
+        d = len(objects[0].embedding)
+        if all(not isinstance(o.variance, list) for o in objects):
+            var = np.array([o.variance for o in objects], dtype=np.float64)
+        else:
+            var = np.empty((len(objects), d))
+            for k, o in enumerate(objects):
+                var[k] = o.variance  # a scalar broadcasts: isotropic
+        return cls(
+            ids=[o.id for o in objects],
+            position_xyz_m=np.array([o.position for o in objects], dtype=np.float64),
+            embeddings_nd=_as_float32(np.array([o.embedding for o in objects],
+                                               dtype=np.float64)),
+            variances_nd=var,
+            n_obs=np.array([o.n_obs for o in objects], dtype=np.int64),
+            up_xyz=None if up is None else np.asarray(up, dtype=np.float64),
+        )
+
+    def subset(self, index: np.ndarray) -> ObjectArrays:
+        index = np.asarray(index, dtype=np.int64)
+        return ObjectArrays(
+            ids=[self.ids[k] for k in index],
+            position_xyz_m=self.position_xyz_m[index],
+            embeddings_nd=self.embeddings_nd[index],
+            variances_nd=self.variance_column[index],
+            n_obs=self.n_obs[index],
+            up_xyz=self.up_xyz,
+        )
+
+
+__all__ = ["FLOAT32_MAX", "MAX_COORDINATE_M", "ObjectArrays", "chunks"]

@@ -1,0 +1,236 @@
+"""Nearest map objects by cosine, the candidate stage's shortlist: exact or indexed.
+
+`ExactSearch`: chunked float32 products over the map's rows, a running top-k; memory per step
+bounded whatever the map size, exact. `IvfSearch`: an inverted-file index (faiss-cpu, 8-bit
+scalar-quantised codes, a quarter of the float32 embeddings) probed for a wider shortlist that
+is then re-ranked with the exact float32 cosines: its answer is the exact top-k whenever the
+true top-k lie in the probed lists. Both add rows incrementally (`add`), so a service whose map
+grows keeps one index. `map_search` picks one for a map by the candidates settings and keeps it
+with the map's arrays, built once.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from typing import Any, Protocol
+
+import numpy as np
+
+from mergesvc.core.arrays import ObjectArrays, chunks
+from mergesvc.core.config import CandidatesConfig, SearchKind
+from mergesvc.core.threads import PIN_BELOW_PAIRS
+from mergesvc.errors import InputError
+
+log = logging.getLogger(__name__)
+
+_SEARCH_KEY = "search"  # where map_search keeps a map's index in ObjectArrays.cache
+_QUERY_BLOCK = 256  # queries per product: (256 x 65,536) float32 scores, 64 MB
+
+
+class MapSearch(Protocol):
+    """Top-k map rows by cosine for unit-norm queries."""
+
+    n: int
+
+    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(m, d) unit queries -> ((m, k) map rows, (m, k) cosines), each row best first."""
+        ...
+
+    def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
+        """Append rows n.. n + len - 1 (the map's new objects, in order)."""
+        ...
+
+
+def _unit32(e: np.ndarray, norms: np.ndarray | None = None) -> np.ndarray:
+    e = np.asarray(e, dtype=np.float32)
+    n = np.linalg.norm(e, axis=1) if norms is None else np.asarray(norms)
+    return e / np.where(n > 0, n, 1.0).astype(np.float32)[:, None]
+
+
+def _best_first(rows: np.ndarray, score: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Top k of each row of (m, c) scores with their column labels rows (m, c), best first."""
+    k = min(k, score.shape[1])
+    if k < score.shape[1]:
+        part = np.argpartition(-score, k - 1, axis=1)[:, :k]
+        rows = np.take_along_axis(rows, part, axis=1)
+        score = np.take_along_axis(score, part, axis=1)
+    order = np.argsort(-score, axis=1, kind="stable")
+    return np.take_along_axis(rows, order, axis=1), np.take_along_axis(score, order, axis=1)
+
+
+class ExactSearch:
+    """Exact top-k by cosine over chunks of the map's rows (float32 products).
+
+    Holds references to the map's embeddings and norms (no copy); `add` appends rows."""
+
+    def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray,
+                 chunk_rows: int = 65_536) -> None:
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = [(embeddings_nd, norms_n)]
+        self.n = len(embeddings_nd)
+        self.chunk_rows = chunk_rows
+
+    def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
+        e = np.asarray(embeddings_nd, dtype=np.float32)
+        n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
+        self._parts.append((e, np.asarray(n)))
+        self.n += len(e)
+
+    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(q_unit, dtype=np.float32)
+        if len(q) > _QUERY_BLOCK:  # bounds the (queries x chunk) products
+            parts = [self.search(q[lo:lo + _QUERY_BLOCK], k) for lo in chunks(len(q),
+                                                                              _QUERY_BLOCK)]
+            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+        m = len(q)
+        k = max(1, min(k, self.n))
+        best_rows = np.zeros((m, 0), dtype=np.int64)
+        best = np.zeros((m, 0), dtype=np.float32)
+        offset = 0
+        for e, norms in self._parts:
+            inv = (1.0 / np.where(norms > 0, norms, 1.0)).astype(np.float32)
+            for lo in chunks(len(e), self.chunk_rows):
+                hi = min(len(e), lo + self.chunk_rows)
+                s = q @ e[lo:hi].T
+                s *= inv[lo:hi]
+                rows = np.broadcast_to(np.arange(offset + lo, offset + hi), s.shape)
+                if best.shape[1] >= k:
+                    # only what beats the current k-th best can enter
+                    keep = s > best[:, -1:]
+                    if not keep.any():
+                        continue
+                    width = int(keep.sum(axis=1).max())
+                    if width < s.shape[1] // 4:
+                        part = np.argpartition(-s, width - 1, axis=1)[:, :width]
+                        s = np.take_along_axis(s, part, axis=1)
+                        rows = np.take_along_axis(rows, part, axis=1)
+                best_rows, best = _best_first(np.hstack([best_rows, rows]),
+                                              np.hstack([best, s]), k)
+            offset += len(e)
+        return best_rows, best
+
+
+class IvfSearch:
+    """Inverted-file index (faiss IndexIVFScalarQuantizer, 8-bit codes, inner product on unit
+    rows) probed for `rerank` x k rows, re-ranked by exact float32 cosines from the map's own
+    embeddings. n_lists: about 4 sqrt(n) by default; n_probe lists probed per query."""
+
+    def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray, *,
+                 n_lists: int | None = None, n_probe: int | None = None, rerank: int = 2,
+                 train_per_list: int = 32, seed: int = 0) -> None:
+        try:
+            import faiss  # a large library: imported only when an index is wanted
+        except ImportError as exc:  # pragma: no cover - a declared dependency
+            raise InputError("the IVF candidate index needs faiss-cpu") from exc
+        self._faiss = faiss
+        n, d = embeddings_nd.shape
+        # sqrt(n) lists (at most 1024), an eighth of them probed: a sixteenth missed 1 in 8
+        # of the exact top-12 on diffuse 32-d clusters (tests/test_search.py); measured
+        # recall: docs/benchmarks/scale.md
+        self.n_lists = int(n_lists or min(max(16, math.isqrt(n)), 1024, max(1, n // 8)))
+        self.n_probe = min(n_probe or max(8, self.n_lists // 8), self.n_lists)
+        self.rerank = max(1, rerank)
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
+        self.n = 0
+        quantizer = faiss.IndexFlatIP(d)
+        self.index = faiss.IndexIVFScalarQuantizer(
+            quantizer, d, self.n_lists, faiss.ScalarQuantizer.QT_8bit, faiss.METRIC_INNER_PRODUCT)
+        self.index.cp.max_points_per_centroid = train_per_list
+        self.index.cp.niter = 10
+        self.index.cp.seed = seed
+        rng = np.random.default_rng(seed)
+        n_train = min(n, train_per_list * self.n_lists)
+        sample = np.sort(rng.choice(n, size=n_train, replace=False))
+        # building is one large product per step: every core; searching a few rows: one
+        faiss.omp_set_num_threads(os.cpu_count() or 1)
+        try:
+            self.index.train(_unit32(embeddings_nd[sample], norms_n[sample]))
+            self._quantizer = quantizer  # faiss keeps a pointer only: keep the object alive
+            self.add(embeddings_nd, norms_n)
+        finally:
+            faiss.omp_set_num_threads(1)
+
+    def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
+        e = np.asarray(embeddings_nd) if embeddings_nd.dtype == np.float32 else \
+            np.asarray(embeddings_nd, dtype=np.float32)
+        n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
+        for lo in chunks(len(e), 65_536):
+            self.index.add(_unit32(e[lo:lo + 65_536], n[lo:lo + 65_536]))
+        self._parts.append((e, np.asarray(n)))
+        self.n += len(e)
+
+    def _rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k,) global rows -> their (k, d) float32 embeddings and (k,) norms."""
+        if len(self._parts) == 1:
+            e, n = self._parts[0]
+            return e[rows], n[rows]
+        starts = np.cumsum([0] + [len(e) for e, _ in self._parts])
+        part = np.searchsorted(starts, rows, side="right") - 1
+        out_e = np.empty((len(rows), self._parts[0][0].shape[1]), dtype=np.float32)
+        out_n = np.empty(len(rows))
+        for p in np.unique(part):
+            sel = part == p
+            e, n = self._parts[p]
+            out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
+        return out_e, out_n
+
+    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        q = np.ascontiguousarray(q_unit, dtype=np.float32)
+        block = max(1, _QUERY_BLOCK // 4)
+        if len(q) > block:  # bounds the re-ranking's (queries x found x d) gather
+            parts = [self.search(q[lo:lo + block], k) for lo in chunks(len(q), block)]
+            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+        k = max(1, min(k, self.n))
+        self.index.nprobe = self.n_probe
+        # a few queries: one thread (waking more costs more); a large submap's: every core
+        big = len(q) * self.n >= PIN_BELOW_PAIRS
+        self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
+        _, found = self.index.search(q, min(self.n, self.rerank * k))
+        found = found.astype(np.int64)
+        # exact float32 cosines of what the probe found: sorted rows read the map in order
+        flat = np.unique(found[found >= 0])
+        e, norms = self._rows(flat)
+        pos = np.searchsorted(flat, np.maximum(found, 0))
+        cos = np.einsum("mkd,md->mk", e[pos], q) / np.where(norms > 0, norms, 1.0)[pos]
+        cos = np.where(found >= 0, cos, -np.inf).astype(np.float32)
+        return _best_first(found, cos, k)
+
+
+def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -> MapSearch:
+    """The search `cfg.index` asks for over this map (auto: exact below index_min_objects
+    map objects, and below index_min_pairs query x map pairs; the IVF index above)."""
+    kind = SearchKind(cfg.index)
+    if kind is SearchKind.AUTO:
+        big = map_.n >= cfg.index_min_objects or (
+            map_.n * n_queries >= cfg.index_min_pairs and map_.n >= cfg.index_min_pairs_map)
+        kind = SearchKind.IVF if big else SearchKind.EXACT
+    if kind is SearchKind.IVF and map_.n >= 2 * cfg.index_min_lists:
+        return IvfSearch(map_.embeddings_nd, map_.norms_n, n_lists=cfg.index_lists,
+                         n_probe=cfg.index_probe, seed=0)
+    return ExactSearch(map_.embeddings_nd, map_.norms_n)
+
+
+def map_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -> MapSearch:
+    """The map's search structure: one already attached (`attach_search`), else made by
+    `make_search` and kept with the map (an index is built once per map). An exact search is
+    cheap to make and is not kept, so a later large query may still build the index."""
+    held: Any = map_.cache.get(_SEARCH_KEY)
+    if held is not None and held.n == map_.n:
+        return held
+    search = make_search(map_, cfg, n_queries)
+    if isinstance(search, IvfSearch):
+        map_.cache[_SEARCH_KEY] = search
+    return search
+
+
+def attach_search(map_: ObjectArrays, search: MapSearch) -> None:
+    """Use `search` (rows in the map's order, search.n == map_.n) for this map's candidate
+    searches: a service keeps one index per map and `add`s the objects a map gains."""
+    if search.n != map_.n:
+        raise InputError(f"search holds {search.n} rows, the map {map_.n}")
+    map_.cache[_SEARCH_KEY] = search
+
+
+__all__ = ["ExactSearch", "IvfSearch", "MapSearch", "attach_search", "make_search",
+           "map_search"]

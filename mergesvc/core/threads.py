@@ -1,0 +1,56 @@
+"""How many threads the BLAS may use for one match: one for small problems.
+
+The matching stages multiply small matrices (a few hundred candidates): a multi-threaded BLAS
+spends more time waking and joining its threads than computing, so default settings were
+several times slower than one thread. `blas_threads` pins the BLAS (every loaded copy:
+numpy's, scipy's) to one thread for problems below PIN_BELOW_PAIRS submap x map objects and
+leaves it alone above, where a whole-map product does gain from threads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+# submap x map objects from which the BLAS keeps its own thread count (a 20-object submap
+# against a million-object map: its exact cosine pass is one large product)
+PIN_BELOW_PAIRS = 20_000_000
+
+_controller: Any = None
+_modules_seen = -1
+
+
+def _threadpools() -> Any:
+    """threadpoolctl's controller over the BLAS libraries loaded now: listing them costs
+    milliseconds, switching their thread count microseconds, so the list is made again only
+    when modules were imported since (one may have brought its own BLAS, as faiss does)."""
+    global _controller, _modules_seen
+    if _controller is None or len(sys.modules) != _modules_seen:
+        from threadpoolctl import ThreadpoolController
+
+        _controller = ThreadpoolController()
+        _modules_seen = len(sys.modules)
+    return _controller
+
+
+@contextlib.contextmanager
+def blas_threads(n_pairs: int) -> Iterator[None]:
+    """One BLAS thread inside the block when n_pairs (submap x map objects) is below
+    PIN_BELOW_PAIRS; the BLAS's own setting otherwise."""
+    if n_pairs >= PIN_BELOW_PAIRS:
+        yield
+        return
+    with _threadpools().limit(limits=1, user_api="blas"):
+        yield
+
+
+def blas_thread_counts() -> list[int]:
+    """Threads each loaded BLAS library uses right now (for tests and benchmarks)."""
+    from threadpoolctl import threadpool_info
+
+    return [int(lib["num_threads"]) for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+__all__ = ["PIN_BELOW_PAIRS", "blas_thread_counts", "blas_threads"]

@@ -1,0 +1,82 @@
+"""ObjectArrays' memory layout: float32 embeddings held once, one variance per object kept as
+one number, derived arrays cached, nothing written into memory-mapped inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mergesvc.core.arrays import ObjectArrays
+from mergesvc.errors import SchemaError
+
+
+def _arrays(n: int = 50, d: int = 16, iso: bool = True, seed: int = 0) -> ObjectArrays:
+    rng = np.random.default_rng(seed)
+    var = rng.uniform(0.1, 1.0, n) if iso else rng.uniform(0.1, 1.0, (n, d))
+    return ObjectArrays([f"o{i}" for i in range(n)], rng.normal(size=(n, 3)),
+                        rng.normal(size=(n, d)), var, np.ones(n, dtype=np.int64))
+
+
+def test_embeddings_are_float32_and_not_copied_when_they_are() -> None:
+    a = _arrays()
+    assert a.embeddings_nd.dtype == np.float32
+    e = np.ascontiguousarray(a.embeddings_nd)
+    b = ObjectArrays(a.ids, a.position_xyz_m, e, a.variances_nd, a.n_obs)
+    assert b.embeddings_nd is e  # float32 given: held as given, no copy
+
+
+@pytest.mark.parametrize("shape", ["n", "n1", "nd"])
+def test_scalar_variance_stays_one_number_per_object(shape: str) -> None:
+    n, d = 40, 32
+    v = np.linspace(0.1, 0.5, n)
+    given = {"n": v, "n1": v[:, None], "nd": np.repeat(v[:, None], d, axis=1)}[shape]
+    a = ObjectArrays([f"o{i}" for i in range(n)], np.zeros((n, 3)), np.ones((n, d)), given,
+                     np.ones(n, dtype=np.int64))
+    assert a.isotropic and a.variances_nd.shape == (n, d)
+    assert a.variances_nd.strides[1] == 0  # a view of one column: n numbers held, not n x d
+    assert a.variances_nd.base is not None and a.variances_nd.base.size == n
+    np.testing.assert_array_equal(a.uncertainty_s, v)
+    np.testing.assert_array_equal(a.variances_nd[3], np.full(d, v[3]))
+    sub = a.subset(np.array([5, 1]))
+    assert sub.isotropic and sub.variances_nd.strides[1] == 0
+    np.testing.assert_array_equal(sub.uncertainty_s, v[[5, 1]])
+    with pytest.raises(ValueError):
+        a.variances_nd[0, 0] = 1.0  # read-only: nothing writes through the shared column
+
+
+def test_per_dimension_variances_are_kept_and_averaged() -> None:
+    a = _arrays(iso=False)
+    assert not a.isotropic and a.variances_nd.strides[1] != 0
+    np.testing.assert_allclose(a.uncertainty_s, a.variances_nd.mean(axis=1))
+
+
+def test_norms_and_unit_rows_match_a_reference_and_no_copy_is_kept() -> None:
+    a = _arrays(n=30, d=12)
+    e = a.embeddings_nd.astype(np.float64)
+    np.testing.assert_allclose(a.norms_n, np.linalg.norm(e, axis=1), rtol=1e-12)
+    np.testing.assert_allclose(a.unit_rows(np.array([2, 7])),
+                               e[[2, 7]] / np.linalg.norm(e[[2, 7]], axis=1, keepdims=True),
+                               rtol=1e-12)
+    a.unit_rows()
+    assert "norms_n" in vars(a) and not any(
+        isinstance(v, np.ndarray) and v.shape == a.embeddings_nd.shape for v in vars(a).values()
+        if v is not a.embeddings_nd and v is not a.variances_nd)
+
+
+def test_values_beyond_float32_are_refused_in_one_line() -> None:
+    a = _arrays(n=3, d=4)
+    big = np.ones((3, 4))
+    big[1, 2] = 1e300
+    with pytest.raises(SchemaError, match="float32"):
+        ObjectArrays(a.ids, a.position_xyz_m, big, a.variances_nd, a.n_obs)
+    with pytest.raises(SchemaError, match="positive"):
+        ObjectArrays(a.ids, a.position_xyz_m, a.embeddings_nd, np.zeros(3), a.n_obs)
+
+
+def test_read_only_inputs_are_accepted_unchanged() -> None:
+    a = _arrays(n=20, d=8)
+    e = np.array(a.embeddings_nd)
+    e.setflags(write=False)
+    b = ObjectArrays(a.ids, a.position_xyz_m, e, a.variances_nd, a.n_obs)
+    assert b.embeddings_nd is e
+    assert np.isfinite(b.norms_n).all() and b.uncertainty_s.shape == (20,)

@@ -1,0 +1,32 @@
+"""`bench scale` on a tiny plan: a child process per map, both thread modes, accuracy and
+recall reported (never a wall-clock assertion)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from mergesvc.bench.scale import THREAD_MODES, ScalePlan, markdown_table, run_scale
+from mergesvc.cli import app
+
+
+def test_a_tiny_scale_run_reports_every_cell(tmp_path: Path) -> None:
+    plan = ScalePlan({400: (3, 60)}, cases=2, large_cases=1, repeats=1, dim=32)
+    report = run_scale(plan, echo=lambda _: None, work_dir=tmp_path)
+    res = report["maps"]["400"]
+    assert set(res["cells"]) == {"3", "60"}
+    for cell in res["cells"].values():
+        assert set(cell["latency_ms"]) == set(THREAD_MODES)
+        assert cell["latency_ms"]["default"]["runs"] == cell["latency_ms"]["1"]["runs"]
+        assert cell["peak_rss_mb"] > 0 and cell["cpu_ms_p50"] > 0
+    # the 60-object submap goes through windows and comes out right
+    assert res["cells"]["60"]["node_accuracy"] >= 0.9
+    assert res["cells"]["60"]["recall"]["recall_at_k"] == 1.0  # exact search: exact top-k
+    assert "| 400 | 2-5 |" in markdown_table(report)
+    assert not list(tmp_path.iterdir())  # the worlds' files are gone
+
+
+def test_the_command_refuses_map_sizes_outside_its_plan() -> None:
+    res = CliRunner().invoke(app, ["bench", "scale", "--quick", "--map-size", "7"])
+    assert res.exit_code == 2 and "not in the plan" in res.output

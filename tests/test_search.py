@@ -1,0 +1,98 @@
+"""The candidate stage's shortlist: exact chunked search against brute force, the IVF index's
+recall of the exact top-k (look-alikes included), incremental adds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mergesvc.core.arrays import ObjectArrays
+from mergesvc.core.config import CandidatesConfig
+from mergesvc.core.search import ExactSearch, IvfSearch, attach_search, make_search, map_search
+from mergesvc.errors import InputError
+
+
+def _clustered(n: int, d: int, seed: int, twins: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Unit-ish rows around 8 class centres; a share of them near-copies (look-alikes) of
+    others. Returns (rows (n, d) float32, twin source (n,), -1 for originals)."""
+    rng = np.random.default_rng(seed)
+    C = rng.normal(size=(8, d))
+    C /= np.linalg.norm(C, axis=1, keepdims=True)
+    X = C[rng.integers(0, 8, n)] + 0.6 * rng.normal(size=(n, d)) / np.sqrt(d)
+    src = np.full(n, -1)
+    k = int(twins * n)
+    copies = rng.choice(n, k, replace=False)
+    src[copies] = rng.choice(n, k)
+    X[copies] = X[src[copies]] + 0.2 * rng.normal(size=(k, d)) / np.sqrt(d)
+    X *= rng.uniform(2.0, 6.0, (n, 1))
+    return X.astype(np.float32), src
+
+
+def _brute(X: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
+    cos = (q.astype(np.float64) @ X.T.astype(np.float64)) / np.linalg.norm(
+        X.astype(np.float64), axis=1)
+    return np.argsort(-cos, axis=1, kind="stable")[:, :k]
+
+
+def test_exact_search_equals_brute_force_across_chunks_and_adds() -> None:
+    X, _ = _clustered(3000, 24, 0)
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(300, 24)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    s = ExactSearch(X[:2000], norms[:2000], chunk_rows=333)  # several chunks
+    s.add(X[2000:])  # the map grows: rows 2000..2999
+    rows, cos = s.search(q, 10)  # 300 queries: more than one query block
+    ref = _brute(X, q, 10)
+    assert s.n == 3000
+    np.testing.assert_array_equal(rows, ref)
+    assert np.all(np.diff(cos, axis=1) <= 1e-6)  # best first
+    np.testing.assert_allclose(
+        cos[:, 0], np.einsum("md,md->m", q, X[ref[:, 0]]) / norms[ref[:, 0]], rtol=1e-5)
+
+
+def test_ivf_recall_of_the_exact_top_k_including_look_alikes() -> None:
+    X, src = _clustered(20_000, 32, 2)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    rng = np.random.default_rng(3)
+    # queries: noisy views of map objects, half of them objects that have a look-alike
+    look = np.flatnonzero(src >= 0)[:100]
+    plain = rng.choice(np.flatnonzero(src < 0), 100, replace=False)
+    who = np.concatenate([look, plain])
+    q = X[who] + 0.1 * rng.normal(size=(len(who), 32)) * norms[who, None] / np.sqrt(32)
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    index = IvfSearch(X, norms)
+    got = index.search(q, 12)[0]
+    ref = _brute(X, q, 12)
+    recall = np.array([len(set(g) & set(r)) / 12 for g, r in zip(got, ref)])
+    assert recall.mean() >= 0.99 and recall[:100].mean() >= 0.99, recall.mean()
+    assert index.n_probe < index.n_lists  # an index, not a scan in disguise
+
+
+def test_ivf_add_makes_new_rows_findable() -> None:
+    X, _ = _clustered(4000, 16, 4)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    index = IvfSearch(X[:3000], norms[:3000])
+    index.add(X[3000:])
+    assert index.n == 4000
+    q = X[3500:3510] / norms[3500:3510, None]
+    rows, cos = index.search(q.astype(np.float32), 1)
+    np.testing.assert_array_equal(rows[:, 0], np.arange(3500, 3510))
+    np.testing.assert_allclose(cos[:, 0], 1.0, atol=1e-5)
+
+
+def test_map_search_picks_and_keeps_the_index_by_size() -> None:
+    X, _ = _clustered(2000, 8, 5)
+    m = ObjectArrays([f"m{i}" for i in range(2000)], np.zeros((2000, 3)), X, np.ones(2000),
+                     np.ones(2000, dtype=np.int64))
+    auto = CandidatesConfig()
+    assert isinstance(map_search(m, auto), ExactSearch) and "search" not in m.cache
+    small = CandidatesConfig(index_min_objects=1000)
+    ivf = map_search(m, small)
+    assert isinstance(ivf, IvfSearch) and map_search(m, small) is ivf  # built once, kept
+    assert isinstance(make_search(m, CandidatesConfig(index="exact")), ExactSearch)
+    exact = ExactSearch(m.embeddings_nd, m.norms_n)
+    attach_search(m, exact)
+    assert map_search(m, small) is exact
+    with pytest.raises(InputError):
+        attach_search(m, ExactSearch(X[:10], m.norms_n[:10]))
