@@ -113,8 +113,9 @@ class VerifyConfig(_Section):
         "translation) when both frames' verticals are known (declared `up`, or inferred)"
     )
     vertical_sigma_deg: float = Field(
-        2.0, gt=0, description="how well a frame's vertical is known: the tilt prior of a "
-        "4-DoF transform's covariance"
+        2.0, gt=0, description="how well each frame's vertical is known (its attitude "
+        "sensor's tilt error, deg): a 4-DoF transform's tilt covariance is that of the two "
+        "frames' ups, sqrt(2) times this"
     )
     infer_vertical: bool = Field(
         True, description="without a declared `up`, infer a frame's vertical axis from a "

@@ -32,7 +32,13 @@ import numpy as np
 from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.model import Correspondence, Factor, FactorStatus, MatchResult, Submap
 from mergesvc.core.poses import as_pose3, pose3_from_model, transform_from_pose3
-from mergesvc.core.verify import align_about_vertical, align_weighted, pose_covariance, skew
+from mergesvc.core.verify import (
+    align_about_vertical,
+    align_weighted,
+    pose_covariance_info,
+    skew,
+    vertical_fit_covariance,
+)
 from mergesvc.errors import InputError
 
 if TYPE_CHECKING:
@@ -170,8 +176,8 @@ def local_fit(
                          np.linalg.norm(np.asarray(map_body_xyz, dtype=np.float64), axis=1))
         u = 1.0 + rho / max(float(np.median(rho)), 1e-9)
     w = 1.0 / u**2
-    prior = None
-    if up_sub is not None and up_map is not None:
+    vertical = up_sub is not None and up_map is not None
+    if vertical:
         u_s = np.asarray(up_sub, dtype=np.float64) / np.linalg.norm(up_sub)
         u_m = np.asarray(up_map, dtype=np.float64) / np.linalg.norm(up_map)
         centred = p - p.mean(axis=0)
@@ -179,8 +185,6 @@ def local_fit(
             return None
         T = align_about_vertical(p, q, u_s, u_m, weights=w)
         dof = 3 * k - 4
-        prior = np.zeros((6, 6))
-        prior[:3, :3] = (np.eye(3) - np.outer(u_s, u_s)) / vertical_sigma_rad**2
     else:
         if k < 3:
             return None
@@ -196,23 +200,30 @@ def local_fit(
     c = max(np.sqrt(rss / dof) if dof > 0 else 0.0, sigma_floor_m)
     sigma = c * u
     try:
-        cov = pose_covariance(T, p, sigma, prior_info=prior)
+        info = pose_covariance_info(T, p, sigma)
+        if vertical:  # yaw and translation from the points, tilt from the verticals' prior
+            cov = vertical_fit_covariance(T, p, sigma, u_s, vertical_sigma_rad)
+            B = np.zeros((6, 4))
+            B[:3, 0], B[3:, 1:] = u_s, np.eye(3)
+            K = B @ np.linalg.inv(B.T @ info @ B) @ B.T  # data gradient -> fitted directions
+        else:
+            K = cov = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         return None
     # the placements: q_i = P_g m_i moves by R_g (-[m_i]x eta_r + eta_t) for eta ~ N(0, S_g),
-    # the fit by cov * sum_i J_i^T dq_i / sigma^2 (J_i = [-R [p_i]x, R], verify.pose_covariance)
+    # the fit by K sum_i J_i^T dq_i / sigma_i^2 (J_i = [-R [p_i]x, R], verify.pose_covariance)
     M = np.zeros((6, 6))
     for g in dict.fromkeys(map_keyframes):
         P, S = placements[g]
         Rg = P.rotation().matrix()
-        B = np.zeros((6, 6))
+        Bg = np.zeros((6, 6))
         for i in (i for i, kf in enumerate(map_keyframes) if kf == g):
             J = np.hstack([-R @ skew(p[i]), R])
             G = Rg @ np.hstack([-skew(np.asarray(map_body_xyz[i], dtype=np.float64)),
                                 np.eye(3)])
-            B += J.T @ G / sigma[i] ** 2
-        M += B @ S @ B.T
-    total = cov + cov @ M @ cov
+            Bg += J.T @ G / sigma[i] ** 2
+        M += Bg @ S @ Bg.T
+    total = cov + K @ M @ K.T
     return T, 0.5 * (total + total.T)
 
 

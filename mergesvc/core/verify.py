@@ -74,16 +74,16 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-def pose_covariance(
+def pose_covariance_info(
     T: gtsam.Pose3,
     sub_xyz: np.ndarray,
     sigma_m: np.ndarray | float,
     prior_info: np.ndarray | None = None,
 ) -> np.ndarray:
-    """6x6 covariance of T (tangent space, rotation then translation, right perturbation).
+    """6x6 information of T (tangent space, rotation then translation, right perturbation).
 
-    Linearised least squares: r_k = T exp(xi) p_k - q_k has Jacobian [-R [p_k]x, R];
-    Sigma = (prior_info + sum_k J_k^T J_k / sigma_k^2)^-1.
+    Linearised least squares: r_k = T exp(xi) p_k - q_k has Jacobian [-R [p_k]x, R]; the
+    information is prior_info + sum_k J_k^T J_k / sigma_k^2.
     """
     p = np.asarray(sub_xyz, dtype=float).reshape(-1, 3)
     w = 1.0 / np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(p),)) ** 2
@@ -98,7 +98,44 @@ def pose_covariance(
     info[:3, 3:] += cross
     info[3:, :3] += cross.T
     info[3:, 3:] += np.eye(3) * w.sum()
-    return np.linalg.inv(info)
+    return info
+
+
+def pose_covariance(
+    T: gtsam.Pose3,
+    sub_xyz: np.ndarray,
+    sigma_m: np.ndarray | float,
+    prior_info: np.ndarray | None = None,
+) -> np.ndarray:
+    """6x6 covariance of T: the inverse of `pose_covariance_info`."""
+    return np.linalg.inv(pose_covariance_info(T, sub_xyz, sigma_m, prior_info))
+
+
+def vertical_fit_covariance(
+    T: gtsam.Pose3,
+    sub_xyz: np.ndarray,
+    sigma_m: np.ndarray | float,
+    up_sub: np.ndarray,
+    vertical_sigma_rad: float,
+) -> np.ndarray:
+    """6x6 covariance of a gravity-aligned (4-DoF) fit T_map_submap (GTSAM order, right
+    perturbation): the yaw about up_sub and the translation from the points (their
+    information in those four directions only), the tilt from the verticals' prior alone (the
+    fit does not estimate it: the declared ups set it; each frame's up is known to
+    vertical_sigma_rad, so their relative tilt to sqrt(2) times that), carried to the
+    translation through the points' centroid, which the fit keeps in place. LinAlgError when the points do not fix the
+    yaw. sub_xyz: (k, 3); sigma_m: one sigma or (k,)."""
+    u = np.asarray(up_sub, dtype=np.float64) / np.linalg.norm(up_sub)
+    B = np.zeros((6, 4))  # the fitted directions: yaw about up, then translation
+    B[:3, 0] = u
+    B[3:, 1:] = np.eye(3)
+    info4 = B.T @ pose_covariance_info(T, sub_xyz, sigma_m) @ B
+    cov = B @ np.linalg.inv(info4) @ B.T
+    c = np.asarray(sub_xyz, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+    G = np.vstack([np.eye(3), skew(c)])  # a tilt delta about the centroid: xi = (delta, c x delta)
+    tilt = 2.0 * vertical_sigma_rad**2 * (np.eye(3) - np.outer(u, u))  # both frames' ups
+    out = cov + G @ tilt @ G.T
+    return 0.5 * (out + out.T)
 
 
 def consistent_subset(
@@ -178,9 +215,9 @@ def fit_about_vertical(
     sub_xyz, map_xyz: (k, 3); tolerance_m: (k,). Rejects with `too_few_matches` below
     min_matches, `degenerate_geometry` when the matches do not fix the yaw (no match lies
     min_spread_m or more from their centroid across the vertical: all on one vertical line),
-    `residual_too_large` when fewer than min_matches pairs fit. The covariance
-    adds a gravity prior of vertical_sigma_rad on the two tilt directions to the fit's
-    information, so it is full rank for two matches.
+    `residual_too_large` when fewer than min_matches pairs fit. The covariance is the fit's
+    in yaw and translation and the verticals' prior (vertical_sigma_rad) in tilt
+    (`vertical_fit_covariance`), full rank for two matches.
     """
 
     def estimate(idx: np.ndarray) -> gtsam.Pose3 | None:
@@ -190,11 +227,11 @@ def fit_about_vertical(
             return None  # one above the other: the yaw is free
         return align_about_vertical(sub_xyz[idx], map_xyz[idx], up_sub, up_map)
 
-    prior = np.zeros((6, 6))
-    # rotation perturbations that tilt the vertical
-    prior[:3, :3] = (np.eye(3) - np.outer(up_sub, up_sub)) / vertical_sigma_rad**2
+    def covariance(T: gtsam.Pose3, pts: np.ndarray, sigma: float) -> np.ndarray:
+        return vertical_fit_covariance(T, pts, sigma, up_sub, vertical_sigma_rad)
+
     return _fit_with_outliers(sub_xyz, map_xyz, tolerance_m, min_matches, sigma_floor_m,
-                              estimate, dof_per_fit=4, prior_info=prior)
+                              estimate, dof_per_fit=4, covariance=covariance)
 
 
 def fit_rigid(
@@ -227,7 +264,7 @@ def _fit_with_outliers(
     sigma_floor_m: float,
     estimate: Callable[[np.ndarray], gtsam.Pose3 | None],
     dof_per_fit: int,
-    prior_info: np.ndarray | None = None,
+    covariance: Callable[[gtsam.Pose3, np.ndarray, float], np.ndarray] = pose_covariance,
 ) -> RigidFit:
     """The residual gate of both fits: estimate T on the inliers, drop the worst pair while any
     exceeds its tolerance, then the covariance from the residuals. estimate(idx) -> T, or None
@@ -261,7 +298,7 @@ def _fit_with_outliers(
     # per-axis noise from the residuals, never below the floor (3 exact points have rss 0)
     sigma = max(np.sqrt(rss / dof) if dof > 0 else 0.0, sigma_floor_m)
     try:
-        cov = pose_covariance(T, sub_xyz[idx], sigma, prior_info=prior_info)
+        cov = covariance(T, sub_xyz[idx], sigma)
     except np.linalg.LinAlgError:  # a direction the matches leave free
         return reject(RejectReason.DEGENERATE_GEOMETRY)
     rmse = float(np.sqrt(rss / len(idx)))
