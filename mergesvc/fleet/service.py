@@ -125,7 +125,7 @@ from mergesvc.fleet.replies import (
     StatusReply,
     SubmapResult,
 )
-from mergesvc.fleet.store import META_EMBEDDING_DIM, Store
+from mergesvc.fleet.store import META_EMBEDDING_DIM, Store, SubmapConflictError
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 # timestamped, unsequenced samples remembered to deliver each once (of two subscribers)
@@ -782,7 +782,9 @@ class MergeService:
                 self.stats.submaps_rejected += 1
             log.error("could not persist submap %s/%s/%s: %s", sub.robot_id, sub.session_id,
                       sub.seq, exc)
-            self._publish_error(robot, RefusalCode.STORE, str(exc), sub.seq, sub.session_id)
+            code = (RefusalCode.CONFLICT if isinstance(exc, SubmapConflictError)
+                    else RefusalCode.STORE)  # conflict: final, the first bytes stay stored
+            self._publish_error(robot, code, str(exc), sub.seq, sub.session_id)
             return
         if not created:
             with self.stats._lock:
