@@ -116,6 +116,7 @@ from mergesvc.core.pipeline import match
 from mergesvc.core.retrieval import FleetIndex
 from mergesvc.errors import ConfigError, MergeError, SchemaError, one_line
 from mergesvc.fleet.held import FactorTable, HeldObject, PackedVector
+from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.replies import (
     NO_FRAMES,
     FrameTried,
@@ -486,6 +487,7 @@ class MergeService:
         self.config = config
         self.session = session
         self.projections = {p.id: p for p in projections or []}
+        self._views = ProfileViews(self.projections)  # matching across profiles (fleet/mixed.py)
         self.clock = clock
         self.stats = ServiceStats()
         self.store = Store(config.store)
@@ -592,7 +594,9 @@ class MergeService:
         self._restore_dim()
         for row in self.store.iter_submaps():  # a page at a time: a mission's worth
             if row.status in ("processed", "no_match"):
-                self._add_submap(self._decode_submap(row.payload))
+                sub = self._decode_submap(row.payload)
+                self._views.note(str(FrameId(sub.robot_id, sub.session_id)), row.payload)
+                self._add_submap(sub)
         for f in self.store.iter_factors(FactorStatus.ACCEPTED):
             factor = Factor.model_validate_json(f.payload)
             self.graph.add_factor_model(factor, keyframe_nodes=True)
@@ -973,13 +977,14 @@ class MergeService:
         sub = self._decode_submap(row.payload)
         me_id = FrameId(sub.robot_id, sub.session_id)
         me = str(me_id)
+        code = self._views.note(me, row.payload)  # compact: how its embeddings were coded
         new_factors = []
         tried: list[FrameTried] = []
         others = self._candidate_frames(me, sub)
         for other, sm in others:
             other_id = FrameId.parse(other)
             self.stats.matches_tried += 1
-            res = match(sm.arrays, sub, self.config.match).result
+            res = match(*self._views.pair(other, sm.arrays, sub, code), self.config.match).result
             if not yields_factor(res):
                 tried.append(FrameTried(frame=other, reason=res.reason,
                                         matches=len(res.matches)))

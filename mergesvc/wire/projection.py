@@ -180,6 +180,25 @@ class Projection:
         return proj
 
 
+@dataclass(frozen=True)
+class CompactCode:
+    """How a compact message coded its embeddings (the payload's `[projection_id,
+    budget_bits, step16]` header, docs/wire.md §5)."""
+
+    projection_id: str
+    budget_bits: int
+    step16: int
+
+
+def compact_view(embeddings_nd: np.ndarray, proj: Projection, code: CompactCode) -> np.ndarray:
+    """(n, d) embeddings as a compact message coded with `code` decodes them: quantised on
+    `proj` and reconstructed. Idempotent: an embedding decoded from such a message is given
+    back (to float rounding)."""
+    step = code.step16 / 16
+    codes = quantize_coefficients(proj.coefficients(embeddings_nd), proj, code.budget_bits, step)
+    return proj.reconstruct(dequantize_coefficients(codes, proj, code.budget_bits, step))
+
+
 def _coef_step(bits: np.ndarray, step_scale: float) -> np.ndarray:
     """Quantiser step per component in units of its std (0 where no bits)."""
     return np.array([step_scale * _MAX_STEP[b] if b else 0.0 for b in bits])
@@ -209,7 +228,9 @@ def dequantize_coefficients(
 __all__ = [
     "MAX_COEF_BITS",
     "MAX_PROJECTION_FILE_BYTES",
+    "CompactCode",
     "Projection",
+    "compact_view",
     "dequantize_coefficients",
     "quantize_coefficients",
 ]
