@@ -30,7 +30,7 @@ from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
 from mergesvc.fleet.service import ServiceConfig
-from mergesvc.sim import fleet_world, image_s_dataset
+from mergesvc.sim import fleet_world, survey_embeddings
 from mergesvc.wire import Profile, Projection, decode_message, keys
 
 log = logging.getLogger(__name__)
@@ -89,8 +89,7 @@ def free_port() -> int:
 def fleet_projection(seed: int, path: Path, k: int | None = None) -> Projection:
     """The fleet-shared embedding projection, learned from earlier survey data of the world
     (not from this mission's submaps) and versioned by its content id."""
-    y, _, _ = image_s_dataset(4000, seed + 1000)
-    proj = Projection.fit(y, k)
+    proj = Projection.fit(survey_embeddings(seed), k)  # = mergesvc projection make --survey
     proj.save(path)
     return proj
 
