@@ -3,7 +3,7 @@ against it: the service matches each one as well as a copy in the map's own prof
 (fleet/mixed.py), also after a restart. The map's objects near the submap came compact, coded
 on a fleet projection fitted on other data (a survey): a full-precision submap compared with
 those compact objects used to lose them to full-precision look-alikes (no_match, 4-6 matches)
-while its compact copy was verified with 20 (docs/wire.md §5.3)."""
+while its compact copy was verified with 20 (docs/wire.md §5.4)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ A compact embedding is its quantised PCA coefficients decoded (docs/wire.md §5)
 quantise alike, so compact-to-compact similarities run higher than full-to-compact ones of the
 same object. A map whose objects came in several profiles (a map sent in parts, a fleet of
 mixed profiles) would favour look-alikes of the query's own profile over the true objects of
-the other (docs/wire.md §5.3). `ProfileViews` remembers which sessions hold compact-coded
+the other (docs/wire.md §5.4). `ProfileViews` remembers which sessions hold compact-coded
 objects (and the code: projection, budget, step) and gives the matcher both sides in that
 code; a pair with no compact side is matched as it is. Idempotent on compact embeddings, so
 all-compact fleets match as before.
