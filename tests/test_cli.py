@@ -11,6 +11,7 @@ from pathlib import Path
 
 import gtsam
 import pytest
+from helpers import free_port
 
 from mergesvc.sim import Family, make_scenario
 
@@ -204,9 +205,13 @@ def test_link_sim_table() -> None:
 
 def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
     """The README's main job in its quick form: processes start, factors are accepted, the
-    frames end up aligned, every process is stopped."""
-    r = run("demo", "--quick", "--out", str(tmp_path))
+    frames end up aligned, every process is stopped; --listen picks the endpoint."""
+    port = free_port()
+    r = run("demo", "--quick", "--out", str(tmp_path), "--listen", f"tcp/127.0.0.1:{port}")
     assert r.returncode == 0, r.stdout + r.stderr
+    # --listen: the service on that endpoint, and the line that attaches a live view to it
+    assert (f"mergesvc view --connect tcp/127.0.0.1:{port} --fleet demo0 --projection "
+            f"{tmp_path / 'projection.npz'}") in r.stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["ok"] and summary["factors_accepted"] > 0
     assert summary["precision"] >= 0.8
@@ -243,6 +248,25 @@ def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
     assert initial.size() == len(nodes) > 0 and graph.size() >= len(nodes) - len(traj)
     for robot in {anchor_robot, *aligned}:
         assert tmp_path / "export" / "trajectories" / f"{robot}_s0_merged.tum" in exports
+    # evo on the export agrees with the summary (it once lost keyframe 0): the same keyframes;
+    # the merged poses the same, the odometry compact-coded (within a centimetre)
+    from evo.core import sync
+    from evo.core.metrics import PoseRelation
+    from evo.main_ape import ape
+    from evo.tools import file_interface
+
+    for robot, t in traj.items():
+        truth = file_interface.read_tum_trajectory_file(
+            str(tmp_path / "trajectories" / f"{robot}_truth.tum"))
+        for kind, n in (("odometry", t["keyframes"]), ("merged", t["keyframes_merged"])):
+            path = tmp_path / "export" / "trajectories" / f"{robot}_s0_{kind}.tum"
+            if t[f"ate_{kind}_m"] is None or not path.is_file():
+                continue
+            ref, est = sync.associate_trajectories(
+                truth, file_interface.read_tum_trajectory_file(str(path)))
+            assert est.num_poses == n, (robot, kind)
+            got = ape(ref, est, PoseRelation.translation_part, align=True).stats["rmse"]
+            assert got == pytest.approx(t[f"ate_{kind}_m"], abs=0.01), (robot, kind)
     out = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True)
     assert out.stdout.strip() == ""  # nothing left running
 
@@ -383,3 +407,13 @@ def test_factors_are_coded_full_or_compact_only() -> None:
     r = run("config", "--dump", "--section", "service.factor_profile",
             env={"MERGESVC_SERVICE__FACTOR_PROFILE": "full"})
     assert r.returncode == 0 and json.loads(r.stdout) == "full"
+
+
+def test_demo_refuses_a_listen_value_that_is_no_endpoint(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from mergesvc.cli import app
+
+    r = CliRunner().invoke(app, ["demo", "--out", str(tmp_path), "--listen", "127.0.0.1:7447"])
+    assert r.exit_code == 2 and "not a Zenoh endpoint" in r.output
+    assert not (tmp_path / "settings.json").exists()  # refused before anything started
