@@ -314,8 +314,9 @@ def test_an_explicit_seq_equal_to_the_envelopes_reads_as_nil(ref_projections,
 def test_a_stamp_is_a_float_even_a_whole_one(ref_projections, projections) -> None:
     data = (GOLDEN / "submap_no_seq.bin").read_bytes()
     assert b"\xcb" + struct.pack(">d", 1700000000.0) in data  # msgpack float64
-    _both_refuse(_repack("submap_no_seq", lambda env: env[6].__setitem__(3, 1700000000)),
-                 ref_projections, projections)
+    for bad in (1700000000, math.nan, math.inf):  # an integer; not finite (§8)
+        _both_refuse(_repack("submap_no_seq", lambda env, b=bad: env[6].__setitem__(3, b)),
+                     ref_projections, projections)
 
 
 def test_compact_odometry_sigmas_are_rounded_to_nearest() -> None:

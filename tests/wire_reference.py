@@ -246,7 +246,8 @@ def decode_objects(p: Any, msg_type: str, profile: str, sender: str, env_seq: in
     if seq is not None:
         seq = an_int(seq, -1, U63, "seq")
     stamp = f[3]
-    need(stamp is None or type(stamp) is float, "stamp: not a float")
+    need(stamp is None or (type(stamp) is float and math.isfinite(stamp)),
+         "stamp: not a finite float")
     if msg_type == "map":
         need(seq is None and stamp is None, "a map has no seq or stamp")
     n = an_int(f[4], 1, MAX_OBJECTS, "n")
