@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from mergesvc.bench import score_case
 from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap
 from mergesvc.core.pipeline import match
-from mergesvc.errors import CodecError, DecodeError, SchemaError
+from mergesvc.errors import CodecError, DecodeError, InputError, SchemaError
 from mergesvc.sim import make_scenario
 from mergesvc.wire import bits as codec
 from mergesvc.wire import projection
@@ -807,21 +807,26 @@ def test_files_round_trip_and_match(tmp_path: Path) -> None:
     (tmp_path / "map.json").write_text(sc.map.model_dump_json())
     out = tmp_path / "out"
     out.mkdir()
-    # compact without a projection: one is fitted on the input and saved beside the output
-    stats = encode_file(tmp_path / "map.json", out / "map.bin", "compact")
+    # compact without the fleet's projection: refused (a one-off fit the service would not
+    # have), before anything is written
+    with pytest.raises(InputError, match="projection make"):
+        encode_file(tmp_path / "map.json", out / "map.bin", "compact")
+    assert not (out / "map.bin").exists() and not list(out.glob("projection-*.npz"))
+    proj = Projection.fit(make_scenario("underwater", 7).map.arrays().embeddings_nd)
+    proj_path = proj.save(out / f"projection-{proj.id}.npz")
+    stats = encode_file(tmp_path / "map.json", out / "map.bin", "compact", proj_path)
     assert stats.msg_type is MessageType.MAP and stats.n_objects == len(sc.map.objects)
-    assert stats.projection_path == out / f"projection-{stats.projection_id}.npz"
-    assert stats.projection_path.exists() and stats.bytes_per_object < 64
-    env, _ = decode_file(out / "map.bin", out / "map.json")
+    assert stats.projection_id == proj.id and stats.bytes_per_object < 64
+    env, _ = decode_file(out / "map.bin", out / "map.json")  # found beside it
     assert env.projection_id == stats.projection_id
-    # the submap with that projection given explicitly, decoded elsewhere with --projection
-    s2 = encode_file(tmp_path / "sub.json", out / "sub.bin", "compact", stats.projection_path)
-    assert s2.projection_path is None and s2.msg_type is MessageType.SUBMAP
+    # the submap, decoded elsewhere with --projection
+    s2 = encode_file(tmp_path / "sub.json", out / "sub.bin", "compact", proj)
+    assert s2.msg_type is MessageType.SUBMAP
     moved = tmp_path / "elsewhere.bin"
     moved.write_bytes((out / "sub.bin").read_bytes())
     with pytest.raises(DecodeError, match="--projection"):
         decode_file(moved, tmp_path / "x.json")
-    decode_file(moved, out / "sub.json", projection=stats.projection_path)
+    decode_file(moved, out / "sub.json", projection=proj_path)
     mp, sub = load_model(ObjectMap, out / "map.json"), load_model(Submap, out / "sub.json")
     assert sub.seq == sc.submap.seq and [o.id for o in sub.objects] == [
         o.id for o in sc.submap.objects

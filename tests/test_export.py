@@ -155,9 +155,10 @@ def test_odometry_tum_composes_the_submaps_odometry(exported) -> None:
 
 
 def test_submap_stamps_are_the_tum_stamps_and_a_lone_session_is_solved(tmp_path) -> None:
-    """Stamped submaps (what mergesvc agent sends): their stamps in both files, keyframe 0
-    (no submap is cut there) left out. One session, no factor: the service never solved, the
-    export solves it (its merged trajectory is its odometry, in its own anchor frame)."""
+    """Stamped submaps (what mergesvc agent sends): their stamps in both files, and keyframe 0
+    (no submap is cut there) with its stamp extrapolated back along the first two keyframes.
+    One session, no factor: the service never solved, the export solves it (its merged
+    trajectory is its odometry, in its own anchor frame)."""
     _, robots = mission()
     subs = [s.model_copy(update={"stamp": 100.0 + s.keyframe / 2})
             for s in robots["auv1"].submaps[:4]]
@@ -165,11 +166,13 @@ def test_submap_stamps_are_the_tum_stamps_and_a_lone_session_is_solved(tmp_path)
     run_service(subs, store=str(store)).close()
     res = export_store(store, tmp_path / "out")
     assert res.stamps == {"auv1/s0": "submap"}
+    assert json.loads(res.manifest.read_text())["stamp_0"] == {"auv1/s0": "extrapolated"}
     chain = odometry_chain(subs)
     for kind in ("odometry", "merged"):
         stamps, poses = read_tum(res.trajectories["auv1/s0"][kind])
-        np.testing.assert_allclose(stamps, [s.stamp for s in subs])
-        np.testing.assert_allclose(poses, [chain[s.keyframe] for s in subs], atol=1e-6)
+        np.testing.assert_allclose(stamps, [100.0] + [s.stamp for s in subs])
+        np.testing.assert_allclose(poses, [chain[0]] + [chain[s.keyframe] for s in subs],
+                                   atol=1e-6)
     _, initial = gtsam.readG2o(str(res.graph), True)
     assert initial.size() == 5
 
@@ -225,3 +228,61 @@ def test_export_command_prints_one_line_per_file(exported, tmp_path) -> None:
     r = CliRunner().invoke(app, ["export", "--store", str(tmp_path / "nope.db"), "--out",
                                  str(out)])
     assert r.exit_code == 2 and "no store file" in r.output
+
+
+def test_evo_ape_on_the_export_is_the_service_side_ate(tmp_path) -> None:
+    """evo (its Python API, as `evo_ape tum truth.tum export.tum --align`: SE(3) Umeyama, no
+    scale, translation part) on the exported TUM files gives the ATE core/trajectory.py
+    computes from the service's own poses on the same keyframes, keyframe 0 included. The
+    submaps are stamped as mergesvc agent stamps them (the frame's time; none is cut at
+    keyframe 0): the export once left keyframe 0 out, and evo disagreed with the demo."""
+    from evo.core import sync
+    from evo.core.metrics import PoseRelation
+    from evo.main_ape import ape
+    from evo.tools import file_interface
+
+    from mergesvc.core.trajectory import ate_rmse
+    from mergesvc.wire.formats import write_tum
+
+    t0, dt = 1000.0, 0.5  # frame k at t0 + k dt
+    _, robots = mission()
+    subs = [s.model_copy(update={"stamp": t0 + dt * s.keyframe}) for s in interleaved(robots)]
+    store = tmp_path / "stamped.db"
+    svc = run_service(subs, store=str(store))
+    poses = svc.status()["keyframe_poses"]
+    svc.close()
+    res = export_store(store, tmp_path / "out")
+    checked = 0
+    for robot, rb in robots.items():
+        name = str(FrameId(robot, "s0"))
+        truth = tmp_path / f"{robot}_truth.tum"  # every frame
+        write_tum(truth, t0 + dt * np.arange(len(rb.T_true)), np.stack(rb.T_true))
+        ours = {"odometry": odometry_chain(rb.submaps),
+                "merged": {int(k): np.asarray(T) for k, T in poses.get(name, {}).items()}}
+        for kind, path in res.trajectories[name].items():
+            stamps, _ = read_tum(path)
+            ks = [round((s - t0) / dt) for s in stamps]
+            assert ks[0] == 0 and ks == sorted(ours[kind]), (name, kind)  # every keyframe
+            np.testing.assert_allclose(stamps, t0 + dt * np.array(ks), atol=1e-9)
+            ref, est = sync.associate_trajectories(
+                file_interface.read_tum_trajectory_file(str(truth)),
+                file_interface.read_tum_trajectory_file(str(path)))
+            assert est.num_poses == len(ks)
+            got = ape(ref, est, PoseRelation.translation_part, align=True,
+                      correct_scale=False).stats["rmse"]
+            want = ate_rmse(np.stack([ours[kind][k] for k in ks]),
+                            np.stack([rb.T_true[k] for k in ks]))
+            assert got == pytest.approx(want, rel=1e-6, abs=1e-6), (name, kind)
+            checked += 1
+    assert checked >= 4  # odometry of every robot, merged of the anchor's component
+
+
+def test_keyframe_0_stamp_rules() -> None:
+    from mergesvc.fleet.export import _session_stamps
+
+    assert _session_stamps({0, 4, 8}, {4: 12.0, 8: 14.0}) == ({0: 10.0, 4: 12.0, 8: 14.0},
+                                                             "extrapolated")
+    assert _session_stamps({0, 4, 8}, {0: 9.5, 4: 12.0, 8: 14.0})[1] == "submap"
+    assert _session_stamps({0, 4}, {4: 12.0}) == ({0: 0.0, 4: 4.0}, "keyframe")  # too few
+    assert _session_stamps({0, 4, 8}, {4: 12.0})[1] == "keyframe"  # a keyframe without one
+    assert _session_stamps({0, 4, 8}, {4: 12.0, 8: 12.0})[1] == "keyframe"  # not growing

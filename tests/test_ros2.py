@@ -579,3 +579,58 @@ def test_a_vehicle_side_bridge_uses_the_status_queryable_and_its_own_factors(
         bridge.close()
         sub.undeclare()
         queryable.undeclare()
+
+
+def test_a_session_not_joined_to_the_anchor_has_its_path_in_its_own_frame(two_sessions) -> None:
+    """serve --ros2: auv1 and auv2 joined by a factor (paths in the anchor frame), auv3 seen by
+    nobody else: its path is published too, in its own frame (docs/ros2.md)."""
+    ours, ros = two_sessions
+    got = Samples()
+    sub = ros.declare_subscriber("0/**", got)
+    service = MergeService(ServiceConfig(store=":memory:", fleet="f2"), None)
+    sub_a = _submap(np.random.default_rng(0))
+    service.ingest(sub_a)
+    service.ingest(sub_a.model_copy(update={"robot_id": "auv2"}))
+    service.ingest(_submap(np.random.default_rng(7), robot="auv3"))
+    assert service.factors and set(service.keyframe_poses()) == {"auv1/s0", "auv2/s0"}
+    bridge = Ros2Bridge(ours, fleet="f2", service=service, period_s=0.2, node_name="svc")
+    try:
+        bridge.start()
+        topics = {f"/mergesvc/paths/{r}/s0" for r in ("auv1", "auv2", "auv3")}
+        assert wait_for(lambda: topics <= set(bridge.publisher.topics), timeout_s=10.0)
+        frames = {}
+        for t in topics:
+            key = bridge.publisher.topics[t]
+            assert wait_for(lambda key=key: bool(got.on(key)), timeout_s=10.0)
+            frames[t.split("/")[3]] = CdrReader(got.on(key)[-1][0]).header()[2]
+        assert frames == {"auv1": "auv1/s0", "auv2": "auv1/s0", "auv3": "auv3/s0"}
+    finally:
+        bridge.close()
+        sub.undeclare()
+        service.close()
+
+
+def test_a_vehicle_side_bridge_says_once_why_an_unjoined_session_has_no_path(
+        two_sessions, caplog: pytest.LogCaptureFixture) -> None:
+    ours, ros = two_sessions
+    root = keys.fleet_root("f3")
+    status = {"fleet": "f3", "anchor": "auv1/s0", "frames": {"auv1/s0": 4, "auv3/s0": 5},
+              "keyframe_poses": {"auv1/s0": {"0": np.eye(4).tolist()}}}
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            query.reply(query.key_expr, json.dumps(status).encode())
+
+    queryable = ours.declare_queryable(keys.status_key(root), answer)
+    bridge = Ros2Bridge(ros, fleet="f3", robots=["auv1"], period_s=0.1, node_name="agent")
+    try:
+        with caplog.at_level("WARNING", logger="mergesvc.ros2.bridge"):
+            for _ in range(3):
+                bridge.refresh()
+        notes = [r.getMessage() for r in caplog.records if "not joined" in r.getMessage()]
+        assert len(notes) == 1 and "auv3/s0" in notes[0]
+        assert set(bridge.publisher.topics) >= {"/mergesvc/paths/auv1/s0"}
+        assert "/mergesvc/paths/auv3/s0" not in bridge.publisher.topics
+    finally:
+        bridge.close()
+        queryable.undeclare()

@@ -265,6 +265,40 @@ def test_the_agent_sends_rate_limited_submaps_again_until_they_are_stored(
         assert sorted(r.seq for r in net.svc.store.submaps()) == list(range(6))
 
 
+def test_a_conflicting_resend_is_refused_as_conflict_and_not_sent_again(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Other bytes under a stored (robot, session, seq): refused with the final code
+    `conflict` (not `store`, which means "not now"); the first bytes stay stored, and the
+    reference agent does not send it again (docs/wire.md §7)."""
+    import mergesvc.fleet.agent as agent_mod
+    from mergesvc.fleet.agent import Agent, AgentConfig, decode_factor
+    from mergesvc.fleet.replies import RefusalCode
+
+    monkeypatch.setattr(agent_mod, "RETRY_BACKOFF_S", (0.2, 0.2, 0.2))
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:")
+    first, other = make_submap("twice", "s0", 0, n=4), make_submap("twice", "s0", 0, n=5)
+    with Net(cfg) as net, Agent(
+        AgentConfig(robot="twice", fleet=FLEET), net.cs,
+        lambda sub, seq: payload(sub), decode_factor,
+        submap_key=keys.submap_key(ROOT, "twice", "s0"),
+        factor_key=keys.robot_factors(ROOT, "twice"), alive_key=keys.alive_key(ROOT, "twice"),
+        result_key=keys.result_key(ROOT, "twice"),
+    ) as ag:
+        ag.publish(first)
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+        ag.publish(other)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 1)
+        assert wait_for(lambda: ag.stats.results.get("refused", 0) == 1)
+        time.sleep(1.0)  # three backoffs of 0.2 s: a retry would have been sent by now
+        assert [(r, e.code, e.about_seq) for r, e in errors_of(net.errors)] == [
+            ("twice", RefusalCode.CONFLICT.value, 0)]
+        assert ag.stats.submaps_resent == 0 and ag.stats.submaps_given_up == 0
+        assert net.svc.stats.errors == {"conflict": 1}
+        rows = net.svc.store.submaps()
+        assert len(rows) == 1 and rows[0].payload == payload(first)
+    assert RefusalCode.CONFLICT not in agent_mod.RETRY_CODES
+
+
 def test_candidate_frames_are_capped_and_shared_between_robots() -> None:
     """40 sessions of one robot that all look like a victim's submap: the victim's submap is
     matched against at most max_candidate_frames sessions, at most max_frames_per_robot of

@@ -7,12 +7,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import struct
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 import wire_reference as ref
 
@@ -72,6 +74,13 @@ def test_the_reference_decoder_reads_each_vector(name: str, ref_projections) -> 
     data = (GOLDEN / f"{name}.bin").read_bytes()
     expected = json.loads((GOLDEN / f"{name}.json").read_text())
     _close(ref.decode(data, ref_projections), expected, name)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_reference_encoder_writes_each_vector_byte_for_byte(name: str, ref_projections) -> None:
+    """A sender that follows docs/wire.md to the letter writes what mergesvc writes."""
+    inp = json.loads((GOLDEN / f"{name}.in.json").read_text())
+    assert ref.encode(inp, ref_projections) == (GOLDEN / f"{name}.bin").read_bytes()
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -263,3 +272,118 @@ def test_check_golden_reports_a_missing_projection(tmp_path: Path) -> None:
         p.unlink()
     stale = check_golden(tmp_path)
     assert len(stale) == 1 and stale[0].startswith("projection-")
+
+
+# ------------------------------------------------------------------ what the vectors pin down
+# (docs/wire.md's answers to what a client written from it alone had to guess, issue 27):
+# each vector below would come out otherwise under the other reading.
+
+def _payload(name: str) -> list:
+    return msgpack.unpackb((GOLDEN / f"{name}.bin").read_bytes(), raw=False)
+
+
+def _doc(name: str) -> dict[str, Any]:
+    return json.loads((GOLDEN / f"{name}.in.json").read_text())["document"]
+
+
+def test_one_object_and_one_correspondence_have_delta_min_0() -> None:
+    assert _payload("submap_one_object")[6][6] == [1, "obj", 8, 0, 0]
+    f = _payload("factor_compact_one_correspondence")[6]
+    assert f[7] == [1, "m", 10, 0, 0] and f[8] == [1, "obj", 3, 0, 0]
+
+
+def test_who_writes_nil_and_the_envelope_seq_of_a_submap_without_seq() -> None:
+    env = _payload("submap_full")  # seq = the envelope's, robot_id = the sender: both nil
+    assert env[4] == 5 and env[6][0] is None and env[6][2] is None
+    env = _payload("submap_seq_differs")
+    assert env[4] == 3 and env[6][0] is None and env[6][2] == 40
+    env = _payload("submap_no_seq")
+    assert env[4] == 0 and env[6][2] == -1
+    env = _payload("map_full")  # a map sent by another node: robot_id written, seq nil
+    assert env[3] == "mergesvc" and env[6][0] == "auv1" and env[6][2] is None
+
+
+def test_an_explicit_seq_equal_to_the_envelopes_reads_as_nil(ref_projections,
+                                                             projections) -> None:
+    data = _repack("submap_full", lambda env: env[6].__setitem__(2, 5))
+    assert ref.decode(data, ref_projections) == ref.decode(
+        (GOLDEN / "submap_full.bin").read_bytes(), ref_projections)
+    assert decode_message(data, projections)[1].seq == 5
+
+
+def test_a_stamp_is_a_float_even_a_whole_one(ref_projections, projections) -> None:
+    data = (GOLDEN / "submap_no_seq.bin").read_bytes()
+    assert b"\xcb" + struct.pack(">d", 1700000000.0) in data  # msgpack float64
+    for bad in (1700000000, math.nan, math.inf):  # an integer; not finite (§8)
+        _both_refuse(_repack("submap_no_seq", lambda env, b=bad: env[6].__setitem__(3, b)),
+                     ref_projections, projections)
+
+
+def test_compact_odometry_sigmas_are_rounded_to_nearest() -> None:
+    """Six 11-bit codes rint((log2 sigma + 32) * 32), after translation and rotation."""
+    doc = _doc("submap_pose_compact")
+    pose = _payload("submap_pose_compact")[6][15]
+    r = ref.Bits(pose[2])
+    for _ in range(3):
+        r.read(r.read(6))
+    r.read(2 + 3 * 15)
+    codes = [r.read(11) for _ in range(6)]
+    log2_sigma = [math.log2(math.sqrt(doc["odometry"]["covariance"][i][i])) for i in range(6)]
+    assert codes == [round((x + 32) * 32) for x in log2_sigma]
+    assert codes != [math.floor((x + 32) * 32) for x in log2_sigma]  # the vector tells them apart
+
+
+def test_z_is_clipped_before_atanh() -> None:
+    """Correlations 1 - 2^-52: z clipped to 1 - 1e-15 gives atanh 17.62, code 8191 (and -z, 0);
+    clipping a instead would give floor((1 + 5) / 10 * 8192) = 4915."""
+    blob = _payload("factor_compact_near_singular")[6][9]
+    r = ref.Bits(blob)
+    r.read(2)
+    for _ in range(3):
+        r.read(r.read(6))
+    r.read(2), r.many(3, 15), r.many(6, 14)  # rotation, sigmas
+    g = r.many(15, 13)  # z_10; z_20, z_21; z_30, z_31, z_32; z_40, z_41, z_42, z_43; ...
+    assert (g[0], g[9]) == (8191, 0)
+    assert math.floor((1 - 1e-15 + 5) / 10 * 8192) == 4915
+
+
+def test_scores_equal_in_float32_take_no_bits_and_decode_to_lo(ref_projections) -> None:
+    got = ref.decode((GOLDEN / "factor_compact_scores_equal_in_f32.bin").read_bytes(),
+                     ref_projections)
+    lo = float(np.float32(0.7))
+    assert [c["score"] for c in got["message"]["correspondences"]] == [lo, lo, lo]
+    scores = [c["score"] for c in _doc("factor_compact_scores_equal_in_f32")["correspondences"]]
+    assert len(set(scores)) == 3  # they differ in float64
+
+
+def test_f16_is_rounded_once_from_float64(ref_projections) -> None:
+    emb = np.array([o["embedding"] for o in _doc("submap_f16_rounding")["objects"]])
+    got = ref.decode((GOLDEN / "submap_f16_rounding.bin").read_bytes(), ref_projections)
+    dec = np.array([o["embedding"] for o in got["message"]["objects"]])
+    np.testing.assert_array_equal(dec, emb.astype(np.float16).astype(np.float64))
+    twice = emb.astype(np.float32).astype(np.float16).astype(np.float64)
+    assert (dec != twice).sum() >= 3  # through float32 the vector comes out otherwise
+    assert dec[0, 0] == 1.0 and dec[0, 1] == 1 + 2**-9  # ties to even
+    assert dec[0, 4] == 65504.0 and np.signbit(dec[0, 7])
+
+
+def test_int8_divides_in_float64_by_the_float32_scale() -> None:
+    doc = _doc("submap_int8_rounding")
+    blob = _payload("submap_int8_rounding")[6][13]
+    n, d = 2, 8
+    start = len(blob) - n * d  # the int8 codes end the stream (sizes of §4.6)
+    codes = np.frombuffer(blob[start:], dtype="i1").reshape(n, d)
+    scales = np.frombuffer(blob[start - 4 * n:start], dtype="<f4")
+    E = np.array([o["embedding"] for o in doc["objects"]])
+    for e, s, c in zip(E, scales, codes):
+        peak = np.abs(e).max()
+        assert s == np.float32(peak / 127)
+        np.testing.assert_array_equal(c, np.rint(e / float(s)))
+        assert not np.array_equal(c, np.rint(e / (peak / 127)))  # the unrounded scale
+        assert not np.array_equal(c, np.rint(e.astype(np.float32) / s))  # float32 arithmetic
+
+
+def test_trailing_digits_are_ascii() -> None:
+    f = _payload("factor_compact_unicode_ids")[6]
+    assert f[7][:2] == [1, "pier\u0663"]  # ASCII digits after an Arabic-Indic one
+    assert f[8][0] == 0  # 'buoy\u0663': no ASCII digit at the end

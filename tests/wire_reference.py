@@ -1,14 +1,16 @@
 """A second decoder of the mergesvc wire protocol, written from docs/wire.md alone.
 
 It imports nothing of mergesvc: plain msgpack, numpy, hashlib and math. tests/test_wire_spec.py
-decodes the golden vectors with it; if it needs to know something docs/wire.md does not say,
-the spec is incomplete. `decode(data, projections)` returns {"envelope": ..., "message": ...}
-as in the golden NAME.json files, or raises `RefusedError`.
+decodes the golden vectors with it and encodes their inputs with it; if it needs to know
+something docs/wire.md does not say, the spec is incomplete. `decode(data, projections)`
+returns {"envelope": ..., "message": ...} as in the golden NAME.json files, or raises
+`RefusedError`; `encode(inp, projections)` codes a NAME.in.json into NAME.bin's bytes.
 """
 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 import struct
 import zlib
@@ -244,7 +246,8 @@ def decode_objects(p: Any, msg_type: str, profile: str, sender: str, env_seq: in
     if seq is not None:
         seq = an_int(seq, -1, U63, "seq")
     stamp = f[3]
-    need(stamp is None or type(stamp) is float, "stamp: not a float")
+    need(stamp is None or (type(stamp) is float and math.isfinite(stamp)),
+         "stamp: not a finite float")
     if msg_type == "map":
         need(seq is None and stamp is None, "a map has no seq or stamp")
     n = an_int(f[4], 1, MAX_OBJECTS, "n")
@@ -551,3 +554,297 @@ def unframe_link(frames: list[bytes]) -> tuple[str, bytes]:
     need(zlib.crc32(sample) == int.from_bytes(crc, "big"), "message CRC-32 mismatch")
     need(len(sample) >= 1 + sample[0], "sample shorter than its key suffix")
     return sample[1 : 1 + sample[0]].decode("utf-8"), sample[1 + sample[0] :]
+
+
+# ------------------------------------------------------------------ the encoder (a sender)
+#
+# `encode(inp, projections)` codes `inp` (what a golden NAME.in.json holds: the document and
+# the encoder's choices in the spec's terms) as docs/wire.md says a sender does; for every
+# golden vector it must give NAME.bin byte for byte.
+
+TYPE_CODES = {v: k for k, v in TYPES.items()}
+PROFILE_CODES = {v: k for k, v in PROFILES.items()}
+STATUS_CODES = {v: k for k, v in STATUS.items()}
+
+
+class BitsOut:
+    """§3: fields MSB first; zero padding before a byte section and at the end."""
+
+    def __init__(self) -> None:
+        self.bits: list[int] = []
+
+    def write(self, value: int, width: int) -> None:
+        need(0 <= width <= 56 and 0 <= value < 2**width, f"{value} does not fit {width} bits")
+        self.bits += [(value >> (width - 1 - i)) & 1 for i in range(width)]
+
+    def pad(self) -> None:
+        self.bits += [0] * (-len(self.bits) % 8)
+
+    def raw(self, data: bytes) -> None:
+        self.pad()
+        for byte in data:
+            self.write(byte, 8)
+
+    def f32(self, x: float) -> None:
+        self.write(int.from_bytes(struct.pack(">f", x), "big"), 32)
+
+    def finish(self) -> bytes:
+        self.pad()
+        return bytes(int("".join(map(str, self.bits[i:i + 8])), 2)
+                     for i in range(0, len(self.bits), 8))
+
+
+def rint(x: float) -> int:
+    """Round half to even (§1)."""
+    return int(np.rint(x))
+
+
+def zigzag(v: int) -> int:
+    return 2 * v if v >= 0 else -2 * v - 1
+
+
+def write_ids(ids: list[str], w: BitsOut) -> list:
+    """§4.1: kind 1 when every id is one prefix and ASCII digits (no leading zero, <= 16 of
+    them, below 10^16); the deltas into the stream now."""
+    prefix, values = None, []
+    for s in ids:
+        k = len(s)
+        while k > 0 and s[k - 1] in "0123456789":
+            k -= 1
+        stem, digits = s[:k], s[k:]
+        if not digits or (len(digits) > 1 and digits[0] == "0") or len(digits) > 16 or (
+                int(digits) >= 10**16) or (prefix is not None and stem != prefix):
+            return [0, list(ids)]
+        prefix = stem
+        values.append(int(digits))
+    deltas = [b - a for a, b in itertools.pairwise(values)]
+    dmin = min(deltas) if deltas else 0
+    width = bits_for(max(x - dmin for x in deltas)) if deltas else 0
+    for x in deltas:
+        w.write(x - dmin, width)
+    return [1, prefix, values[0], dmin, width]
+
+
+def write_translation(w: BitsOut, t: list[float], res_um: int) -> None:
+    """§6.2 item 2."""
+    for x in t:
+        u = zigzag(rint(x / (res_um / 1e6)))
+        w.write(bits_for(u), 6)
+        w.write(u, bits_for(u))
+
+
+def write_rotation(w: BitsOut, q_wxyz: list[float]) -> None:
+    """§6.2 item 3."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    q = q / np.linalg.norm(q)
+    i = max(range(4), key=lambda j: (abs(q[j]), -j))  # the largest, the lowest index on ties
+    if q[i] < 0:
+        q = -q
+    w.write(i, 2)
+    L = 2**15 - 1
+    for r in (q[j] for j in range(4) if j != i):
+        w.write(min(max(rint((r + math.sqrt(0.5)) / math.sqrt(2) * L), 0), L), 15)
+
+
+def write_sigmas(w: BitsOut, C: np.ndarray, bits: int, per_octave: int) -> np.ndarray:
+    """§6.2 item 4 / §4.8: log2 codes of sqrt(diag C), from 2^-32."""
+    sigma = np.sqrt(np.diag(C))
+    for s in sigma:
+        need(-32 <= math.log2(s) < -32 + 2**bits / per_octave, "sigma out of range")
+        w.write(min(max(rint((math.log2(s) + 32) * per_octave), 0), 2**bits - 1), bits)
+    return sigma
+
+
+def write_covariance(w: BitsOut, covariance: list[list[float]]) -> None:
+    """§6.2 item 4: 14-bit sigmas, 15 13-bit CPCs, z clipped before atanh."""
+    C = np.asarray(covariance, dtype=np.float64)
+    sigma = write_sigmas(w, C, 14, 256)
+    L = np.linalg.cholesky(C / np.outer(sigma, sigma))
+    zmax = 1 - 1e-15
+    for i in range(1, 6):
+        rem = 1.0
+        for j in range(i):
+            z = min(max(L[i, j] / math.sqrt(max(rem, 1e-300)), -zmax), zmax)
+            rem -= L[i, j] ** 2
+            w.write(min(max(math.floor((math.atanh(z) + 5) / 10 * 8192), 0), 8191), 13)
+
+
+def encode_objects(inp: dict[str, Any], proj: dict | None) -> list:
+    """§4: a map or submap payload."""
+    doc, profile, is_submap = inp["document"], inp["profile"], inp["type"] == "submap"
+    objs = doc["objects"]
+    n, d = len(objs), len(objs[0]["embedding"])
+    w = BitsOut()
+    ids_hdr = write_ids([o["id"] for o in objs], w)
+    labels = [o.get("label") for o in objs]
+    label_hdr = None
+    if any(lab is not None for lab in labels):  # nil first, then code-point order
+        label_hdr = ([None] if None in labels else []) + sorted(
+            {lab for lab in labels if lab is not None})
+        for lab in labels:
+            w.write(label_hdr.index(lab), bits_for(len(label_hdr) - 1))
+    n_obs = [min(o["n_obs"], 255) if profile == "compact" else o["n_obs"] for o in objs]
+    nobs_bits = bits_for(max(n_obs) - 1)
+    for k in n_obs:
+        w.write(k - 1, nobs_bits)
+    iso = [not isinstance(o["variance"], list) for o in objs]
+    if profile == "compact":  # one number: the variance, or the mean summed left to right
+        v_iso = []
+        for o in objs:
+            v = o["variance"]
+            if isinstance(v, list):
+                total = 0.0
+                for x in v:
+                    total += x
+                v = total / d
+            v_iso.append(v)
+        v_dim: list[float] = []
+        iso = [True] * n
+    else:
+        v_iso = [o["variance"] for o in objs if not isinstance(o["variance"], list)]
+        v_dim = [x for o in objs if isinstance(o["variance"], list) for x in o["variance"]]
+    var_mode = 0 if all(iso) else 1 if not any(iso) else 2
+    if var_mode == 2:
+        for flag in iso:
+            w.write(int(flag), 1)
+
+    P = np.array([o["position"] for o in objs], dtype=np.float64)
+    pos_hdr = None
+    if profile == "full":
+        w.raw(P.astype("<f8").tobytes())
+    else:
+        res_um = inp["resolution_um"]
+        q_abs = [[rint(x / (res_um / 1e6)) for x in p] for p in P]
+        origin = [min(q[a] for q in q_abs) for a in range(3)]
+        widths = [bits_for(max(q[a] - origin[a] for q in q_abs)) for a in range(3)]
+        for q in q_abs:
+            for a in range(3):
+                w.write(q[a] - origin[a], widths[a])
+        pos_hdr = [res_um, *origin, *widths]
+
+    var_hdr = None
+    if profile == "full":
+        w.raw(np.asarray(v_iso, dtype="<f4").tobytes())
+        w.raw(np.asarray(v_dim, dtype="<f4").tobytes())
+    else:
+        ls = [math.log2(v) * 64 for v in v_iso + v_dim]
+        lo = math.floor(min(ls))
+        hi = max(math.ceil(max(ls)), lo + 1)
+        width = {"f16": 16, "int8": 8}.get(profile) or max(1, bits_for(math.ceil((hi - lo) / 2)))
+        levels = 2**width - 1
+        for x in ls:
+            w.write(min(max(rint((x - lo) / (hi - lo) * levels), 0), levels), width)
+        var_hdr = [lo, hi, width]
+
+    E = np.array([o["embedding"] for o in objs], dtype=np.float64)
+    emb_hdr = None
+    if profile == "full":
+        w.raw(E.astype("<f4").tobytes())
+    elif profile == "f16":
+        w.raw(E.astype("<f2").tobytes())  # numpy rounds float64 to binary16 once
+    elif profile == "int8":
+        scales = [np.float32(np.abs(e).max() / 127) for e in E]
+        w.raw(np.array(scales, dtype="<f4").tobytes())
+        codes = [[min(max(rint(x / float(s)), -127), 127) if s > 0 else 0 for x in e]
+                 for e, s in zip(E, scales)]
+        w.raw(np.array(codes, dtype="i1").tobytes())
+    else:
+        need(proj is not None, "compact needs the projection")
+        budget, step = inp["budget_bits"], inp["step16"] / 16
+        bits = bit_allocation(proj["scale"], budget)
+        sigma = proj["scale"].astype(np.float64)
+        C = (E - proj["mean"].astype(np.float64)) @ proj["basis"].astype(np.float64).T
+        for c in C:
+            for j, b in enumerate(bits):
+                if b:
+                    q = math.floor(c[j] / sigma[j] / (step * MAX_STEP[b])) + 2 ** (b - 1)
+                    w.write(min(max(q, 0), 2**b - 1), b)
+        emb_hdr = [bytes.fromhex(proj["id"]), budget, inp["step16"]]
+
+    seq_field = None
+    if is_submap and doc.get("seq") != inp["seq"]:
+        seq_field = -1 if doc.get("seq") is None else doc["seq"]
+    payload = [None if doc["robot_id"] == inp["sender"] else doc["robot_id"], doc["session_id"],
+               seq_field, doc.get("stamp"), n, d, ids_hdr, label_hdr, nobs_bits, var_mode,
+               pos_hdr, var_hdr, emb_hdr, w.finish()]
+    up = doc.get("up")
+    if up is not None:
+        peak = max(abs(x) for x in up)
+        up = [rint(127 * x / peak) for x in up]
+    if is_submap and doc.get("keyframe") is not None:
+        payload += [up, encode_pose(doc, profile, pos_hdr[0] if pos_hdr else 0)]
+    elif up is not None:
+        payload.append(up)
+    return payload
+
+
+def encode_pose(doc: dict[str, Any], profile: str, res_um: int) -> list:
+    """§4.8."""
+    keyframe, odo = doc["keyframe"], doc.get("odometry")
+    if odo is None:
+        return [keyframe]
+    T, C = odo["T_from_to"], odo["covariance"]
+    if profile == "full":
+        values = [*T["translation"], *T["quaternion_wxyz"], *(x for row in C for x in row)]
+        return [keyframe, keyframe - odo["from_keyframe"], np.array(values, "<f8").tobytes()]
+    w = BitsOut()
+    write_translation(w, T["translation"], res_um)
+    write_rotation(w, T["quaternion_wxyz"])
+    if profile == "compact":
+        write_sigmas(w, np.asarray(C, dtype=np.float64), 11, 32)
+    else:
+        write_covariance(w, C)
+    return [keyframe, keyframe - odo["from_keyframe"], w.finish()]
+
+
+def encode_factor(inp: dict[str, Any]) -> Any:
+    """§6: full, the document as a msgpack map (keys in the documented order); compact."""
+    doc = inp["document"]
+    corr = doc.get("correspondences", [])
+    if inp["profile"] == "full":
+        out: dict[str, Any] = {"schema_version": 1}
+        for k in NAMES:
+            out[k] = doc[k]
+        out["T_a_b"] = {"translation": [float(x) for x in doc["T_a_b"]["translation"]],
+                        "quaternion_wxyz": [float(x) for x in doc["T_a_b"]["quaternion_wxyz"]]}
+        out["covariance"] = [[float(x) for x in row] for row in doc["covariance"]]
+        out["correspondences"] = [{"object_a": c["object_a"], "object_b": c["object_b"],
+                                   "score": float(c["score"])} for c in corr]
+        out["status"] = doc.get("status")
+        if doc.get("keyframe_a") is not None:
+            out["keyframe_a"], out["keyframe_b"] = doc["keyframe_a"], doc["keyframe_b"]
+        return out
+    w = BitsOut()
+    w.write(STATUS_CODES[doc.get("status")], 2)
+    res_um = inp["translation_resolution_um"]
+    write_translation(w, doc["T_a_b"]["translation"], res_um)
+    write_rotation(w, doc["T_a_b"]["quaternion_wxyz"])
+    write_covariance(w, doc["covariance"])
+    ids: list[Any] = [None, None]
+    if corr:
+        ids = [write_ids([c["object_a"] for c in corr], w),
+               write_ids([c["object_b"] for c in corr], w)]
+        lo = float(np.float32(min(c["score"] for c in corr)))
+        hi = float(np.float32(max(c["score"] for c in corr)))
+        w.f32(lo)
+        w.f32(hi)
+        if hi > lo:
+            for c in corr:
+                w.write(min(max(rint((c["score"] - lo) / (hi - lo) * 255), 0), 255), 8)
+    tail = [] if doc.get("keyframe_a") is None else [doc["keyframe_a"], doc["keyframe_b"]]
+    return [*(doc[k] for k in NAMES), res_um, len(corr), *ids, w.finish(), *tail]
+
+
+def encode(inp: dict[str, Any], projections: dict[str, dict] | None = None) -> bytes:
+    """§2: one message, packed as mergesvc packs (§1: shortest integers, float64 floats)."""
+    kind, profile, doc = inp["type"], inp["profile"], inp["document"]
+    if kind in ("map", "submap"):
+        proj = next(iter((projections or {}).values()), None) if profile == "compact" else None
+        payload = encode_objects(inp, proj)
+    elif kind == "factor":
+        payload = encode_factor(inp)
+    else:
+        payload = [doc["code"], doc.get("detail", ""), doc.get("about_seq")]
+    envelope = [1, 1, TYPE_CODES[kind], inp["sender"], inp["seq"], PROFILE_CODES[profile],
+                payload]
+    return msgpack.packb(envelope, use_bin_type=True)

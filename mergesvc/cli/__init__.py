@@ -1,12 +1,12 @@
 """Command line: `mergesvc match`, `convert`, `example`, `schemas`, `config`, `serve`, `agent`,
-`demo`, `export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package
-exits.
+`demo`, `export`, `view`, `bench`, `codec`, `projection`, `scenario`, `uncertainty`, `link`.
+Only this package exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
-`config --dump`), `bench` (benchmarks), `fleet` (the service, vehicles, the demo and the
-acoustic link) and `view` (the live view in Rerun). Known errors become exit codes in
-`errors`; shared options (the Zenoh flags, `--settings` and how the settings tree is resolved)
-are in `options`.
+`config --dump`), `projection` (the fleet's projection), `bench` (benchmarks), `fleet` (the
+service, vehicles, the demo and the acoustic link) and `view` (the live view in Rerun). Known
+errors become exit codes in `errors`; shared options (the Zenoh flags, `--settings` and how the
+settings tree is resolved) are in `options`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli import bench, files, fleet, view
+from mergesvc.cli import bench, files, fleet, projection, view
 
 __all__ = ["app", "hoist_verbose", "main"]
 
@@ -57,6 +57,7 @@ for _command in (
     app.command()(_command)
 app.add_typer(bench.app, name="bench")
 app.add_typer(files.codec_app, name="codec")
+app.add_typer(projection.projection_app, name="projection")
 app.add_typer(files.scenario_app, name="scenario")
 app.add_typer(files.uncertainty_app, name="uncertainty")
 app.add_typer(fleet.link_app, name="link")

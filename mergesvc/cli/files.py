@@ -235,7 +235,8 @@ def codec_encode(
         Profile.COMPACT
     ),
     projection: Annotated[
-        Path | None, typer.Option(help="fleet projection (.npz); compact fits one if absent")
+        Path | None, typer.Option(help="the fleet's projection (.npz): compact maps and "
+                                       "submaps need it (mergesvc projection make)")
     ] = None,
     settings: CodecSettingsFile = None,
 ) -> None:
@@ -250,7 +251,7 @@ def codec_encode(
         stats = encode_file(in_path, out_path, profile, projection=projection, settings=codec)
     typer.echo(f"wrote {out_path}: {stats.n_bytes} bytes, {stats.n_objects} objects, "
                f"{stats.bytes_per_object:.1f} bytes/object ({profile.value})"
-               + (f"; projection {stats.projection_path}" if stats.projection_path else ""))
+               + (f", projection {stats.projection_id}" if stats.projection_id else ""))
 
 
 @codec_app.command("decode")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import re
 import time
 from collections.abc import Iterable, Iterator
 from enum import Enum
@@ -285,6 +286,9 @@ def demo(
                                             "extra)")] = False,
     view_save: Annotated[Path | None, typer.Option(help="record the live view into this "
                                                         ".rrd file")] = None,
+    listen: Annotated[str | None, typer.Option(
+        help="the service's Zenoh endpoint, e.g. tcp/127.0.0.1:7447 [default: a free port on "
+             "127.0.0.1]; the demo prints the `mergesvc view --connect` line for it")] = None,
 ) -> None:
     """Service + 3 vehicles as processes on loopback; summary against the ground truth.
 
@@ -293,7 +297,11 @@ def demo(
     Every process the demo starts reads OUT/settings.json."""
     from mergesvc.fleet.demo import SESSION, STORE_FILE, DemoPlan, run_demo
 
-    plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile)
+    if listen is not None and not re.fullmatch(r"[a-z0-9]+/\S+:\d{1,5}", listen):
+        raise typer.BadParameter(f"{listen!r} is not a Zenoh endpoint such as "
+                                 "tcp/127.0.0.1:7447", param_hint="--listen")
+    plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile,
+                                                   listen=listen)
     with exit_on_error():
         # the demo's processes are started with these flags: record what they really use
         tree = resolve_settings(settings, {

@@ -123,8 +123,8 @@ def vertical_fit_covariance(
     information in those four directions only), the tilt from the verticals' prior alone (the
     fit does not estimate it: the declared ups set it; each frame's up is known to
     vertical_sigma_rad, so their relative tilt to sqrt(2) times that), carried to the
-    translation through the points' centroid, which the fit keeps in place. LinAlgError when the points do not fix the
-    yaw. sub_xyz: (k, 3); sigma_m: one sigma or (k,)."""
+    translation through the points' centroid, which the fit keeps in place. LinAlgError when
+    the points do not fix the yaw. sub_xyz: (k, 3); sigma_m: one sigma or (k,)."""
     u = np.asarray(up_sub, dtype=np.float64) / np.linalg.norm(up_sub)
     B = np.zeros((6, 4))  # the fitted directions: yaw about up, then translation
     B[:3, 0] = u

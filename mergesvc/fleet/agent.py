@@ -415,6 +415,8 @@ def decode_factor(data: bytes) -> Factor:
 
 
 #: Refusals that say "not now", not "never": the agent sends the submap again after a backoff.
+#: Every other code is final: `conflict` (other bytes under a stored seq) above all, since
+#: sending the same bytes again gets the same answer (docs/wire.md §7).
 RETRY_CODES = frozenset({RefusalCode.BUSY, RefusalCode.RATE_LIMITED, RefusalCode.STORE})
 RETRY_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)  # then the submap is given up
 

@@ -31,7 +31,7 @@ from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
 from mergesvc.fleet.scoring import fleet_ate
 from mergesvc.fleet.service import ServiceConfig
-from mergesvc.sim import fleet_world, image_s_dataset
+from mergesvc.sim import fleet_world, survey_embeddings
 from mergesvc.wire import Profile, Projection, decode_message, keys
 
 log = logging.getLogger(__name__)
@@ -60,6 +60,9 @@ class DemoPlan:
     profile: Profile = Profile.COMPACT
     link: str = "zenoh"  # or "acoustic": through the simulated modem
     timeout_s: float = 120.0
+    # the service's Zenoh endpoint, which the vehicles and a live view connect to (None: a
+    # free port on 127.0.0.1)
+    listen: str | None = None
     # the `service` settings the service process reads (its settings file): the export of its
     # store solves the graph with them (None: the defaults)
     service: ServiceConfig | None = None
@@ -90,8 +93,7 @@ def free_port() -> int:
 def fleet_projection(seed: int, path: Path, k: int | None = None) -> Projection:
     """The fleet-shared embedding projection, learned from earlier survey data of the world
     (not from this mission's submaps) and versioned by its content id."""
-    y, _, _ = image_s_dataset(4000, seed + 1000)
-    proj = Projection.fit(y, k)
+    proj = Projection.fit(survey_embeddings(seed), k)  # = mergesvc projection make --survey
     proj.save(path)
     return proj
 
@@ -124,8 +126,7 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
 
     out_dir.mkdir(parents=True, exist_ok=True)
     fleet = plan.fleet
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = plan.listen or f"tcp/127.0.0.1:{free_port()}"
     proj_path = out_dir / "projection.npz"
     fleet_projection(plan.seed, proj_path)
     store = out_dir / STORE_FILE
@@ -151,6 +152,7 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
         spawn("service", ["serve", "--fleet", fleet, "--store", str(store), "--mode", "router",
                           "--listen", endpoint, "--projection", str(proj_path)])
         session = _wait_for_service(endpoint, fleet, procs["service"], deadline_s=30.0)
+        echo(view_command(endpoint, fleet, proj_path))
         if attach is not None:
             detach = attach(session, fleet, proj_path)
 
@@ -220,6 +222,12 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
         {"ok": result.ok, "failures": result.failures, **result.summary}, indent=1,
         default=float))
     return result
+
+
+def view_command(endpoint: str, fleet: str, projection: Path) -> str:
+    """The line that attaches a live view to a running demo (docs/view.md)."""
+    return (f"live view: mergesvc view --connect {endpoint} --fleet {fleet} "
+            f"--projection {projection}")
 
 
 def _export(store: Path, out: Path, proj_path: Path, config: ServiceConfig | None,
@@ -523,4 +531,5 @@ __all__ = [
     "score_demo",
     "score_trajectories",
     "trajectory_lines",
+    "view_command",
 ]

@@ -40,12 +40,15 @@ yet) are solved on their own, their pose in the frame of the component's first n
 first session's keyframe 0): export.json names that frame per node. g2o has no frames, so a
 tool reading graph.g2o sees those components overlap the anchor's; the edges are exact.
 
-TUM stamps (one rule per session, the same in both files): when every keyframe after 0 has a
-submap cut there with a `stamp` (what mergesvc agent sends), the stamps are those submaps'
-`stamp` in seconds and keyframe 0 (no submap is cut at the session origin) is written only if
-a submap cut there has a stamp; otherwise every keyframe is written with its index as the
-stamp (export.json says which: "submap" or "keyframe"). File names keep [A-Za-z0-9._-] of the
-robot and session ids, anything else becomes "_".
+TUM stamps (one rule per session, the same in both files; every keyframe is written, keyframe
+0 included): when every keyframe after 0 has a submap cut there with a `stamp` (what mergesvc
+agent sends), the stamps are those submaps' `stamp` in seconds, and keyframe 0's is the stamp
+of a submap cut there or, as mergesvc agent cuts none at the session origin, extrapolated back
+along the first two later keyframes linearly in the keyframe index (exact for mergesvc agent,
+whose keyframes are frame indices at its frame rate; export.json's `stamp_0` says which);
+otherwise (or with too few stamps to extrapolate) every keyframe is written with its index as
+the stamp (export.json says which: "submap" or "keyframe"). File names keep [A-Za-z0-9._-] of
+the robot and session ids, anything else becomes "_".
 """
 
 from __future__ import annotations
@@ -158,6 +161,27 @@ def _stamped_submaps(svc: MergeService, projections: Sequence[Projection]) -> di
     return {name: {k: s for k, (_, s) in ks.items()} for name, ks in out.items()}
 
 
+def _session_stamps(keyframes: set[int], submap_stamps: dict[int, float]
+                    ) -> tuple[dict[int, float], str]:
+    """Every keyframe's TUM stamp and how keyframe 0's was found: "submap" (a submap cut at
+    keyframe 0), "extrapolated" (from the first two later keyframes, linear in the keyframe
+    index) or "keyframe" (every stamp is the keyframe index). See the module docstring."""
+    index_stamps = {k: float(k) for k in keyframes}
+    later = sorted(k for k in keyframes if k != 0)
+    if not later or not all(k in submap_stamps for k in later):
+        return index_stamps, "keyframe"
+    stamps = {k: submap_stamps[k] for k in later}
+    if 0 in submap_stamps:
+        return {0: submap_stamps[0], **stamps}, "submap"
+    if len(later) < 2:
+        return index_stamps, "keyframe"
+    (k1, s1), (k2, s2) = (later[0], stamps[later[0]]), (later[1], stamps[later[1]])
+    s0 = s1 - k1 * (s2 - s1) / (k2 - k1)
+    if not s2 > s1:  # stamps that do not grow with the keyframes: nothing to extrapolate
+        return index_stamps, "keyframe"
+    return {0: s0, **stamps}, "extrapolated"
+
+
 def _graph_edges(svc: MergeService, ids: dict[str, int]) -> tuple[list[tuple[int, int, np.ndarray,
                                                                               np.ndarray]],
                                                                  list[dict[str, Any]]]:
@@ -259,15 +283,15 @@ def _write(svc: MergeService, out: Path, store_path: Path,
 
     trajectories: dict[str, dict[str, Path]] = {}
     stamp_kind: dict[str, str] = {}
+    stamp_0: dict[str, str] = {}
     node_stamp: dict[str, float | None] = {}
     used: set[str] = set()
     for name, st in svc.sessions.items():
-        stamps = stamped.get(name, {})
-        later = [k for k in st.keyframes if k != 0]
-        kind = "submap" if later and all(k in stamps for k in later) else "keyframe"
-        stamp_kind[name] = kind
+        stamps, how = _session_stamps(st.keyframes, stamped.get(name, {}))
+        stamp_kind[name] = "keyframe" if how == "keyframe" else "submap"
+        stamp_0[name] = how
         for k in st.keyframes:
-            node_stamp[st.node(k)] = stamps.get(k) if kind == "submap" else float(k)
+            node_stamp[st.node(k)] = stamps[k]
         base = f"{_file_part(st.frame.robot)}_{_file_part(st.frame.session)}"
         stem, n = base, 1
         while stem in used:  # two ids that differ only in characters a file name drops
@@ -310,6 +334,7 @@ def _write(svc: MergeService, out: Path, store_path: Path,
                   for n in graph.nodes],
         "edges": listed,
         "stamps": stamp_kind,
+        "stamp_0": stamp_0,
         "trajectories": {s: {k: str(p) for k, p in f.items()} for s, f in trajectories.items()},
         "factors": str(factors_file),
         "map": str(map_file) if map_file is not None else None,

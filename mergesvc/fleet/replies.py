@@ -61,6 +61,7 @@ class RefusalCode(str, Enum):
     RATE_LIMITED = "rate_limited"  # service.submap_rate_hz / submap_burst
     BUSY = "busy"  # service.ingress_queue_size full: send again later
     STORE = "store"  # could not be persisted
+    CONFLICT = "conflict"  # its (robot, session, seq) is stored with other bytes: final
     PROCESSING = "processing"  # outcome failed
 
 

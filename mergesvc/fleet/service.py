@@ -120,6 +120,7 @@ from mergesvc.core.retrieval import FleetIndex
 from mergesvc.errors import ConfigError, MergeError, SchemaError, one_line
 from mergesvc.fleet.closures import ClosureSets, ConsistencyConfig
 from mergesvc.fleet.held import FactorTable, HeldObject, PackedVector
+from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.replies import (
     NO_FRAMES,
     FrameTried,
@@ -129,7 +130,12 @@ from mergesvc.fleet.replies import (
     StatusReply,
     SubmapResult,
 )
-from mergesvc.fleet.store import META_EMBEDDING_DIM, META_NOISE_SCALES, Store
+from mergesvc.fleet.store import (
+    META_EMBEDDING_DIM,
+    META_NOISE_SCALES,
+    Store,
+    SubmapConflictError,
+)
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 # timestamped, unsequenced samples remembered to deliver each once (of two subscribers)
@@ -549,6 +555,7 @@ class MergeService:
         self.config = config
         self.session = session
         self.projections = {p.id: p for p in projections or []}
+        self._views = ProfileViews(self.projections)  # matching across profiles (fleet/mixed.py)
         self.clock = clock
         self.stats = ServiceStats()
         self.store = Store(config.store)
@@ -660,7 +667,9 @@ class MergeService:
         self._restore_dim()
         for row in self.store.iter_submaps():  # a page at a time: a mission's worth
             if row.status in ("processed", "no_match"):
-                self._add_submap(self._decode_submap(row.payload))
+                sub = self._decode_submap(row.payload)
+                self._views.note(str(FrameId(sub.robot_id, sub.session_id)), row.payload)
+                self._add_submap(sub)
         # the factors in force and those held, in the order they were made: the consistency
         # sets take them back with the verdicts they had
         rows = [(f.created_at_s, 0, i, f, True) for i, f in
@@ -889,7 +898,9 @@ class MergeService:
                 self.stats.submaps_rejected += 1
             log.error("could not persist submap %s/%s/%s: %s", sub.robot_id, sub.session_id,
                       sub.seq, exc)
-            self._publish_error(robot, RefusalCode.STORE, str(exc), sub.seq, sub.session_id)
+            code = (RefusalCode.CONFLICT if isinstance(exc, SubmapConflictError)
+                    else RefusalCode.STORE)  # conflict: final, the first bytes stay stored
+            self._publish_error(robot, code, str(exc), sub.seq, sub.session_id)
             return
         if not created:
             with self.stats._lock:
@@ -1078,13 +1089,14 @@ class MergeService:
         sub = self._decode_submap(row.payload)
         me_id = FrameId(sub.robot_id, sub.session_id)
         me = str(me_id)
+        code = self._views.note(me, row.payload)  # compact: how its embeddings were coded
         new_factors = []
         tried: list[FrameTried] = []
         others = self._candidate_frames(me, sub)
         for other, sm in others:
             other_id = FrameId.parse(other)
             self.stats.matches_tried += 1
-            res = match(sm.arrays, sub, self.config.match).result
+            res = match(*self._views.pair(other, sm.arrays, sub, code), self.config.match).result
             if not yields_factor(res):
                 tried.append(FrameTried(frame=other, reason=res.reason,
                                         matches=len(res.matches)))

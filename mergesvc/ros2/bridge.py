@@ -38,7 +38,10 @@ class Ros2Bridge:
       (factor id, status) is published once, although the service sends a factor to both its
       robots;
     - map and paths: every `period_s`, from `service` when given (global_map, status), else from
-      the status queryable; published when they changed;
+      the status queryable; published when they changed. A session no factor joins to the
+      anchor yet has its path in its own frame with `service` (its keyframes composed by
+      odometry from its keyframe 0); without it (the status holds no poses for such a session)
+      it has none, and the bridge logs why, once per session;
     - relocalization answers (with `service`): `service.relocalize` is wrapped on this
       instance while the bridge runs, so each answer the queryable gives is published too.
 
@@ -73,6 +76,7 @@ class Ros2Bridge:
         self._subs: list[Any] = []
         self._map_fingerprint: int | None = None
         self._paths_fingerprint: int | None = None
+        self._unpublished: set[str] = set()  # sessions whose missing path was logged
         self._wrapped: Callable[[Submap], RelocalizeReply] | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -183,14 +187,49 @@ class Ros2Bridge:
             if fp != self._map_fingerprint:
                 out += self.publisher.publish_map(gmap)
                 self._map_fingerprint = fp
-        if status is not None and status.get("anchor") and status.get("keyframe_poses"):
-            poses = {name: {int(k): np.asarray(T, dtype=np.float64) for k, T in kf.items()}
-                     for name, kf in status["keyframe_poses"].items()}
-            fp = hash(json.dumps(status["keyframe_poses"], sort_keys=True))
-            if fp != self._paths_fingerprint:
+        if status is None:
+            return out
+        joined = status.get("keyframe_poses") or {}
+        own = self._own_frame_poses(set(joined)) if self.service is not None else {}
+        if self.service is None:
+            self._note_unpublished(set(status.get("frames") or {}) - set(joined))
+        fp = hash(json.dumps([joined, {n: {str(k): T.tolist() for k, T in kf.items()}
+                                       for n, kf in own.items()}], sort_keys=True))
+        if fp != self._paths_fingerprint and (joined or own):
+            if joined and status.get("anchor"):
+                poses = {name: {int(k): np.asarray(T, dtype=np.float64) for k, T in kf.items()}
+                         for name, kf in joined.items()}
                 out += self.publisher.publish_paths(poses, status["anchor"])
-                self._paths_fingerprint = fp
+            out += self.publisher.publish_session_paths(own)
+            self._paths_fingerprint = fp
         return out
+
+    def _own_frame_poses(self, joined: set[str]) -> dict[str, dict[int, np.ndarray]]:
+        """The sessions outside the anchor's component (none solved with it yet): their
+        keyframes in their own frame, composed by odometry from keyframe 0 as the export's
+        odometry trajectory is."""
+        import gtsam
+
+        out: dict[str, dict[int, np.ndarray]] = {}
+        if self.service is None:
+            return out
+        try:
+            for name, st in list(self.service.sessions.items()):
+                if name not in joined:
+                    placed = st.propagate({0: gtsam.Pose3()})
+                    out[name] = {k: np.asarray(T.matrix()) for k, T in sorted(placed.items())}
+        except RuntimeError:  # the worker added a session or edge meanwhile: next period
+            return {}
+        return out
+
+    def _note_unpublished(self, names: set[str]) -> None:
+        """Say once per session why it has no path (vehicle side: no poses in the status)."""
+        for name in sorted(names - self._unpublished):
+            log.warning("ros2: session %s is not joined to the anchor yet (no factor ties it): "
+                        "no path for it until one does (the service's status has poses only "
+                        "for the anchor's sessions; serve --ros2 publishes it in its own frame)",
+                        name)
+        self._unpublished |= names
 
     def _query_status(self) -> dict[str, Any] | None:
         """The service's status over Zenoh (None when no service answers in time)."""

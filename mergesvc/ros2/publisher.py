@@ -209,7 +209,18 @@ class Ros2Publisher:
         `poses_by_session`: "robot/session" -> keyframe -> (4, 4) pose in the anchor frame, as
         MergeService.keyframe_poses() returns it."""
         a_robot, _, a_session = anchor.partition("/")
-        frame = frame_id(a_robot, a_session)
+        return self._publish_paths(poses_by_session, lambda _: frame_id(a_robot, a_session))
+
+    def publish_session_paths(self, poses_by_session: Mapping[str, Mapping[int, np.ndarray]]
+                              ) -> list[str]:
+        """Trajectories of sessions no factor joins to the anchor yet, each in its own frame
+        (frame = the session, "robot/session": its keyframe 0), on the same `paths/{robot}/
+        {session}` topic the anchor-frame path takes once it is joined (docs/ros2.md).
+        `poses_by_session`: "robot/session" -> keyframe -> (4, 4) pose in that session's frame."""
+        return self._publish_paths(poses_by_session, lambda name: frame_id(*name.split("/", 1)))
+
+    def _publish_paths(self, poses_by_session: Mapping[str, Mapping[int, np.ndarray]],
+                       frame_of: Callable[[str], str]) -> list[str]:
         t_s = self.clock()
         out = []
         for name, poses in sorted(poses_by_session.items()):
@@ -218,7 +229,7 @@ class Ros2Publisher:
             robot, _, session = name.partition("/")
             topic = join_topic(self.namespace, PATHS, name_token(robot), name_token(session))
             out.append(self._put(topic, RosType.PATH, LATCHED_QOS,
-                                 path(poses, frame, t_s, self.distro)))
+                                 path(poses, frame_of(name), t_s, self.distro)))
         return out
 
     # ------------------------------------------------------------------ lifecycle

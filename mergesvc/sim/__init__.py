@@ -20,7 +20,7 @@ from mergesvc.sim.real_data import (
     load_dino_centroids,
     load_kitti_poses_34,
 )
-from mergesvc.sim.runs import drive_run, image_s_dataset, underwater_run
+from mergesvc.sim.runs import drive_run, image_s_dataset, survey_embeddings, underwater_run
 from mergesvc.sim.scenario import Family, Scenario, make_scenario
 from mergesvc.sim.worlds import (
     World,
@@ -54,5 +54,6 @@ __all__ = [
     "read_observation_log",
     "rotate_world",
     "supports_up",
+    "survey_embeddings",
     "underwater_run",
 ]

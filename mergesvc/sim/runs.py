@@ -80,6 +80,18 @@ def image_s_dataset(
     return y, loss, s
 
 
+SURVEY_SAMPLES = 4000  # views in the survey a fleet's projection is fitted on (the demo's)
+
+
+def survey_embeddings(
+    seed: int, family: Family | str = Family.UNDERWATER, samples: int = SURVEY_SAMPLES
+) -> np.ndarray:
+    """(samples, d) single views of new instances of the world's classes, drawn apart from
+    any mission of `seed` (image_s_dataset of seed + 1000): the survey data a fleet fits its
+    shared projection on (the demo, `mergesvc projection make --survey`)."""
+    return image_s_dataset(samples, seed + 1000, family)[0]
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """How one run is simulated; `underwater_run` / `drive_run` fill in per-family defaults."""
@@ -483,12 +495,14 @@ def _first_revisit(xy: np.ndarray, min_gap: int, radius_m: float = 15.0) -> int:
 
 
 __all__ = [
+    "SURVEY_SAMPLES",
     "ImageUncertainty",
     "Run",
     "RunConfig",
     "drive_run",
     "image_s_dataset",
     "load_kitti_poses",
+    "survey_embeddings",
     "underwater_run",
     "world_embedding_model",
 ]

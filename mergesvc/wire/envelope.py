@@ -1,4 +1,5 @@
-"""The envelope: one message <-> bytes (encode_message, decode_message, peek_projection_id).
+"""The envelope: one message <-> bytes (encode_message, decode_message; peek_projection_id and
+peek_compact_code read a compact payload's header without decoding it).
 
 Envelope (every message), a msgpack array:
     [schema_version, codec_version, type, sender, seq, profile, payload]
@@ -33,7 +34,7 @@ from mergesvc.wire.profiles import (
     MessageType,
     Profile,
 )
-from mergesvc.wire.projection import Projection
+from mergesvc.wire.projection import CompactCode, Projection
 
 CODEC_VERSION = 1  # layout of envelope and payloads; bump on any incompatible change
 
@@ -171,16 +172,39 @@ def _unpack(data: Any, limits: CodecLimits) -> list:
     return env
 
 
-def peek_projection_id(data: bytes, limits: CodecLimits = DEFAULT_LIMITS) -> str | None:
-    """The projection id a compact map/submap message needs; None for anything else."""
+def _compact_header(data: bytes, limits: CodecLimits) -> list | None:
+    """The `[projection_id, budget_bits, step16]` header of a compact map/submap message with
+    a 4-byte id; None for anything else."""
     env = _unpack(data, limits)
     if env[5] != _PROFILE_CODE[Profile.COMPACT] or env[2] not in (1, 2):
         return None
     try:
-        pid = env[6][12][0]
+        hdr = env[6][12]
     except (TypeError, IndexError, KeyError):
         return None
-    return pid.hex() if type(pid) is bytes and len(pid) == 4 else None
+    if type(hdr) is not list or len(hdr) != 3 or type(hdr[0]) is not bytes or len(hdr[0]) != 4:
+        return None
+    return hdr
+
+
+def peek_projection_id(data: bytes, limits: CodecLimits = DEFAULT_LIMITS) -> str | None:
+    """The projection id a compact map/submap message needs; None for anything else."""
+    hdr = _compact_header(data, limits)
+    return None if hdr is None else hdr[0].hex()
+
+
+def peek_compact_code(data: bytes, limits: CodecLimits = DEFAULT_LIMITS) -> CompactCode | None:
+    """How a compact map/submap message coded its embeddings; None for anything else (other
+    profiles and types, a header out of range: decode_message says what is wrong)."""
+    hdr = _compact_header(data, limits)
+    if hdr is None:
+        return None
+    pid, budget, step16 = hdr
+    if type(budget) is not int or type(step16) is not int:
+        return None
+    if not (0 <= budget <= 65535 and 1 <= step16 <= 240):
+        return None
+    return CompactCode(pid.hex(), budget, step16)
 
 
 def decode_message(
@@ -250,5 +274,6 @@ __all__ = [
     "encode_message",
     "message_type_of",
     "parse_profile",
+    "peek_compact_code",
     "peek_projection_id",
 ]

@@ -1,13 +1,13 @@
 """Message files: encode_file (a model JSON file -> one message file) and decode_file.
 
-A compact map encoded without a projection gets one fitted on its own embeddings, saved
-beside the output as `projection-<id>.npz` (PROJECTION_FILE), where decode_file finds it.
+A compact map or submap is coded on the fleet's projection (`mergesvc projection make`) and
+refused without one: a projection fitted on the file alone is one the service does not have.
+decode_file finds a compact message's projection given, or as `projection-<id>.npz` beside it.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,9 +42,7 @@ from mergesvc.wire.profiles import (
 )
 from mergesvc.wire.projection import Projection
 
-log = logging.getLogger(__name__)
-
-PROJECTION_FILE = "projection-{id}.npz"  # name of a fitted projection saved by encode_file
+PROJECTION_FILE = "projection-{id}.npz"  # a projection beside a message file (decode_file)
 
 
 @dataclass(frozen=True)
@@ -55,7 +53,6 @@ class EncodeStats:
     n_objects: int
     bytes_per_object: float
     projection_id: str | None = None
-    projection_path: Path | None = None  # a projection fitted and saved by encode_file
 
 
 def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
@@ -123,6 +120,16 @@ def _read_json_model(path: Path) -> AnyMessage:
     return _check_arrays(loaded, str(path)) if isinstance(loaded, ObjectMap) else loaded
 
 
+def load_objects(path: Path | str) -> ObjectMap:
+    """A map or submap JSON file, whichever it is (a submap has `seq`, `stamp`, `keyframe` or
+    `odometry`, as encode_file decides)."""
+    p = Path(path)
+    model = _read_json_model(p)
+    if not isinstance(model, ObjectMap):
+        raise SchemaError(f"invalid {p}: a {type(model).__name__}, not a map or submap")
+    return model
+
+
 def _projection_arg(projection: Projection | Path | str | None) -> Projection | None:
     if projection is None or isinstance(projection, Projection):
         return projection
@@ -143,18 +150,18 @@ def encode_file(
 
     A JSON object with `objects` is a submap if it has `seq` or `stamp`, else a map. sender
     defaults to the robot id (robot_a for factors), seq to the submap's seq (else 0).
-    For `compact` maps without a projection, one is fitted on the file's own embeddings and
-    saved beside the output as `projection-<id>.npz`, where decode_file finds it.
+    A `compact` map or submap needs the fleet's projection: InputError without one.
     """
     out = Path(out_bin_path)
     profile = parse_profile(profile)
     model = _read_json_model(Path(in_json_path))
     proj = _projection_arg(projection)
-    saved = None
     if isinstance(model, ObjectMap) and profile is Profile.COMPACT and proj is None:
-        proj = Projection.fit(model.arrays().embeddings_nd)
-        saved = proj.save(out.parent / PROJECTION_FILE.format(id=proj.id))
-        log.info("fitted projection %s (k=%d) saved to %s", proj.id, proj.k, saved)
+        raise InputError(
+            "the compact profile codes embeddings on the fleet's projection: pass "
+            "--projection P.npz (the file given to serve and agent; make one with "
+            "`mergesvc projection make`), or use --profile full, f16 or int8"
+        )
     if sender is None:
         sender = model.robot_a if isinstance(model, Factor) else getattr(model, "robot_id", "")
         sender = sender or "unknown"
@@ -176,7 +183,6 @@ def encode_file(
         n_objects=n,
         bytes_per_object=len(data) / n if n else float(len(data)),
         projection_id=used_proj.id if used_proj else None,
-        projection_path=saved,
     )
 
 
@@ -224,4 +230,5 @@ __all__ = [
     "decode_file",
     "encode_file",
     "load_model",
+    "load_objects",
 ]

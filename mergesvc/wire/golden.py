@@ -4,8 +4,9 @@ profile, each as `<name>.bin` (the message) and `<name>.json` (what it decodes t
 The messages are built from fixed numbers (no fitting, no random draws at encode time), so the
 bytes are the same on every run; `check_golden` says which files of a folder differ from
 what this build writes. `<name>.json` holds {"envelope": ..., "message": ...}: the envelope
-fields and the decoded model as JSON, fields that are null left out. The compact vectors need
-the projection saved beside them as `projection-<id>.npz` (PROJECTION_FILE).
+fields and the decoded model as JSON, fields that are null left out; `<name>.in.json` the
+document that was encoded and the encoder's choices (a second encoder checks its bytes). The
+compact vectors need the projection saved beside them as `projection-<id>.npz`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,13 @@ import numpy as np
 
 from mergesvc.core.model import ErrorMessage, Factor, ObjectMap, Submap
 from mergesvc.errors import InputError
-from mergesvc.wire.envelope import CODEC_VERSION, AnyMessage, decode_message, encode_message
+from mergesvc.wire.envelope import (
+    CODEC_VERSION,
+    AnyMessage,
+    decode_message,
+    encode_message,
+    message_type_of,
+)
 from mergesvc.wire.files import PROJECTION_FILE
 from mergesvc.wire.profiles import CodecSettings, Envelope, Profile
 from mergesvc.wire.projection import Projection
@@ -135,6 +142,37 @@ def _corr(scores: list[float]) -> list[dict[str, Any]]:
     ]
 
 
+def _near_singular_covariance() -> list[list[float]]:
+    """Correlations 1 - 2^-52 (rotation x, y) and -(1 - 2^-52) (translation x, y): z past
+    1 - 1e-15, clipped before atanh (docs/wire.md §6.2 item 4). Powers of two: exact."""
+    sig = [1.0, 1.0, 0.5, 0.25, 2.0, 4.0]
+    r = 1.0 - 2.0**-52
+    C = np.diag(np.square(sig))
+    C[0, 1] = C[1, 0] = r * sig[0] * sig[1]
+    C[3, 4] = C[4, 3] = -r * sig[3] * sig[4]
+    return C.tolist()
+
+
+def _f16_rounding_embeddings() -> list[list[float]]:
+    """Values where binary16 rounding from float64 (once) differs from rounding through
+    float32 (twice), exact ties (to even), a subnormal, the largest finite value, -0."""
+    h = 2.0**-11  # half a binary16 step at 1
+    return [
+        [1 + h, 1 + 3 * h, 1 + h + 2.0**-40, -(1 + h + 2.0**-40), 65519.99, 2.0**-25 + 2.0**-60,
+         3 * 2.0**-26, -0.0],
+        [0.1, -0.2, 0.3, 2.0**-25, -(2.0**-25), 1000.0625, 1 - 2.0**-12, 0.5],
+    ]
+
+
+def _int8_rounding_embeddings() -> list[list[float]]:
+    """Quotients e / s just past a half (the float32 scale is below peak / 127): rounded up
+    in float64, to even with the unrounded scale or in float32 arithmetic."""
+    return [
+        [1.0, 10.5 / 127, 0.492126, -20.5 / 127, 64.5 / 127, -100.5 / 127, 0.25, 0.0],
+        [-0.3, 0.3 * 10.5 / 127, 0.3 * 0.492126, 0.1, -0.2, 0.0, 0.3 * 64.5 / 127, 0.3],
+    ]
+
+
 def golden_vectors() -> list[GoldenVector]:
     """Every golden message, in a fixed order."""
     sub = {"robot_id": "auv2", "session_id": "s1", "stamp": 12.5}
@@ -239,6 +277,74 @@ def golden_vectors() -> list[GoldenVector]:
             "error_no_seq", ErrorMessage(code="schema_error"), Profile.FULL, "mergesvc", 26,
             about="an error about no particular message",
         ),
+        # the encoder's choices docs/wire.md pins down (issue 27)
+        GoldenVector(
+            "submap_one_object",
+            Submap(**sub, seq=30, objects=_objects(1, 11)), Profile.FULL, "auv2", 30,
+            about="n = 1: kind-1 ids with delta_min 0 and width 0 (§4.1)",
+        ),
+        GoldenVector(
+            "submap_seq_differs",
+            Submap(**sub, seq=40, objects=_objects(2, 12)), Profile.FULL, "auv2", 3,
+            about="the payload seq (40) is not the envelope's (3): written; robot_id is the "
+            "sender's: nil (§4)",
+        ),
+        GoldenVector(
+            "submap_no_seq",
+            Submap(robot_id="auv2", session_id="s1", stamp=1700000000.0,
+                   objects=_objects(2, 13)),
+            Profile.FULL, "auv2", 0,
+            about="no seq: payload seq -1, envelope seq 0; a whole-second stamp is still a "
+            "float64 (§4)",
+        ),
+        GoldenVector(
+            "submap_f16_rounding",
+            Submap(**sub, seq=41, objects=[
+                {**o, "embedding": e}
+                for o, e in zip(_objects(2, 14), _f16_rounding_embeddings(), strict=True)]),
+            Profile.F16, "auv2", 41,
+            about="binary16 rounded once from float64, ties to even, subnormals, 65519.99 "
+            "-> 65504 (§4.6)",
+        ),
+        GoldenVector(
+            "submap_int8_rounding",
+            Submap(**sub, seq=42, objects=[
+                {**o, "embedding": e}
+                for o, e in zip(_objects(2, 15), _int8_rounding_embeddings(), strict=True)]),
+            Profile.INT8, "auv2", 42,
+            about="int8: float32 scale, the division in float64 (§4.6)",
+        ),
+        GoldenVector(
+            "factor_compact_near_singular",
+            _factor(factor_id="f30", covariance=_near_singular_covariance(), status="accepted"),
+            Profile.COMPACT, "mergesvc", 30,
+            about="correlations of +-(1 - 2^-52): z clipped to +-(1 - 1e-15) before atanh, "
+            "codes 8191 and 0 (§6.2 item 4)",
+        ),
+        GoldenVector(
+            "factor_compact_one_correspondence",
+            _factor(factor_id="f31", correspondences=_corr([0.8])), Profile.COMPACT,
+            "mergesvc", 31,
+            about="one correspondence: ids with delta_min 0, hi = lo, no score bits (§4.1, §6.2)",
+        ),
+        GoldenVector(
+            "factor_compact_scores_equal_in_f32",
+            _factor(factor_id="f32", correspondences=_corr([0.7, 0.7000000000000001,
+                                                            0.70000001])),
+            Profile.COMPACT, "mergesvc", 32,
+            about="scores that differ in float64, not in float32: hi = lo, each decodes to "
+            "float32(0.7) (§6.2 item 5)",
+        ),
+        GoldenVector(
+            "factor_compact_unicode_ids",
+            _factor(factor_id="f33", correspondences=[
+                {"object_a": f"pier\u0663{k}", "object_b": f"buoy{d}", "score": 0.9 - 0.1 * i}
+                for i, (k, d) in enumerate(zip((7, 9, 12), "\u0663\u0664\u0665",
+                                               strict=True))]),
+            Profile.COMPACT, "mergesvc", 33,
+            about="trailing digits are ASCII 0-9 only: 'pier\u06637' is prefix 'pier\u0663' + 7;"
+            " 'buoy\u0663' (an Arabic-Indic digit) has none: ids as strings (§4.1)",
+        ),
     ]
     return v
 
@@ -258,9 +364,27 @@ def decoded_json(env: Envelope, model: AnyMessage) -> dict[str, Any]:
     return {"envelope": envelope, "message": model.model_dump(mode="json", exclude_none=True)}
 
 
+def encoder_input(g: GoldenVector) -> dict[str, Any]:
+    """What `<name>.in.json` holds: the document the sender had, and every choice of its
+    encoder in the terms of docs/wire.md (the header values it writes): encoding it as the
+    spec says gives `<name>.bin` byte for byte."""
+    return {
+        "type": message_type_of(g.model).value,
+        "profile": g.profile.value,
+        "sender": g.sender,
+        "seq": g.seq,
+        "resolution_um": round(g.settings.position_resolution_m * 1e6),
+        "translation_resolution_um": round(g.settings.translation_resolution_m * 1e6),
+        "budget_bits": g.settings.embedding_bits,
+        "step16": max(1, round(g.settings.coef_step_scale * 16)),
+        "document": g.model.model_dump(mode="json", exclude_none=True),
+    }
+
+
 def golden_files() -> dict[str, bytes]:
     """File name -> content of every golden file except the projection (see golden_projection):
-    `<name>.bin`, `<name>.json` and `index.json` (each vector's name and what it exercises)."""
+    `<name>.bin`, `<name>.json`, `<name>.in.json` and `index.json` (each vector's name and what
+    it exercises)."""
     proj = golden_projection()
     files: dict[str, bytes] = {}
     index = []
@@ -271,6 +395,8 @@ def golden_files() -> dict[str, bytes]:
         files[f"{g.name}.bin"] = data
         text = json.dumps(decoded_json(env, model), indent=1, sort_keys=True) + "\n"
         files[f"{g.name}.json"] = text.encode()
+        text = json.dumps(encoder_input(g), sort_keys=True, ensure_ascii=False) + "\n"
+        files[f"{g.name}.in.json"] = text.encode()
         index.append({"name": g.name, "type": env.msg_type.value, "profile": env.profile.value,
                       "bytes": len(data), "about": g.about})
     files["index.json"] = (json.dumps(index, indent=1) + "\n").encode()
@@ -324,6 +450,7 @@ __all__ = [
     "GoldenVector",
     "check_golden",
     "decoded_json",
+    "encoder_input",
     "golden_files",
     "golden_projection",
     "golden_vectors",

@@ -114,8 +114,12 @@ def encode_objects(
     # variances: isotropic ones are one number, others one per dimension (compact: the mean)
     iso = np.array([not isinstance(o.variance, list) for o in m.objects])
     if profile is Profile.COMPACT:
+        # one number per object: an isotropic variance as it is, a per-dimension one's mean
+        # summed left to right (docs/wire.md §4.5: any encoder gets the same number)
+        mean = np.cumsum(arr.variances_nd, axis=1)[:, -1] / d
+        var_iso = np.where(iso, arr.variances_nd[:, 0], mean)
         iso[:] = True
-        var_iso, var_dim = arr.uncertainty_s, np.zeros((0, d))
+        var_dim = np.zeros((0, d))
     else:
         var_iso, var_dim = arr.variances_nd[iso, 0], arr.variances_nd[~iso]
     check_variances(var_iso)

@@ -37,11 +37,15 @@ class Projection:
 
     `id` is a short content hash (8 hex digits): a compact message names the projection it
     was coded with, and a decoder refuses a message whose projection it does not have.
+    `fit_variance`: the total variance of the data it was fitted on (every direction's, the
+    ones left out included), so that `variance_kept` can be told; None when not known. It is
+    not part of the id.
     """
 
     mean_d: np.ndarray
     basis_kd: np.ndarray
     scale_k: np.ndarray
+    fit_variance: float | None = None
     id: str = field(init=False)
 
     def __post_init__(self) -> None:
@@ -63,6 +67,11 @@ class Projection:
                 raise SchemaError(f"projection {name} has {NAN_OR_INF}")
         if np.any(scale <= 0):
             raise SchemaError("projection scale must be positive")
+        if self.fit_variance is not None:
+            fv = float(self.fit_variance)
+            if not (math.isfinite(fv) and fv > 0):
+                raise SchemaError("projection fit variance must be positive and finite")
+            object.__setattr__(self, "fit_variance", fv)
         gram = basis.astype(np.float64) @ basis.T.astype(np.float64)
         if np.abs(gram - np.eye(len(basis))).max() > 1e-4:
             raise SchemaError("projection basis rows must be orthonormal")
@@ -84,15 +93,33 @@ class Projection:
     def dim(self) -> int:
         return self.mean_d.shape[0]
 
+    @property
+    def variance_kept(self) -> float | None:
+        """The share of the fit data's variance its k components hold (None: not known)."""
+        if self.fit_variance is None:
+            return None
+        return min(1.0, float(np.sum(self.scale_k.astype(np.float64) ** 2)) / self.fit_variance)
+
     @classmethod
-    def fit(cls, embeddings_nd: Any, k: int | None = None) -> Projection:
+    def fit(
+        cls, embeddings_nd: Any, k: int | None = None, max_samples: int | None = None,
+        seed: int = 0,
+    ) -> Projection:
         """PCA of (n, d) embeddings; keeps min(k, n - 1, d) components (fewer if the data
-        has lower rank). Fit it on data the fleet already shares, not on what it will code."""
+        has lower rank). More than `max_samples` rows: a random subset of that many, drawn
+        with numpy's Generator(seed). Fit it on data the fleet already shares (a survey, maps
+        of earlier missions), not on what it will code, and share the file: a fit on another
+        machine may differ in the last bits, and so in its id (docs/wire.md §5.3)."""
         E = np.asarray(embeddings_nd, dtype=np.float64)
         if E.ndim != 2 or E.shape[0] < 2 or not 1 <= E.shape[1] <= MAX_EMBEDDING_DIM:
             raise CodecError(f"a projection needs (n >= 2, d) embeddings, got {E.shape}")
         if not np.all(np.isfinite(E)):
             raise CodecError(f"embeddings have {NAN_OR_INF}")
+        if max_samples is not None and E.shape[0] > max_samples:
+            if max_samples < 2:
+                raise CodecError(f"max_samples must be >= 2, got {max_samples}")
+            rows = np.random.default_rng(seed).choice(E.shape[0], max_samples, replace=False)
+            E = E[np.sort(rows)]
         mean = E.mean(axis=0)
         _, S, Vt = np.linalg.svd(E - mean, full_matrices=False)
         scale = S / math.sqrt(E.shape[0])  # std of each coefficient over the fit data
@@ -105,7 +132,7 @@ class Projection:
         basis = Vt[:k]
         # a deterministic sign per component: the largest entry is positive
         basis = basis * np.sign(basis[np.arange(k), np.abs(basis).argmax(axis=1)])[:, None]
-        return cls(mean, basis, scale[:k])
+        return cls(mean, basis, scale[:k], float(np.sum(scale**2)))
 
     def coefficients(self, embeddings_nd: np.ndarray) -> np.ndarray:
         """(n, d) -> (n, k): basis (e - mean)."""
@@ -138,8 +165,10 @@ class Projection:
         return cache[budget_bits]
 
     def save(self, path: Path | str) -> Path:
-        """Write an .npz (mean, basis, scale, id); returns the path."""
+        """Write an .npz (mean, basis, scale, id, version; fit_variance when known); returns
+        the path."""
         p = Path(path)
+        extra = {} if self.fit_variance is None else {"fit_variance": np.array(self.fit_variance)}
         try:
             with p.open("wb") as f:
                 np.savez(
@@ -149,6 +178,7 @@ class Projection:
                     scale=self.scale_k,
                     id=np.array(self.id),
                     version=np.array(1),
+                    **extra,
                 )
         except OSError as exc:
             raise InputError(f"cannot write {p}: {exc.strerror or exc}") from exc
@@ -166,18 +196,54 @@ class Projection:
                 raise DecodeError(f"{p} is not a projection file: one array, not an .npz archive")
             with z:
                 arrays = {k: z[k] for k in ("mean", "basis", "scale", "id")}
+                fv = z["fit_variance"] if "fit_variance" in z.files else None
         except OSError as exc:
             raise DecodeError(f"cannot read projection {p}: {exc.strerror or exc}") from exc
         except (ValueError, KeyError, EOFError, zipfile.BadZipFile, NotImplementedError,
                 zlib.error) as exc:  # zipfile: an unsupported zip version or compression
             # method is NotImplementedError, a corrupt deflate stream zlib.error
             raise DecodeError(f"{p} is not a projection file: {one_line(exc)}") from exc
-        proj = cls(arrays["mean"], arrays["basis"], arrays["scale"])
+        try:
+            fit_variance = None if fv is None else float(fv)
+        except (TypeError, ValueError) as exc:
+            raise SchemaError(f"{p}: fit_variance is not a number") from exc
+        proj = cls(arrays["mean"], arrays["basis"], arrays["scale"], fit_variance)
         if str(arrays["id"]) != proj.id:
             raise SchemaError(
                 f"{p}: stored id {str(arrays['id'])!r} does not match its content ({proj.id})"
             )
         return proj
+
+
+@dataclass(frozen=True)
+class CompactCode:
+    """How a compact message coded its embeddings (the payload's `[projection_id,
+    budget_bits, step16]` header, docs/wire.md §5)."""
+
+    projection_id: str
+    budget_bits: int
+    step16: int
+
+
+def compact_view(embeddings_nd: np.ndarray, proj: Projection, code: CompactCode) -> np.ndarray:
+    """(n, d) embeddings as a compact message coded with `code` decodes them: quantised on
+    `proj` and reconstructed. Idempotent: an embedding decoded from such a message is given
+    back (to float rounding)."""
+    step = code.step16 / 16
+    codes = quantize_coefficients(proj.coefficients(embeddings_nd), proj, code.budget_bits, step)
+    return proj.reconstruct(dequantize_coefficients(codes, proj, code.budget_bits, step))
+
+
+def compact_cosine(embeddings_nd: np.ndarray, proj: Projection, code: CompactCode) -> np.ndarray:
+    """(n,) cosine between each embedding and what a compact message coded with `code`
+    decodes it to: how well the projection fits the data (1: exactly; an all-zero
+    embedding counts as 1 when it decodes to zero, else 0)."""
+    E = np.asarray(embeddings_nd, dtype=np.float64)
+    V = compact_view(E, proj, code)
+    num = np.einsum("nd,nd->n", E, V)
+    den = np.linalg.norm(E, axis=1) * np.linalg.norm(V, axis=1)
+    both_zero = (np.linalg.norm(E, axis=1) == 0) & (np.linalg.norm(V, axis=1) == 0)
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), both_zero.astype(np.float64))
 
 
 def _coef_step(bits: np.ndarray, step_scale: float) -> np.ndarray:
@@ -209,7 +275,10 @@ def dequantize_coefficients(
 __all__ = [
     "MAX_COEF_BITS",
     "MAX_PROJECTION_FILE_BYTES",
+    "CompactCode",
     "Projection",
+    "compact_cosine",
+    "compact_view",
     "dequantize_coefficients",
     "quantize_coefficients",
 ]
