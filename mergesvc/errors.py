@@ -8,6 +8,7 @@
      ├── ConfigError       invalid configuration
      ├── CodecError        a model cannot be encoded (value outside what a profile can carry)
      ├── LinkError         the (simulated) link failed: a message was lost after all retries
+     ├── TransportError    the network failed (a busy port, a dead endpoint, a closed session)
      └── StoreError        persistence failed (database unreadable, disk full)
 
 "No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
@@ -64,6 +65,10 @@ class StoreError(MergeError):
     """Persistence failed."""
 
 
+class TransportError(MergeError):
+    """The network failed: an endpoint in use or unreachable, a closed session."""
+
+
 __all__ = [
     "CodecError",
     "ConfigError",
@@ -74,5 +79,6 @@ __all__ = [
     "SchemaError",
     "SolverError",
     "StoreError",
+    "TransportError",
     "one_line",
 ]

@@ -43,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.errors import ConfigError
 from mergesvc.fleet.agent import AgentConfig
-from mergesvc.fleet.service import ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.workload import Workload
 from mergesvc.sim.uncertainty import UncertaintyConfig

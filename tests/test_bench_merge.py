@@ -98,7 +98,7 @@ def test_no_file_is_written_without_out(tmp_path: Path, monkeypatch: pytest.Monk
 def test_scale_reports_cost_per_submap_by_fleet_size(tmp_path: Path) -> None:
     """`bench merge --scale`: one row per fleet size; matches per submap never above the
     service's max_candidate_frames (the fleet index caps them), ratio 1 at 3 vehicles."""
-    from mergesvc.fleet.service import ServiceConfig
+    from mergesvc.fleet.config import ServiceConfig
 
     out = tmp_path / "scale.json"
     r = CliRunner().invoke(app, ["bench", "merge", "--quick", "--scale", "3,6", "--out",

@@ -229,7 +229,7 @@ def test_the_bound_is_no_worse_than_the_service_on_a_pool_fleet(caplog) -> None:
     0.077, the others 0.01-0.03 m against 0.07-0.14 m); the bound at the factors' accuracy
     between the two; every keyframe the service placed is placed."""
     from mergesvc.fleet.agent import AgentConfig
-    from mergesvc.fleet.service import ServiceConfig
+    from mergesvc.fleet.config import ServiceConfig
     from mergesvc.sim.fleet import fleet_world
 
     caplog.set_level(logging.ERROR)

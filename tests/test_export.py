@@ -24,8 +24,9 @@ from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId
 from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, StoreError
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.export import ExportResult, export_store
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.wire.formats import read_tum
 
 

@@ -354,7 +354,7 @@ def test_one_line(exc: BaseException | str, line: str) -> None:
 def test_one_line_is_what_the_wire_and_store_use() -> None:
     from mergesvc.cli import errors as cli_errors
     from mergesvc.core import graph
-    from mergesvc.fleet import store
+    from mergesvc.store import database as store
     from mergesvc.wire import envelope, files, projection
 
     for module in (envelope, files, projection, store, graph, cli_errors):

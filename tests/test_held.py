@@ -14,8 +14,10 @@ from helpers import cost_stream
 
 from mergesvc.core.model import Factor, ObjectMap, ObjectNode, Submap
 from mergesvc.errors import InputError
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.held import FactorTable, HeldFactor, HeldObject, PackedVector
-from mergesvc.fleet.service import MergeService, ServiceConfig, session_up
+from mergesvc.fleet.service import MergeService
+from mergesvc.fleet.sessions import session_up
 from mergesvc.wire import Profile, decode_message, encode_message
 
 D = 384
@@ -109,7 +111,7 @@ def serve(subs: list[Submap], profile: Profile):
     every submap as the service decoded it, every factor it published."""
     svc = MergeService(ServiceConfig(store=":memory:"), session=None)
     published: list[Factor] = []
-    svc._publish_factor = published.append
+    svc.outbox.factor = published.append
     decoded = []
     for i, sub in enumerate(subs):
         svc.ingest(sub, profile=profile, optimize=(i + 1) % 10 == 0 or i + 1 == len(subs))
@@ -121,7 +123,7 @@ def reference_map(svc: MergeService, name: str, nodes: dict[str, ObjectNode]) ->
     """The session's map as the service built it before objects were held packed: every held
     object's ObjectNode placed with the pose of its keyframe (fleet/service.py, at 9081b62)."""
     st = svc.sessions[name]
-    poses = svc._session_poses(st)
+    poses = svc.sessions.session_poses(st)
     placed = []
     for oid, held in st.objects.items():
         T = poses.get(held.keyframe)
@@ -150,7 +152,7 @@ def test_session_maps_from_held_objects_are_the_ones_from_the_nodes(submaps, pro
                 assert isinstance(h.embedding, PackedVector)
                 assert h.embedding.nbytes <= (D + 8 if profile is Profile.INT8 else 4 * D)
                 assert isinstance(h.variance, float | PackedVector)
-            sm = svc._session_map(name)
+            sm = svc.sessions.session_map(name)
             if sm is None:
                 continue
             ref = reference_map(svc, name, latest[name])
@@ -179,26 +181,26 @@ def test_the_session_map_cache_stays_small(submaps, monkeypatch) -> None:
     """Session maps are cached per (session version, graph solution): after a new solution
     none of them can be used again (the cache is emptied), and at most SESSION_MAPS_CACHED
     are kept (the least recently used go first)."""
-    import mergesvc.fleet.service as service
+    import mergesvc.fleet.sessions as service
 
     svc, _, _ = serve(submaps[:40], Profile.FULL)
     try:
         for name in svc.sessions:
-            svc._session_map(name)
-        assert svc._session_maps
-        solutions = svc._solutions
+            svc.sessions.session_map(name)
+        assert svc.sessions._maps
+        solutions = svc.sessions.solutions
         for sub in submaps[40:]:
             svc.ingest(sub, optimize=True)
-            if svc._solutions > solutions:
+            if svc.sessions.solutions > solutions:
                 break
-        assert svc._solutions > solutions
-        assert all(key[1] == svc._solutions for key, _ in svc._session_maps.values())
+        assert svc.sessions.solutions > solutions
+        assert all(key[1] == svc.sessions.solutions for key, _ in svc.sessions._maps.values())
         monkeypatch.setattr(service, "SESSION_MAPS_CACHED", 2)
         names = list(svc.sessions)
         assert len(names) >= 3
-        maps = [svc._session_map(name) for name in names]
-        assert list(svc._session_maps) == names[-2:]
-        assert svc._session_map(names[-1]) is maps[-1]  # a hit: the same map
+        maps = [svc.sessions.session_map(name) for name in names]
+        assert list(svc.sessions._maps) == names[-2:]
+        assert svc.sessions.session_map(names[-1]) is maps[-1]  # a hit: the same map
     finally:
         svc.close()
 

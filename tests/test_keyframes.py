@@ -23,7 +23,9 @@ from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap
 from mergesvc.core.poses import pose3_from_model, transform_from_pose3
-from mergesvc.fleet.service import MergeService, ServiceConfig, SessionState
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
+from mergesvc.fleet.sessions import SessionState
 from mergesvc.sim import fleet_world
 
 ROBOTS = ("auv1", "auv2", "auv3")
@@ -253,7 +255,7 @@ def test_a_wrong_closure_is_rejected_and_the_trajectories_hold(served) -> None:
     assert svc.graph.add_factor_model(wrong, keyframe_nodes=True)
     assert svc.graph.factor_nodes("wrong")[:2] == (str(a), str(b))
     retracted = svc.stats.factors_retracted
-    svc._optimize(publish=False)
+    svc._optimize()
     assert "wrong" in svc.solution.outlier_factor_ids
     assert "wrong" not in svc.factors and "wrong" not in svc.graph.factor_ids
     assert svc.stats.factors_retracted == retracted + 1
@@ -306,9 +308,9 @@ def test_nothing_is_solved_again_when_nothing_changed(served) -> None:
     _, svc = served
     sol = svc.solution
     assert svc.graph.optimize(marginals=False) is sol
-    n = svc._solutions
-    svc._optimize(publish=False)
-    assert svc.solution is sol and svc._solutions == n
+    n = svc.sessions.solutions
+    svc._optimize()
+    assert svc.solution is sol and svc.sessions.solutions == n
 
 
 def test_relocalization_answers_with_the_keyframe_pose(served) -> None:
@@ -378,8 +380,8 @@ def test_a_broken_chain_is_skipped_until_the_lost_submap_arrives() -> None:
     st = svc.sessions["auv2/s0"]
     joined = {0, auv2[0].keyframe, auv2[1].keyframe}
     assert st.keyframes == {0} | {s.keyframe for s in auv2}
-    assert set(svc._session_poses(st)) == joined
-    sm = svc._session_map("auv2/s0")
+    assert set(svc.sessions.session_poses(st)) == joined
+    sm = svc.sessions.session_map("auv2/s0")
     assert sm is not None and set(sm.keyframe_of.values()) <= joined
     assert {o.id for o in sm.map.objects} == {
         o for o, h in st.objects.items() if h.keyframe in joined}
@@ -387,8 +389,8 @@ def test_a_broken_chain_is_skipped_until_the_lost_submap_arrives() -> None:
     svc.ingest(lost)
     # the late odometry edge joined two keyframes the graph had: solved (the chain alone)
     assert svc.solution is not None
-    assert set(svc._session_poses(st)) == st.keyframes
-    assert len(svc._session_map("auv2/s0").map.objects) == len(st.objects)
+    assert set(svc.sessions.session_poses(st)) == st.keyframes
+    assert len(svc.sessions.session_map("auv2/s0").map.objects) == len(st.objects)
 
 
 def test_a_broken_chain_is_placed_by_the_graph_when_factors_join_it() -> None:
@@ -404,7 +406,7 @@ def test_a_broken_chain_is_placed_by_the_graph_when_factors_join_it() -> None:
     # the lost keyframe is a node too: the next submap's odometry starts there
     after_gap = {k for k in st.keyframes if k >= lost.keyframe}
     assert lost.keyframe in st.keyframes and after_gap <= solved
-    assert set(svc._session_poses(st)) == st.keyframes
+    assert set(svc.sessions.session_poses(st)) == st.keyframes
     T0_inv = np.linalg.inv(robots["auv1"].T_true[0])
     placed = svc.keyframe_poses()["auv2/s0"]
     for k in after_gap:

@@ -16,7 +16,8 @@ from mergesvc.core.factors import factor_nodes
 from mergesvc.core.tracking import Detection, Frame
 from mergesvc.errors import SchemaError
 from mergesvc.fleet.agent import AgentConfig, build_submaps
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.sim.fleet import fleet_world
 from mergesvc.sim.logs import read_observation_log, write_observation_log
 

@@ -14,8 +14,9 @@ import pytest
 
 from mergesvc.core.model import Submap
 from mergesvc.core.pipeline import match
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.replies import SubmapResult
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.sim import Family, make_scenario
 from mergesvc.wire import Profile, Projection, encode_message
 
@@ -55,7 +56,7 @@ def test_submaps_of_every_profile_match_a_map_sent_in_parts_across_profiles(
         for seq, (objects, profile) in enumerate(parts):
             _put(svc, Submap(robot_id=m.robot_id, session_id=m.session_id, seq=seq,
                              objects=objects, up=m.up), profile, proj)
-        held = svc._session_map(f"{m.robot_id}/{m.session_id}").arrays
+        held = svc.sessions.session_map(f"{m.robot_id}/{m.session_id}").arrays
         # the case the views are for: matched as it is, a full-precision submap loses the
         # compact objects to look-alikes
         raw = match(held, sc.submap, svc.config.match).result
@@ -64,7 +65,7 @@ def test_submaps_of_every_profile_match_a_map_sent_in_parts_across_profiles(
         svc.close()
     svc = MergeService(ServiceConfig(store=store), None, [proj])  # a restart: restored
     results: list[SubmapResult] = []
-    svc._publish_result = results.append
+    svc.outbox.result = results.append
     try:
         svc.restore()
         for profile in Profile:  # one session each: at most two of robot q are tried

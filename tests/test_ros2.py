@@ -17,7 +17,9 @@ from helpers import free_port, wait_for, zenoh_config
 
 from mergesvc.core.model import Factor, FactorStatus, ObjectMap, ObjectNode, Submap, Transform
 from mergesvc.errors import ConfigError
-from mergesvc.fleet.service import MergeService, RelocalizeReply, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.replies import RelocalizeReply
+from mergesvc.fleet.service import MergeService
 from mergesvc.ros2 import Ros2Bridge, Ros2Publisher
 from mergesvc.ros2.messages import (
     RosType,

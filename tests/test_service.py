@@ -20,8 +20,10 @@ from helpers import free_port, wait_for, zenoh_config
 
 from mergesvc.core.model import ErrorMessage, Factor
 from mergesvc.fleet.agent import Agent, AgentConfig, build_submaps
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.demo import query_status
-from mergesvc.fleet.service import MergeService, RelocalizeReply, ServiceConfig
+from mergesvc.fleet.replies import RelocalizeReply
+from mergesvc.fleet.service import MergeService
 from mergesvc.sim import fleet_world
 from mergesvc.wire import Profile, decode_message, encode_message, keys
 
@@ -225,7 +227,7 @@ def test_service_killed_mid_run_loses_nothing_and_duplicates_nothing(world, tmp_
             close_all(first)
         finally:
             _kill(svc, signal.SIGTERM)
-        from mergesvc.fleet.store import Store
+        from mergesvc.store import Store
 
         with Store(store) as db:
             rows = db.submaps()

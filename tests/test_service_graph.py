@@ -9,7 +9,8 @@ from helpers import cost_stream, free_port, zenoh_config
 from mergesvc.core.calibration import CalibrationConfig
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.poses import pose_error
-from mergesvc.fleet.service import LIVE_KEYFRAMES, MergeService, ServiceConfig
+from mergesvc.fleet.config import LIVE_KEYFRAMES, ServiceConfig
+from mergesvc.fleet.service import MergeService
 
 
 def test_default_graph_settings() -> None:
@@ -56,7 +57,7 @@ def test_a_folding_service_keeps_every_factor(tmp_path) -> None:
         assert len(held) >= 100 and graph.folded_count >= 0.3 * len(held)
         assert held <= set(graph.factor_ids)
         svc.graph.add_frame("solve/again#0")  # one more solve: none retracted since
-        svc._optimize(publish=False)
+        svc._optimize()
         sol = svc.solution
         assert sol is not None and held <= set(sol.weights) and not sol.outlier_factor_ids
         assert set(sol.folded) == {f for f in graph.factor_ids if graph.representative(f)}

@@ -21,9 +21,10 @@ from helpers import Inbox, free_port, wait_for, zenoh_config
 
 from mergesvc.core.model import ErrorMessage, ObjectNode, Submap
 from mergesvc.errors import SchemaError, StoreError
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.demo import query_status
-from mergesvc.fleet.service import MergeService, ServiceConfig
-from mergesvc.fleet.store import Store
+from mergesvc.fleet.service import MergeService
+from mergesvc.store import Store
 from mergesvc.wire import Profile, decode_message, encode_message, keys
 
 FLEET = "lim"
@@ -317,7 +318,8 @@ def test_candidate_frames_are_capped_and_shared_between_robots() -> None:
         for s in range(40):
             svc.ingest(alike(make_submap("greedy", f"s{s}", 0, n=5, seed=s + 100)))
         before = svc.stats.matches_tried
-        tried = svc._candidate_frames("victim/s0", victim)
+        tried = svc.sessions.candidate_frames("victim/s0", victim, cfg.max_candidate_frames,
+                                               cfg.max_frames_per_robot)
         svc.ingest(victim)
         assert svc.stats.matches_tried - before == len(tried) == 3
         names = [n for n, _ in tried]
@@ -342,7 +344,8 @@ def test_candidate_frames_are_the_most_alike() -> None:
         again = again.model_copy(update={"objects": [
             o.model_copy(update={"embedding": s.embedding})
             for o, s in zip(again.objects, seen.objects)]})
-        tried = [n for n, _ in svc._candidate_frames("victim/s0", again)]
+        tried = [n for n, _ in svc.sessions.candidate_frames(
+            "victim/s0", again, cfg.max_candidate_frames, cfg.max_frames_per_robot)]
         assert len(tried) == 3 and tried[0] == "seen/s0", tried
     finally:
         svc.close()

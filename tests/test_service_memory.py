@@ -19,7 +19,8 @@ import tracemalloc
 from helpers import cost_stream
 
 from mergesvc.core.model import Submap
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 
 WARM, FROM, TO = 30, 40, 80  # submaps untraced, then traced; the growth FROM -> TO
 BOUND = 28_000  # bytes per submap: about 22 kB; 110 kB when the state was pydantic models
@@ -34,11 +35,11 @@ def held_bytes(svc: MergeService) -> int:
     """Bytes traced now, but for the caches (the session maps), and the fleet index's rows as
     the rows it holds: its buffers grow by half when full (the part not written yet is not
     memory), and one allocated before tracing started is not traced at all."""
-    svc._session_maps.clear()
+    svc.sessions._maps.clear()
     gc.collect()
     snap = tracemalloc.take_snapshot().filter_traces(
         [tracemalloc.Filter(False, "*/mergesvc/core/retrieval.py")])
-    return sum(s.size for s in snap.statistics("filename")) + svc._index.nbytes()
+    return sum(s.size for s in snap.statistics("filename")) + svc.sessions.index_bytes()
 
 
 def test_retained_memory_per_submap_is_bounded() -> None:

@@ -55,7 +55,8 @@ from mergesvc.cli import app
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.errors import ConfigError
 from mergesvc.fleet.agent import AgentConfig
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.link import LinkConfig, Workload
 from mergesvc.settings import (
     SECTIONS,

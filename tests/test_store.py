@@ -1,8 +1,9 @@
-"""Tests of mergesvc.fleet.store: SQLite (WAL) persistence of submaps, factors and frames, including
+"""Tests of mergesvc.store: SQLite (WAL) persistence of submaps, factors and frames, including
 a real kill -9 of a writing process."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import signal
 import sqlite3
@@ -16,7 +17,7 @@ import pytest
 
 from mergesvc.core.model import FactorStatus
 from mergesvc.errors import InputError, StoreError
-from mergesvc.fleet.store import (
+from mergesvc.store import (
     PENDING,
     STORE_SCHEMA_VERSION,
     Store,
@@ -72,8 +73,24 @@ def test_conflicting_replay_raises_and_keeps_both(store: Store) -> None:
         store.put_submap("auv1", "s1", 0, b"other bytes", 2.0)
     assert issubclass(SubmapConflictError, StoreError)
     assert store.submaps()[0].payload == payload(0)  # the first write wins
-    assert store.submap_conflicts() == [("auv1", "s1", 0, b"other bytes", 2.0)]
+    digest = hashlib.sha256(b"other bytes").hexdigest()
+    assert store.submap_conflicts() == [("auv1", "s1", 0, digest, 2.0)]  # its hash only
     assert store.counts()["submap_conflicts"] == 1
+
+
+def test_a_flood_of_conflicting_variants_keeps_a_few_hashes(store: Store) -> None:
+    """700 byte-variants of one key: each refused, at most CONFLICTS_KEPT on record, none of
+    their bytes kept (the store does not grow with the flood)."""
+    from mergesvc.store import CONFLICTS_KEPT
+
+    store.put_submap("auv1", "s1", 0, payload(0), 1.0)
+    size = sum(len(p.payload) for p in store.submaps())
+    for i in range(700):
+        with pytest.raises(SubmapConflictError):
+            store.put_submap("auv1", "s1", 0, payload(0) + i.to_bytes(2, "big"), 2.0)
+    assert len(store.submap_conflicts()) == CONFLICTS_KEPT
+    assert store.stats()["rows"]["submap_conflicts"] == CONFLICTS_KEPT
+    assert sum(len(p.payload) for p in store.submaps()) == size
 
 
 def test_processing_state_and_arrival_order(store: Store) -> None:
@@ -184,6 +201,7 @@ def test_stats(tmp_path: Path) -> None:
             "factors": 1,
             "frames": 1,
             "meta": 0,
+            "held_factors": 0,
         }
         assert st["journal_mode"] == "wal"
         assert st["synchronous"] == "FULL"
@@ -242,7 +260,7 @@ def test_second_connection_reads_while_first_is_open(tmp_path: Path) -> None:
 
 CHILD = """
 import sys
-from mergesvc.fleet.store import Store
+from mergesvc.store import Store
 path, n, sync = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 with Store(path, synchronous=sync) as store:
     for seq in range(n):

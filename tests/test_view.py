@@ -28,7 +28,8 @@ from helpers import Inbox, free_port, wait_for, zenoh_config
 from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.errors import ConfigError
 from mergesvc.fleet.agent import AgentConfig, build_submaps
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.sim import fleet_world
 from mergesvc.view import PALETTE, FleetScene, LiveView, ViewSink, require_rerun
 from mergesvc.wire import Profile, encode_message, keys
@@ -253,7 +254,8 @@ def test_view_duration_bounds_it_without_a_service(tmp_path) -> None:
 
 SERVE = """
 import sys, time
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.view import LiveView, ViewSink
 from mergesvc.wire import decode_message
 subs = [decode_message(bytes.fromhex(line))[1] for line in sys.stdin.readline().split()]

@@ -7,6 +7,7 @@ error between two poses. Pure: no I/O.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -16,6 +17,8 @@ from mergesvc.errors import InputError
 
 # Tolerance of the rotation check on (4, 4) inputs: |R^T R - I| and |det R - 1|.
 _ROTATION_TOL = 1e-6
+# Symmetry tolerance of covariance inputs, relative to the largest entry.
+_SYM_RTOL = 1e-9
 
 
 def as_pose3(T: gtsam.Pose3 | np.ndarray | Sequence[Sequence[float]], name: str) -> gtsam.Pose3:
@@ -33,6 +36,30 @@ def as_pose3(T: gtsam.Pose3 | np.ndarray | Sequence[Sequence[float]], name: str)
     ):
         raise InputError(f"{name} is not a rigid transform (rotation not orthonormal, det 1)")
     return gtsam.Pose3(gtsam.Rot3.ClosestTo(R), M[:3, 3])
+
+
+def check_covariance(C: Any, name: str) -> np.ndarray:
+    """A valid 6x6 covariance as a read-only float64 array: `C` itself when it is one already
+    (read-only, owning its data, exactly symmetric: a long mission's graph shares its
+    odometry's arrays; whoever made it must not make it writable again), else a symmetrised
+    copy. InputError unless finite, symmetric within 1e-9 of its largest entry, and positive
+    definite once symmetrised (what the pose graph solves with)."""
+    S = np.asarray(C, dtype=np.float64)
+    if S.shape != (6, 6) or not np.all(np.isfinite(S)):
+        raise InputError(f"{name} must be a finite (6, 6) matrix")
+    if np.abs(S - S.T).max() > _SYM_RTOL * max(np.abs(S).max(), 1e-300):
+        raise InputError(f"{name} must be symmetric")
+    # shared only when nobody can write to it: read-only, owning its data, exactly symmetric
+    shared = (S is C and not S.flags.writeable and S.base is None
+              and np.array_equal(S, S.T))
+    if not shared:
+        S = 0.5 * (S + S.T)
+    try:
+        np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise InputError(f"{name} must be positive definite") from None
+    S.setflags(write=False)
+    return S
 
 
 def pose3_from_transform(
@@ -86,5 +113,6 @@ def pose_error(T_est: gtsam.Pose3, T_true: gtsam.Pose3) -> tuple[float, float]:
     )
 
 
-__all__ = ["as_pose3", "compose_with_covariance", "inverse_with_covariance", "pose3_from_model",
-           "pose3_from_transform", "pose_error", "transform_from_pose3"]
+__all__ = ["as_pose3", "check_covariance", "compose_with_covariance",
+           "inverse_with_covariance", "pose3_from_model", "pose3_from_transform", "pose_error",
+           "transform_from_pose3"]

@@ -16,31 +16,16 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
 from mergesvc.core.factors import factor_frames
 from mergesvc.core.model import Factor
 from mergesvc.core.pcm import loop_nees, max_clique
 from mergesvc.core.poses import inverse_with_covariance, pose3_from_model
+from mergesvc.fleet.config import ConsistencyConfig
 
 # chains(frame, from_keyframe, to_keyframes) -> {to: (T_from_to, covariance)} along odometry
 Chains = Callable[[str, int, set[int]], dict[int, tuple[gtsam.Pose3, np.ndarray]]]
-
-
-class ConsistencyConfig(BaseModel):
-    """Settings of the pairwise-consistency test of inter-robot factors (PCM)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    enabled: bool = Field(True, description="trust only the largest pairwise-consistent set "
-                          "of the factors between two sessions")
-    quantile: float = Field(0.999, gt=0.0, lt=1.0, description="chi-square quantile (6 dof) "
-                            "below which two factors' loop error counts as consistent")
-    inflation: float = Field(3.0, ge=1.0, description="the factors' covariances are multiplied "
-                             "by this in the test (their correlated errors)")
-    window: int = Field(64, ge=2, le=1024, description="latest factors of a pair weighed "
-                        "again when one arrives")
 
 
 @dataclass
@@ -74,6 +59,25 @@ class ClosureSets:
         self._pair_of: dict[str, tuple[str, str]] = {}
         self._threshold = float(chi2.ppf(config.quantile, 6))
 
+    def pair_key(self, factor: Factor) -> tuple[str, str]:
+        """The pair of sessions a factor belongs to (its consistency set)."""
+        fa, fb = (str(x) for x in factor_frames(factor))
+        return (fa, fb) if fa <= fb else (fb, fa)
+
+    def pair_state(self, key: tuple[str, str]) -> _Pair | None:
+        """A pair's state (copy it to restore it with `set_pair_state`)."""
+        return self._pairs.get(key)
+
+    def set_pair_state(self, key: tuple[str, str], state: _Pair | None) -> None:
+        """A pair's state as it was (a unit of work that could not be committed)."""
+        now = self._pairs.pop(key, None)
+        for fid in (now.ids if now is not None else ()):
+            self._pair_of.pop(fid, None)
+        if state is not None:
+            self._pairs[key] = state
+            for fid in state.ids:
+                self._pair_of[fid] = key
+
     def is_trusted(self, factor_id: str) -> bool:
         key = self._pair_of.get(factor_id)
         return key is not None and factor_id in self._pairs[key].trusted
@@ -99,8 +103,8 @@ class ClosureSets:
     def offer(self, factor: Factor, trusted: bool | None = None) -> Verdict:
         """Weigh a new factor with its pair's latest ones. `trusted` (a restart replaying the
         verdicts it had) sets the factor's verdict without weighing anything."""
-        fa, fb = (str(x) for x in factor_frames(factor))
-        key = (fa, fb) if fa <= fb else (fb, fa)
+        fa = str(factor_frames(factor)[0])
+        key = self.pair_key(factor)
         T = pose3_from_model(factor.T_a_b)
         C = np.asarray(factor.covariance, dtype=np.float64)
         ka, kb = factor.keyframe_a or 0, factor.keyframe_b or 0
@@ -151,4 +155,4 @@ class ClosureSets:
             p.ok[(fid, g)] = p.ok[(g, fid)] = ok
 
 
-__all__ = ["Chains", "ClosureSets", "ConsistencyConfig", "Verdict"]
+__all__ = ["Chains", "ClosureSets", "Verdict"]

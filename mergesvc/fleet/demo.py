@@ -29,8 +29,8 @@ from mergesvc.core.model import Factor
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
 from mergesvc.fleet.agent import AgentConfig, LocalMap, build_submaps
+from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.scoring import fleet_ate
-from mergesvc.fleet.service import ServiceConfig
 from mergesvc.sim import fleet_world, survey_embeddings
 from mergesvc.wire import Profile, Projection, decode_message, keys
 

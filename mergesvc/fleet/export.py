@@ -70,7 +70,8 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, MergeError, StoreError, one_line
-from mergesvc.fleet.service import MergeService, ServiceConfig
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
 from mergesvc.wire import Projection, decode_message
 from mergesvc.wire.formats import write_g2o, write_tum
 

@@ -33,8 +33,9 @@ from mergesvc.errors import MergeError
 from mergesvc.fleet.agent import AgentConfig, L, LocalMap, build_submaps
 from mergesvc.fleet.bound import BOUND_DRAWS, closure_bound
 from mergesvc.fleet.bound import error_sigma as bound_error_sigma
+from mergesvc.fleet.config import ServiceConfig, odometry_group
 from mergesvc.fleet.scoring import OdometryEdgeRecord, align_once, fleet_ate, odometry_honesty
-from mergesvc.fleet.service import MergeService, ServiceConfig, odometry_group
+from mergesvc.fleet.service import MergeService
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator
 from mergesvc.wire import Profile, Projection, decode_message, encode_message

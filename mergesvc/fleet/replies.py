@@ -155,6 +155,28 @@ class FactorCounts(BaseModel):
     accepted: int = Field(ge=0)
     retracted: int = Field(ge=0)
     active: int = Field(ge=0)
+    held: int = Field(0, ge=0, description="kept, not trusted (yet): not pairwise consistent "
+                      "with the factors in force between the same two sessions")
+
+
+class ModelCounts(BaseModel):
+    """One embedding model's (dimension's) share of the fleet."""
+
+    model_config = _REPLY
+
+    sessions: int = Field(ge=0)
+    objects: int = Field(ge=0)
+
+
+class SolveState(BaseModel):
+    """The pose graph's last solve."""
+
+    model_config = _REPLY
+
+    ok: bool = Field(description="false: the last solve failed and is being tried again")
+    error: str | None = None
+    failures: int = Field(0, ge=0, description="failed solves in a row")
+    solution_age_s: float | None = Field(None, ge=0, description="since the last solution")
 
 
 class ResultCounts(BaseModel):
@@ -200,6 +222,9 @@ class StatusReply(BaseModel):
     fleet: str
     robots_alive: list[str]
     frames: dict[str, int] = Field(description="objects held per session robot/session")
+    models: dict[str, ModelCounts] = Field(
+        default_factory=dict, description="per embedding model (its dimension): sessions and "
+        "objects; each model's maps are matched only with each other")
     submaps: SubmapCounts
     factors: FactorCounts
     results: ResultCounts
@@ -207,6 +232,8 @@ class StatusReply(BaseModel):
     latency_ms: Percentiles = Field(description="processing time per submap")
     delay_ms: Percentiles = Field(description="stored -> processed, per submap")
     optimizations: int = Field(ge=0)
+    solve: SolveState | None = Field(None, description="the last solve: failed or not, and "
+                                     "how old its solution is")
     frozen_keyframes: int = Field(0, ge=0, description="pose-graph keyframes held at the poses "
                                   "of an earlier solve (the oldest, past the graph's "
                                   "max_live_nodes)")
@@ -217,6 +244,9 @@ class StatusReply(BaseModel):
     keyframe_poses: dict[str, dict[str, Matrix4]] = Field(
         description="robot/session -> keyframe -> its pose in the anchor frame")
     store: StoreStats
+    store_damage: list[str] = Field(
+        default_factory=list, description="answers sent that the store no longer holds, found "
+        "at start (a truncated write-ahead log): one line per session")
 
     @field_validator("schema_version", mode="before")
     @classmethod
@@ -243,11 +273,13 @@ __all__ = [
     "NO_FRAMES",
     "FactorCounts",
     "FrameTried",
+    "ModelCounts",
     "Outcome",
     "Percentiles",
     "RefusalCode",
     "RelocalizeReply",
     "ResultCounts",
+    "SolveState",
     "StatusReply",
     "StoreStats",
     "SubmapCounts",

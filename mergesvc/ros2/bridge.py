@@ -24,7 +24,8 @@ from mergesvc.ros2.publisher import Ros2Publisher
 from mergesvc.wire import decode_message, keys
 
 if TYPE_CHECKING:
-    from mergesvc.fleet.service import MergeService, RelocalizeReply
+    from mergesvc.fleet.replies import RelocalizeReply
+    from mergesvc.fleet.service import MergeService
 
 log = logging.getLogger(__name__)
 

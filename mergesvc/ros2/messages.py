@@ -21,7 +21,7 @@ from mergesvc.core.model import Factor, ObjectMap, Transform
 from mergesvc.errors import ConfigError
 
 if TYPE_CHECKING:
-    from mergesvc.fleet.service import RelocalizeReply
+    from mergesvc.fleet.replies import RelocalizeReply
 
 
 class RosType(str, Enum):

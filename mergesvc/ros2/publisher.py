@@ -45,7 +45,7 @@ from mergesvc.ros2.names import (
 )
 
 if TYPE_CHECKING:
-    from mergesvc.fleet.service import RelocalizeReply
+    from mergesvc.fleet.replies import RelocalizeReply
 
 log = logging.getLogger(__name__)
 

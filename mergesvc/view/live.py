@@ -43,7 +43,7 @@ import numpy as np
 
 from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.errors import ConfigError, MergeError
-from mergesvc.fleet.service import session_up
+from mergesvc.fleet.sessions import session_up
 from mergesvc.view.scene import RETRACTED_RGB, FleetScene, Segments
 
 if TYPE_CHECKING:

@@ -25,7 +25,7 @@ import numpy as np
 from mergesvc.core.factors import match_factor_id
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, Submap
-from mergesvc.fleet.service import SessionState
+from mergesvc.fleet.sessions import SessionState
 
 # Robot colours (RGB) in the order robots first appear: tab10 without its red, which marks
 # retracted factors.

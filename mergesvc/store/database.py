@@ -1,4 +1,4 @@
-"""Persistence stage: one SQLite file in WAL mode holding every accepted submap (written before it
+"""The service's store: one SQLite file in WAL mode holding every accepted submap (written before it
 is processed), the inter-robot factors sent, and the robot-session frames seen. A restart redoes
 `unprocessed_submaps()`; replays are idempotent on the natural keys.
 
@@ -18,199 +18,43 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import os
 import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
 from mergesvc.core.frames import frame_name
-from mergesvc.core.model import FactorStatus
 from mergesvc.errors import InputError, StoreError, one_line
+from mergesvc.store.factors import FactorRecords
+from mergesvc.store.records import (
+    _HELD,
+    _MAX_STATUS_LENGTH,
+    _META,
+    _SCHEMA,
+    _TABLES,
+    APPLICATION_ID,
+    PENDING,
+    STORE_SCHEMA_VERSION,
+    StoredFrame,
+    StoredSubmap,
+    SubmapConflictError,
+    Synchronous,
+    _check_bytes,
+    _check_id,
+    _check_time,
+    _read_only,
+)
 
 log = logging.getLogger(__name__)
-
-#: Version of the tables below; a file written by a newer build is refused.
-STORE_SCHEMA_VERSION = 1
-#: `PRAGMA application_id` of a mergesvc store ("MRGS"), so a foreign SQLite file is refused.
-APPLICATION_ID = 0x4D524753
-#: Status of a submap that is stored but not yet processed.
-PENDING = "pending"
-
-_MAX_ID_LENGTH = 128
-_MAX_STATUS_LENGTH = 64
-
-_SCHEMA = """
-CREATE TABLE schema_version (
-    version INTEGER NOT NULL,
-    created_at_s REAL NOT NULL
-);
-CREATE TABLE submaps (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    robot_id TEXT NOT NULL,
-    session_id TEXT NOT NULL,
-    seq INTEGER NOT NULL,
-    payload BLOB NOT NULL,
-    sha256 TEXT NOT NULL,
-    received_at_s REAL NOT NULL,
-    status TEXT NOT NULL DEFAULT 'pending',
-    detail TEXT NOT NULL DEFAULT '',
-    processed_at_s REAL,
-    UNIQUE (robot_id, session_id, seq)
-);
-CREATE INDEX submaps_pending ON submaps (status, id);
-CREATE TABLE submap_conflicts (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    robot_id TEXT NOT NULL,
-    session_id TEXT NOT NULL,
-    seq INTEGER NOT NULL,
-    payload BLOB NOT NULL,
-    sha256 TEXT NOT NULL,
-    received_at_s REAL NOT NULL
-);
-CREATE TABLE factors (
-    factor_id TEXT PRIMARY KEY,
-    frame_a TEXT NOT NULL,
-    frame_b TEXT NOT NULL,
-    payload BLOB NOT NULL,
-    status TEXT NOT NULL CHECK (status IN ('accepted', 'retracted')),
-    created_at_s REAL NOT NULL,
-    updated_at_s REAL NOT NULL
-);
-CREATE TABLE frames (
-    frame TEXT PRIMARY KEY,
-    robot_id TEXT NOT NULL,
-    session_id TEXT NOT NULL,
-    first_seen_s REAL NOT NULL,
-    last_seen_s REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS meta (
-    key TEXT PRIMARY KEY,
-    value TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS held_factors (
-    factor_id TEXT PRIMARY KEY,
-    frame_a TEXT NOT NULL,
-    frame_b TEXT NOT NULL,
-    payload BLOB NOT NULL,
-    created_at_s REAL NOT NULL
-);
-"""
-# `meta` (fleet-wide facts fixed once, e.g. the embedding dimension) came after version 1 was
-# out: a version-1 file without it gets it when opened writable (an added table, nothing else
-# changes); opened read-only, `meta()` answers None.
-_META = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)"
-# `held_factors` (factors the service keeps but does not trust yet: not sent, or withdrawn)
-# came later still, added the same way.
-_HELD = ("CREATE TABLE IF NOT EXISTS held_factors (factor_id TEXT PRIMARY KEY, frame_a TEXT "
-         "NOT NULL, frame_b TEXT NOT NULL, payload BLOB NOT NULL, created_at_s REAL NOT NULL)")
-_TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames", "meta",
-           "held_factors")
-#: Meta key of the fleet's embedding dimension (fixed by the first accepted submap or the
-#: service's setting).
-META_EMBEDDING_DIM = "embedding_dim"
-#: Meta key of the pose graph's calibrated noise scales (JSON: group -> 6 sigma scales).
-META_NOISE_SCALES = "noise_scales"
+CONFLICTS_KEPT = 8  # conflicting variants of one submap key on record (their hashes)
 
 
-def _read_only(exc: sqlite3.Error) -> bool:
-    """Whether SQLite refused a write because the file (or its folder: WAL needs its -wal and
-    -shm files beside it) is read-only."""
-    name = str(getattr(exc, "sqlite_errorname", ""))
-    return name.startswith("SQLITE_READONLY") or "readonly database" in str(exc)
-
-
-class Synchronous(str, Enum):
-    """SQLite `synchronous` setting (see the module docstring)."""
-
-    NORMAL = "NORMAL"
-    FULL = "FULL"
-
-
-class SubmapConflictError(StoreError):
-    """A submap key (robot, session, seq) was stored before with different bytes.
-
-    The new payload is kept in `submap_conflicts` (nothing is lost); the stored one is unchanged.
-    """
-
-
-@dataclass(frozen=True)
-class StoredSubmap:
-    """One stored submap. status is PENDING until `mark_processed`."""
-
-    row_id: int
-    robot_id: str
-    session_id: str
-    seq: int
-    payload: bytes
-    sha256: str
-    received_at_s: float
-    status: str
-    detail: str
-    processed_at_s: float | None
-
-    @property
-    def frame(self) -> str:
-        return frame_name(self.robot_id, self.session_id)
-
-    @property
-    def processed(self) -> bool:
-        return self.status != PENDING
-
-
-@dataclass(frozen=True)
-class StoredFactor:
-    factor_id: str
-    frame_a: str
-    frame_b: str
-    payload: bytes
-    status: FactorStatus
-    created_at_s: float
-    updated_at_s: float
-
-
-@dataclass(frozen=True)
-class StoredFrame:
-    frame: str
-    robot_id: str
-    session_id: str
-    first_seen_s: float
-    last_seen_s: float
-
-
-def _check_id(value: Any, name: str) -> str:
-    if not isinstance(value, str) or not 1 <= len(value) <= _MAX_ID_LENGTH:
-        raise InputError(f"{name} must be a string of 1 to {_MAX_ID_LENGTH} characters")
-    return value
-
-
-def _check_bytes(value: Any, name: str) -> bytes:
-    if not isinstance(value, (bytes, bytearray, memoryview)):
-        raise InputError(f"{name} must be bytes, got {type(value).__name__}")
-    return bytes(value)
-
-
-def _check_time(value: Any, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{name} must be a finite number of seconds, got {value!r}")
-    return float(value)
-
-
-def _check_factor_status(status: Any) -> FactorStatus:
-    try:
-        return FactorStatus(status)
-    except ValueError:
-        allowed = ", ".join(s.value for s in FactorStatus)
-        raise InputError(f"factor status must be one of {allowed}, got {status!r}") from None
-
-
-class Store:
+class Store(FactorRecords):
     """The service's SQLite store. `Store(":memory:")` for tests; use as a context manager.
 
     Every write is one transaction, committed before the method returns.
@@ -370,7 +214,8 @@ class Store:
 
         A replay of the same key with identical bytes returns the stored row and created=False.
         The same key with different bytes raises SubmapConflictError after recording the new
-        payload in `submap_conflicts`. The robot-session frame is recorded in the same commit.
+        payload's hash in `submap_conflicts` (at most CONFLICTS_KEPT per key). The
+        robot-session frame is recorded in the same commit.
         """
         robot_id = _check_id(robot_id, "robot_id")
         session_id = _check_id(session_id, "session_id")
@@ -396,12 +241,16 @@ class Store:
             row_id, stored_digest = row
             if stored_digest == digest:
                 return int(row_id), False
-            c.execute(
-                "INSERT INTO submap_conflicts (robot_id, session_id, seq, payload, sha256, "
-                "received_at_s) VALUES (?, ?, ?, ?, ?, ?)",
-                (robot_id, session_id, seq, payload, digest, t),
-            )
-        # Raised after the commit, so the conflicting payload is kept.
+            kept = c.execute(
+                "SELECT COUNT(*) FROM submap_conflicts WHERE robot_id = ? AND session_id = ? "
+                "AND seq = ?", (robot_id, session_id, seq)).fetchone()[0]
+            if kept < CONFLICTS_KEPT:  # the hash only: a flood of variants costs no space
+                c.execute(
+                    "INSERT INTO submap_conflicts (robot_id, session_id, seq, payload, sha256, "
+                    "received_at_s) VALUES (?, ?, ?, ?, ?, ?)",
+                    (robot_id, session_id, seq, b"", digest, t),
+                )
+        # Raised after the commit, so the conflict is on record.
         raise SubmapConflictError(
             f"submap {frame}#{seq} was stored before with different content "
             f"(sha256 {stored_digest[:12]} vs {digest[:12]}); kept the first, logged the conflict"
@@ -459,6 +308,22 @@ class Store:
                 (robot_id, session_id, int(seq)),
             ).fetchone()
         return row is not None
+
+    def submap_digest(self, robot_id: str, session_id: str, seq: int) -> str | None:
+        """The sha256 (hex) of the submap stored under (robot, session, seq), None if none."""
+        with self._transaction(write=False) as c:
+            row = c.execute(
+                "SELECT sha256 FROM submaps WHERE robot_id = ? AND session_id = ? AND seq = ?",
+                (robot_id, session_id, int(seq)),
+            ).fetchone()
+        return None if row is None else str(row[0])
+
+    def final_seqs(self) -> dict[tuple[str, str], int]:
+        """The highest seq per session whose submap has a final status (not pending)."""
+        with self._transaction(write=False) as c:
+            rows = c.execute("SELECT robot_id, session_id, MAX(seq) FROM submaps WHERE "
+                             "status != ? GROUP BY robot_id, session_id", (PENDING,)).fetchall()
+        return {(r, s): int(q) for r, s, q in rows}
 
     def pending_ids(self, limit: int = 64) -> list[int]:
         """Row ids of up to `limit` PENDING submaps, oldest first (the worker's queue)."""
@@ -523,117 +388,18 @@ class Store:
             last = int(rows[-1][0])
             yield from rows
 
-    def submap_conflicts(self) -> list[tuple[str, str, int, bytes, float]]:
-        """(robot_id, session_id, seq, payload, received_at_s) of every refused replay."""
+    def submap_conflicts(self) -> list[tuple[str, str, int, str, float]]:
+        """(robot_id, session_id, seq, sha256 hex, received_at_s) of the conflicting replays on
+        record (at most CONFLICTS_KEPT per key; only their hashes are kept)."""
         with self._transaction(write=False) as c:
             rows = c.execute(
-                "SELECT robot_id, session_id, seq, payload, received_at_s FROM submap_conflicts "
+                "SELECT robot_id, session_id, seq, sha256, received_at_s FROM submap_conflicts "
                 "ORDER BY id"
             ).fetchall()
-        return [(r[0], r[1], int(r[2]), bytes(r[3]), float(r[4])) for r in rows]
+        return [(r[0], r[1], int(r[2]), str(r[3]), float(r[4])) for r in rows]
 
     # -- factors ---------------------------------------------------------------------------------
 
-    def put_factor(
-        self,
-        factor_id: str,
-        frame_a: str,
-        frame_b: str,
-        payload_bytes: bytes,
-        status: FactorStatus | str = FactorStatus.ACCEPTED,
-    ) -> bool:
-        """Persist a factor; True if new. Idempotent on factor_id: the first write wins (a replay
-        with other bytes is logged and ignored); change the status with `set_factor_status`."""
-        factor_id = _check_id(factor_id, "factor_id")
-        frame_a = _check_id(frame_a, "frame_a")
-        frame_b = _check_id(frame_b, "frame_b")
-        payload = _check_bytes(payload_bytes, "payload_bytes")
-        st = _check_factor_status(status)
-        now = self._clock()
-        with self._transaction() as c:
-            row = c.execute(
-                "SELECT payload FROM factors WHERE factor_id = ?", (factor_id,)
-            ).fetchone()
-            if row is None:
-                c.execute(
-                    "INSERT INTO factors (factor_id, frame_a, frame_b, payload, status, "
-                    "created_at_s, updated_at_s) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (factor_id, frame_a, frame_b, payload, st.value, now, now),
-                )
-                return True
-        if bytes(row[0]) != payload:
-            log.warning("factor %s replayed with different bytes: kept the first", factor_id)
-        return False
-
-    def set_factor_status(self, factor_id: str, status: FactorStatus | str) -> bool:
-        """Set accepted / retracted; True if the status changed. StoreError if unknown."""
-        st = _check_factor_status(status)
-        with self._transaction() as c:
-            row = c.execute(
-                "SELECT status FROM factors WHERE factor_id = ?", (factor_id,)
-            ).fetchone()
-            if row is None:
-                raise StoreError(f"no factor {factor_id!r} in {self.path}")
-            if row[0] == st.value:
-                return False
-            c.execute(
-                "UPDATE factors SET status = ?, updated_at_s = ? WHERE factor_id = ?",
-                (st.value, self._clock(), factor_id),
-            )
-            return True
-
-    def iter_factors(self, status: FactorStatus | str | None = None,
-                     page: int = 500) -> Iterator[StoredFactor]:
-        """The stored factors in creation order, like `factors()`, read `page` rows at a time
-        (a restart's factors of a long mission are tens of MB of JSON)."""
-        where, args = "", ()
-        if status is not None:
-            where, args = " AND status = ?", (_check_factor_status(status).value,)
-        for r in self._paged("SELECT rowid, factor_id, frame_a, frame_b, payload, status, "
-                             f"created_at_s, updated_at_s FROM factors WHERE rowid > ?{where}",
-                             args, "rowid", page):
-            yield StoredFactor(factor_id=r[1], frame_a=r[2], frame_b=r[3],
-                               payload=bytes(r[4]), status=FactorStatus(r[5]),
-                               created_at_s=float(r[6]), updated_at_s=float(r[7]))
-
-    def factors(self, status: FactorStatus | str | None = None) -> list[StoredFactor]:
-        """Stored factors in creation order, optionally only one status."""
-        return list(self.iter_factors(status))
-
-    def put_held_factor(self, factor_id: str, frame_a: str, frame_b: str,
-                        payload_bytes: bytes) -> bool:
-        """Keep a factor the service does not trust (yet): not sent, or withdrawn; True if
-        new. It keeps its first creation time across holds."""
-        factor_id = _check_id(factor_id, "factor_id")
-        args = (factor_id, _check_id(frame_a, "frame_a"), _check_id(frame_b, "frame_b"),
-                _check_bytes(payload_bytes, "payload_bytes"))
-        with self._transaction() as c:
-            first = c.execute("SELECT created_at_s FROM factors WHERE factor_id = ?",
-                              (factor_id,)).fetchone()
-            cur = c.execute("INSERT OR IGNORE INTO held_factors (factor_id, frame_a, frame_b, "
-                            "payload, created_at_s) VALUES (?, ?, ?, ?, ?)",
-                            (*args, first[0] if first else self._clock()))
-            return cur.rowcount == 1
-
-    def drop_held_factor(self, factor_id: str) -> bool:
-        """A held factor is trusted now (or gone); True if it was held."""
-        with self._transaction() as c:
-            cur = c.execute("DELETE FROM held_factors WHERE factor_id = ?", (factor_id,))
-            return cur.rowcount == 1
-
-    def held_factors(self) -> list[StoredFactor]:
-        """The held factors in creation order (status: retracted, as none is in force)."""
-        with self._transaction(write=False) as c:
-            present = c.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = "
-                                "'held_factors'").fetchone()
-            rows = c.execute("SELECT factor_id, frame_a, frame_b, payload, created_at_s FROM "
-                             "held_factors ORDER BY created_at_s, rowid").fetchall() if present \
-                else []
-        return [StoredFactor(factor_id=r[0], frame_a=r[1], frame_b=r[2], payload=bytes(r[3]),
-                             status=FactorStatus.RETRACTED, created_at_s=float(r[4]),
-                             updated_at_s=float(r[4])) for r in rows]
-
-    # -- frames ----------------------------------------------------------------------------------
 
     @staticmethod
     def _touch_frame(
@@ -747,16 +513,4 @@ class Store:
         }
 
 
-__all__ = [
-    "APPLICATION_ID",
-    "META_EMBEDDING_DIM",
-    "META_NOISE_SCALES",
-    "PENDING",
-    "STORE_SCHEMA_VERSION",
-    "Store",
-    "StoredFactor",
-    "StoredFrame",
-    "StoredSubmap",
-    "SubmapConflictError",
-    "Synchronous",
-]
+__all__ = ["CONFLICTS_KEPT", "Store"]

@@ -1,0 +1,250 @@
+"""What the service answers about its state: status, the global map, keyframe poses, where a new
+session is (relocalize). Each reads the last graph solution and the sessions under the
+service's state lock, which the worker holds only to apply a unit of work, never through a
+solve: a query never waits on a solve. The global map is fused per embedding model (a model's
+objects are never fused or matched with another's), cached until the state changes.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from mergesvc.core.frames import FrameId
+from mergesvc.core.fusion import fuse_objects
+from mergesvc.core.model import ObjectMap, ObjectNode, Submap
+from mergesvc.core.pipeline import match
+from mergesvc.errors import SchemaError
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.merger import Merger
+from mergesvc.fleet.replies import Outcome, RelocalizeReply, StatusReply, SubmapResult
+from mergesvc.store import Store
+from mergesvc.wire import Projection, decode_message
+
+LATENCIES_KEPT = 1000  # per-submap timings the percentiles are taken over
+
+
+@dataclass
+class ServiceStats:
+    """Counters the status reply reports (several threads add to them)."""
+
+    submaps_received: int = 0
+    submaps_duplicate: int = 0
+    submaps_processed: int = 0
+    submaps_rejected: int = 0  # refused at the boundary (bad payloads, limits)
+    factors_accepted: int = 0
+    factors_retracted: int = 0
+    matches_tried: int = 0
+    relocalize_queries: int = 0
+    optimizations: int = 0
+    errors: dict[str, int] = field(default_factory=dict)
+    results_processed: int = 0
+    results_failed: int = 0
+    results_no_match: dict[str, int] = field(default_factory=dict)  # per reason
+    results_refused: dict[str, int] = field(default_factory=dict)  # per code
+    latency_ms: list[float] = field(default_factory=list)  # processing time per submap
+    delay_ms: list[float] = field(default_factory=list)  # stored -> processed, per submap
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def error(self, code: str) -> None:
+        with self._lock:  # callbacks of several transport threads count here
+            self.errors[code] = self.errors.get(code, 0) + 1
+
+    def result(self, res: SubmapResult) -> None:
+        with self._lock:
+            if res.outcome is Outcome.PROCESSED:
+                self.results_processed += 1
+            elif res.outcome is Outcome.FAILED:
+                self.results_failed += 1
+            elif res.outcome is Outcome.NO_MATCH:
+                reason = str(getattr(res.reason, "value", res.reason))
+                self.results_no_match[reason] = self.results_no_match.get(reason, 0) + 1
+            elif res.code is not None:
+                code = res.code.value
+                self.results_refused[code] = self.results_refused.get(code, 0) + 1
+
+    def timed(self, latency_ms: float, delay_ms: float) -> None:
+        with self._lock:
+            self.latency_ms.append(latency_ms)
+            del self.latency_ms[:-LATENCIES_KEPT]
+            self.delay_ms.append(delay_ms)
+            del self.delay_ms[:-LATENCIES_KEPT]
+
+    def result_counts(self) -> dict[str, Any]:
+        with self._lock:
+            return {"processed": self.results_processed,
+                    "no_match": dict(self.results_no_match),
+                    "refused": dict(self.results_refused),
+                    "failed": self.results_failed}
+
+    def percentiles(self, name: str) -> dict[str, float | None]:
+        with self._lock:
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+        return {f"p{q}": float(np.percentile(a, q)) if a.size else None for q in (50, 90, 99)}
+
+
+class Queries:
+    """The service's state seen from outside (module docstring). `lock`: the state lock."""
+
+    def __init__(self, config: ServiceConfig, merger: Merger, lock: threading.RLock) -> None:
+        self.config = config
+        self.merger = merger
+        self.lock = lock
+        self._global: dict[int, ObjectMap | None] = {}  # embedding dim -> fused map
+
+    def changed(self) -> None:
+        """The state changed (a unit of work applied, a solution taken): maps are stale."""
+        self._global.clear()
+
+    @property
+    def anchor_dim(self) -> int | None:
+        st = self.merger.sessions.get(self.merger.anchor or "")
+        return None if st is None else st.dim
+
+    def global_map(self, dim: int | None = None) -> tuple[ObjectMap | None, str | None]:
+        """Objects of every session of one embedding model (default: the anchor's) aligned
+        with the anchor, each placed with the solved pose of its keyframe, fused (None before
+        any submap of that model is placed)."""
+        with self.lock:
+            sessions, anchor = self.merger.sessions, self.merger.anchor
+            dim = self.anchor_dim if dim is None else dim
+            if dim is None or not sessions:
+                return None, anchor
+            if dim in self._global:
+                return self._global[dim], anchor
+            solution = sessions.solution
+            frames: dict[str, list[ObjectNode]] = {}
+            poses: dict[str, gtsam.Pose3] = {}
+            frame_of: dict[str, str] = {}
+            for name, st in sessions.items():
+                if st.dim != dim:
+                    continue
+                placed = sessions.anchor_poses(st, anchor, solution)
+                owned: dict[int, list[ObjectNode]] = defaultdict(list)
+                for held in st.objects.values():
+                    if held.keyframe in placed:
+                        owned[held.keyframe].append(held.node)  # built again: fleet/held.py
+                for k in sorted(owned):
+                    node = st.node(k)
+                    frames[node], poses[node], frame_of[node] = owned[k], placed[k], name
+            pairs = []
+            for f in self.merger.factors.held():  # the object pairs, no Factor built
+                a, b = sessions.get(f.frame_a), sessions.get(f.frame_b)
+                if a is None or b is None or a.dim != dim:
+                    continue
+                for object_a, object_b in f.object_pairs():
+                    ha, hb = a.objects.get(object_a), b.objects.get(object_b)
+                    if ha is not None and hb is not None:
+                        pairs.append((a.node(ha.keyframe), object_a,
+                                      b.node(hb.keyframe), object_b))
+            gmap = None
+            if frames and anchor is not None:
+                fused = fuse_objects(frames, poses, pairs, frame_of=frame_of)
+                at = FrameId.parse(anchor)
+                gmap = ObjectMap(robot_id=at.robot, session_id=at.session,
+                                 objects=fused.objects)
+            self._global[dim] = gmap
+            return gmap, anchor
+
+    def frame_poses(self) -> dict[str, np.ndarray]:
+        """(4, 4) pose of every session's keyframe 0 (its frame origin) solved with the
+        anchor, in the anchor frame."""
+        with self.lock:
+            sol = self.merger.sessions.solution
+            if sol is None:
+                return {}
+            return {name: np.asarray(T.matrix()) for name, st in self.merger.sessions.items()
+                    if (T := sol.T_anchor_frame.get(st.node(0))) is not None}
+
+    def keyframe_poses(self) -> dict[str, dict[int, np.ndarray]]:
+        """(4, 4) pose of every keyframe of the anchor's component in the anchor frame (solved,
+        or composed by odometry from the nearest solved keyframe); {} before any solution."""
+        with self.lock:
+            sessions = self.merger.sessions
+            if sessions.solution is None:
+                return {}
+            out = {}
+            for name, st in sessions.items():
+                placed = sessions.anchor_poses(st, self.merger.anchor, sessions.solution)
+                if placed:
+                    out[name] = {k: np.asarray(placed[k].matrix()) for k in sorted(placed)}
+            return out
+
+    def relocalize(self, sub: Submap) -> RelocalizeReply:
+        """Where a new session is in the anchor frame, from a first submap matched against the
+        global map of its embedding model: the pose of the submap's keyframe (or, without one,
+        of its session frame) in the anchor frame (the anchor session's keyframe 0)."""
+        gmap, anchor = self.global_map(sub.dim)
+        if gmap is None or len(gmap.objects) < self.config.min_map_objects:
+            return RelocalizeReply(localized=False, reason="no_map", anchor=anchor)
+        res = match(gmap, sub, self.config.match).result
+        if not res.accepted:
+            return RelocalizeReply(localized=False, reason=res.reason.value, anchor=anchor,
+                                   matches=len(res.matches), keyframe=sub.keyframe)
+        return RelocalizeReply(localized=True, reason="verified", anchor=anchor,
+                               T_anchor_session=res.transform, covariance=res.covariance,
+                               matches=len(res.matches), keyframe=sub.keyframe)
+
+    def relocalize_payload(self, data: bytes | None,
+                           projections: dict[str, Projection]) -> RelocalizeReply:
+        """`relocalize` of a query's payload (a coded submap); SchemaError if it is none."""
+        if data is None:
+            raise SchemaError("relocalize needs a submap in the query payload")
+        if len(data) > self.config.max_payload_bytes:
+            raise SchemaError(f"{len(data)}-byte query exceeds the limit")
+        _, sub = decode_message(data, projections)
+        if not isinstance(sub, Submap):
+            raise SchemaError("relocalize needs a submap")
+        return self.relocalize(sub)
+
+    def status(self, stats: ServiceStats, store: Store, *, poses: bool, alive: list[str],
+               solve: dict[str, Any], frozen: int, damage: list[str]) -> dict[str, Any]:
+        """The status reply (StatusReply, strict JSON: no NaN)."""
+        counts = store.counts()
+        with self.lock:
+            frames = {f: len(st.objects) for f, st in self.merger.sessions.items()}
+            active, held = len(self.merger.factors), len(self.merger.held)
+        frame_poses = ({f: T.tolist() for f, T in self.frame_poses().items()}
+                       if poses else {})
+        keyframe_poses = ({f: {str(k): T.tolist() for k, T in kf.items()}
+                           for f, kf in self.keyframe_poses().items()} if poses else {})
+        return StatusReply.model_validate({
+            "fleet": self.config.fleet, "robots_alive": alive, "frames": frames,
+            "models": self.models(),
+            "submaps": {"received": stats.submaps_received,
+                        "duplicate": stats.submaps_duplicate,
+                        "processed": stats.submaps_processed,
+                        "rejected": stats.submaps_rejected,
+                        "queued": counts["submaps_pending"], "stored": counts["submaps"]},
+            "factors": {"accepted": stats.factors_accepted,
+                        "retracted": stats.factors_retracted, "active": active, "held": held},
+            "results": stats.result_counts(), "errors": dict(stats.errors),
+            "latency_ms": stats.percentiles("latency_ms"),
+            "delay_ms": stats.percentiles("delay_ms"),
+            "optimizations": stats.optimizations, "solve": solve, "frozen_keyframes": frozen,
+            "embedding_dim": self.anchor_dim, "anchor": self.merger.anchor,
+            "frame_poses": frame_poses, "keyframe_poses": keyframe_poses,
+            "store": store.stats(), "store_damage": list(damage),
+        }).model_dump(mode="json")
+
+    def models(self) -> dict[str, dict[str, int]]:
+        """Per embedding model (its dimension): sessions and objects held."""
+        out: dict[str, dict[str, int]] = {}
+        with self.lock:
+            for st in self.merger.sessions.values():
+                m = out.setdefault(str(st.dim), {"sessions": 0, "objects": 0})
+                m["sessions"] += 1
+                m["objects"] += len(st.objects)
+        return out
+
+
+__all__ = ["LATENCIES_KEPT", "Queries", "ServiceStats"]
