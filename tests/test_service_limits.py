@@ -97,55 +97,73 @@ def statuses(store: Store) -> dict[str, int]:
 
 
 @pytest.mark.parametrize("declared", [None, 384])
-def test_another_embedding_model_is_refused_and_fails_nobody(
+def test_another_embedding_model_is_refused_only_where_pinned(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, declared: int | None
 ) -> None:
-    """A 128-d robot among 384-d ones: refused at the boundary with an error to it, counted; the
-    others' submaps are all processed (none failed), no traceback. Declared, the fleet's
-    dimension holds even when the 128-d robot comes first; undeclared, the first accepted
-    submap fixes it (and a restart keeps it)."""
+    """A 128-d robot among 384-d ones, arriving first. Undeclared, nobody is locked out: the
+    128-d robot's submaps are processed too, matched only against its own model's maps, and
+    status counts both models. Pinned to 384 (`embedding_dim`), the 128-d robot is refused at
+    the boundary with an error to it, counted; the others' submaps are all processed (none
+    failed), no traceback; a restart keeps the pin's effect."""
     caplog.set_level(logging.INFO)
     store = tmp_path / "dim.db"
     cfg = ServiceConfig(fleet=FLEET, store=str(store), embedding_dim=declared)
-    first = [make_submap("odd", "s0", 0, dim=128)] if declared else [make_submap("auv1", "s0", 0)]
     with Net(cfg) as net:
-        for sub in first:
-            net.put(sub)
+        net.put(make_submap("odd", "s0", 0, dim=128))
         assert wait_for(lambda: net.svc.stats.submaps_received >= 1)
         net.put(make_submap("odd", "s0", 1, dim=128))
         for seq in range(1, 4):
             for robot in ("auv1", "auv2"):
                 net.put(make_submap(robot, "s0", seq, seed=hash(robot) % 97))
-        n_good = 6 + (0 if declared else 1)
+        n_good = 6 + (0 if declared else 2)
         assert wait_for(lambda: net.svc.stats.submaps_processed == n_good)
-        assert wait_for(lambda: len(errors_of(net.errors)) == len(first) + 1 - (not declared))
         errs = errors_of(net.errors)
-        assert {robot for robot, _ in errs} == {"odd"}
-        assert {e.code for _, e in errs} == {"embedding_dim"}
-        assert "128-d" in errs[0][1].detail and "384-d" in errs[0][1].detail
-        assert net.svc.stats.errors.get("embedding_dim") == len(errs)
-        assert net.svc.status()["embedding_dim"] == 384
+        if declared:
+            assert wait_for(lambda: len(errors_of(net.errors)) == 2)
+            errs = errors_of(net.errors)
+            assert {robot for robot, _ in errs} == {"odd"}
+            assert {e.code for _, e in errs} == {"embedding_dim"}
+            assert "128-d" in errs[0][1].detail and "384" in errs[0][1].detail
+            assert net.svc.stats.errors.get("embedding_dim") == len(errs)
+            assert set(net.svc.status()["models"]) == {"384"}
+        else:
+            assert errs == []
+            models = net.svc.status()["models"]
+            assert set(models) == {"128", "384"} and models["128"]["sessions"] == 1
+            assert models["384"]["sessions"] == 2
         with Store(store) as db:
             st = statuses(db)
             assert "failed" not in st and sum(st.values()) == n_good, st
-            assert not db.submaps(robot_id="odd")
+            assert bool(db.submaps(robot_id="odd")) is (declared is None)
     assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
-    # a restart keeps the fleet's dimension: the 128-d robot is still refused
-    with Net(ServiceConfig(fleet=FLEET, store=str(store))) as net:
-        assert net.svc.status()["embedding_dim"] == 384
+    with Net(ServiceConfig(fleet=FLEET, store=str(store), embedding_dim=declared)) as net:
         net.put(make_submap("odd", "s1", 0, dim=128))
-        assert wait_for(lambda: len(errors_of(net.errors)) == 1)
+        if declared:
+            assert wait_for(lambda: len(errors_of(net.errors)) == 1)
+        else:
+            assert wait_for(lambda: net.svc.stats.submaps_processed >= 1)
+            assert errors_of(net.errors) == []
 
 
-def test_ingest_refuses_another_dimension() -> None:
-    svc = MergeService(ServiceConfig(fleet=FLEET, store=":memory:"), None)  # offline
+def test_ingest_refuses_a_dimension_the_fleet_does_not_take() -> None:
+    """Pinned (`embedding_dims`), another dimension is refused and the pinned ones processed;
+    unpinned, both are taken."""
+    svc = MergeService(ServiceConfig(fleet=FLEET, store=":memory:", embedding_dims=[384, 768]),
+                       None)  # offline
     try:
         svc.ingest(make_submap("auv1", "s0", 0))
         with pytest.raises(SchemaError, match="128-d"):
             svc.ingest(make_submap("auv2", "s0", 0, dim=128))
-        svc.ingest(make_submap("auv2", "s0", 1))
+        svc.ingest(make_submap("car1", "s0", 0, dim=768))
         assert svc.stats.submaps_processed == 2
         assert "failed" not in svc.store.counts()["submaps"]
+    finally:
+        svc.close()
+    svc = MergeService(ServiceConfig(fleet=FLEET, store=":memory:"), None)
+    try:
+        svc.ingest(make_submap("auv1", "s0", 0))
+        svc.ingest(make_submap("auv2", "s0", 0, dim=128))
+        assert svc.stats.submaps_processed == 2
     finally:
         svc.close()
 
@@ -589,7 +607,7 @@ def test_a_submap_whose_processing_fails_gets_a_failed_result(
 ) -> None:
     """A fault in the matching (injected into the service's call of the pipeline for one
     robot) is answered: outcome failed, code processing; the next submap is processed."""
-    import mergesvc.fleet.service as service_module
+    import mergesvc.fleet.merger as service_module
     from mergesvc.fleet.replies import SubmapResult
 
     real = service_module.match

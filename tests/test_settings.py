@@ -157,6 +157,7 @@ EXPLICIT: dict[Path_, Any] = {
     ("link", "channel", "link_snr"): {"topside->v1": {"mean_db": 3.0, "spread_db": 1.0}},
     ("link", "channel", "link_range_m"): {"topside->v2": 500.0},
     ("agent", "up"): (0.0, -1.0, 0.0),
+    ("service", "embedding_dims"): [384, 768],
 }
 
 DEFAULTS = Settings()

@@ -109,8 +109,9 @@ class ServiceConfig(BaseModel):
         ConsistencyConfig(), description="the pairwise-consistency test factors between two "
         "sessions pass before the graph trusts them (fleet/closures.py)")
     solve_inflation: float = Field(
-        1.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
-        "when solving (not in what is sent): successive factors share objects and errors")
+        4.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
+        "when solving (not in what is sent): successive factors share objects and errors, "
+        "so the graph counts them as fewer (docs/uncertainty.md)")
     local_fit: bool = Field(
         True, description="fit each factor on the matched objects with the other session's "
         "placed around its anchoring keyframe by odometry (not by the merged solution, whose "

@@ -221,6 +221,14 @@ class Ingress:
 
     # -- admission ---------------------------------------------------------------------------
 
+    def check_model(self, sub: Submap) -> None:
+        """Raises RefusedError when the fleet's settings do not take the submap's embedding
+        model (its dimension)."""
+        if self.allowed_dims is not None and sub.dim not in self.allowed_dims:
+            raise RefusedError(RefusalCode.EMBEDDING_DIM, f"submap has {sub.dim}-d "
+                               f"embeddings; this fleet takes "
+                               f"{sorted(self.allowed_dims)} (service.embedding_dims)")
+
     def admit(self, sub: Submap, digest: str) -> bool:
         """The fleet's rules on a decoded submap (module docstring); True for a replay of a
         stored submap (free). Raises RefusedError."""
@@ -235,10 +243,7 @@ class Ingress:
             if stored is not None:  # a conflict: answered once the store has its hash
                 self._take(sub)
                 return False
-            if self.allowed_dims is not None and sub.dim not in self.allowed_dims:
-                raise RefusedError(RefusalCode.EMBEDDING_DIM, f"submap has {sub.dim}-d "
-                                   f"embeddings; this fleet takes "
-                                   f"{sorted(self.allowed_dims)} (service.embedding_dims)")
+            self.check_model(sub)
             now = self.clock()
             sessions = self._open[sub.robot_id]
             if sub.session_id not in sessions:

@@ -348,6 +348,7 @@ class MergeService:
         processed again. `optimize`: solve the pose graph now (else with the next solve)."""
         if sub.seq is None:
             raise SchemaError("submap without seq")
+        self.ingress.check_model(sub)
         data = encode_message(sub, profile, sub.robot_id, sub.seq)
         row_id, created = self.store.put_submap(sub.robot_id, sub.session_id, sub.seq, data,
                                                 self.clock())
