@@ -31,6 +31,7 @@ from mergesvc.core.frames import FrameId, KeyframeId, frame_name
 from mergesvc.core.freezing import Freezing
 from mergesvc.core.graph_factor import GraphFactor, check_covariance
 from mergesvc.core.graph_factor import levenberg_marquardt as _levenberg_marquardt
+from mergesvc.core.graph_start import initial_poses
 from mergesvc.core.model import Factor, FactorStatus
 from mergesvc.core.poses import as_pose3, pose3_from_model
 from mergesvc.errors import InputError, SolverError, one_line
@@ -359,7 +360,8 @@ class PoseGraph:
     # -- solving -----------------------------------------------------------------------------
 
     def optimize(self, anchor: str | None = None, *, marginals: bool = True) -> GraphSolution:
-        """Solve the component of `anchor` (default: the graph's anchor); see the module rules.
+        """Solve the component of `anchor` (default: the graph's anchor) by the rules of
+        docs/pose_graph.md.
 
         marginals=False skips the marginal covariances (covariance_66 stays empty): they cost
         about as much as the GNC solve on long keyframe chains, and the service does not use
@@ -649,64 +651,16 @@ class PoseGraph:
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:
         """The seeds (the anchor, the frozen nodes the factors touch) at their poses, every live
-        node chained from them along a spanning tree of the factors.
-
-        Frame pairs are ranked: known inliers first, then pairs with more parallel factors, then
-        the smaller covariance; within a pair the medoid measurement is used, so a single gross
-        factor beside correct parallel ones does not spoil the starting point.
-
-        Warm start: a node the last solution (same anchor) placed starts there; only new nodes
-        are chained from their tree parent. It keeps a long mission's solve short (a synthetic
-        chain of 850 keyframes with 2,000 loop closures: GNC 34.6 s from the chained start,
-        0.44 s from the converged poses; `mergesvc bench cost` measures it in the service).
-        It is not neutral: GTSAM's GNC sets its schedule (mu) from the residuals at the start
-        and starts each weighted solve there, so verdicts on a borderline factor may depend on
-        the graph's history. tests/test_graph.py checks warm against cold at every step of
-        graphs with a wrong closure, a late chain and a retraction. After a factor is removed
-        the next solve starts cold: the last poses may hold what that factor pulled.
-        """
-        prev: dict[str, gtsam.Pose3] = {}
+        node chained from them along a spanning tree of the factors (core/graph_start.py). Warm
+        start: a node the last solution (same anchor) placed starts there, except after a
+        factor was removed (the last poses may hold what that factor pulled)."""
         last = self._solved[1] if self._solved is not None else None
-        if (self.config.warm_start and last is not None and last.anchor == anchor
-                and not self._cold_next):
-            prev = last.T_anchor_frame
-        by_pair: dict[tuple[str, str], list[tuple[GraphFactor, gtsam.Pose3]]] = defaultdict(list)
-        for f in facs:
-            a, b = sorted((f.frame_a, f.frame_b))
-            T = f.T_a_b if (a, b) == (f.frame_a, f.frame_b) else f.T_a_b.inverse()
-            by_pair[(a, b)].append((f, T))
-        ranked = []
-        for pair, items in by_pair.items():
-            dist = [
-                sum(np.linalg.norm(gtsam.Pose3.Logmap(T.between(U))) for _, U in items)
-                for _, T in items
-            ]
-            k = int(np.argmin(dist))
-            f, T = items[k]
-            known = any(g.known_inlier for g, _ in items)
-            ranked.append(((not known, -len(items), float(np.trace(f.covariance_66))), pair, T))
-        ranked.sort(key=lambda r: r[0])
-        adj: dict[str, list[tuple[str, gtsam.Pose3]]] = defaultdict(list)
-        nodes = [*seeds, *(n for n in live if n not in seeds)]
-        uf = UnionFind(len(nodes))
-        index = {f: i for i, f in enumerate(nodes)}
-        for i in range(1, len(seeds)):  # the seeds are placed: one tree joins them all
-            uf.union(0, i)
-        for _, (a, b), T in ranked:  # Kruskal: best pairs first
-            if uf.union(index[a], index[b]):
-                adj[a].append((b, T))
-                adj[b].append((a, T.inverse()))
-        poses = dict(seeds)
-        todo = list(seeds)
-        while todo:
-            a = todo.pop()
-            for b, T_a_b in adj[a]:
-                if b not in poses:
-                    poses[b] = prev[b] if b in prev else poses[a].compose(T_a_b)
-                    todo.append(b)
+        warm = (self.config.warm_start and last is not None and last.anchor == anchor
+                and not self._cold_next)
         values = gtsam.Values()
-        for frame in nodes:
-            values.insert(self.key(frame), poses[frame])
+        for node, T in initial_poses(seeds, live, facs,
+                                     last.T_anchor_frame if warm else {}).items():
+            values.insert(self.key(node), T)
         return values
 
     def _marginals(
