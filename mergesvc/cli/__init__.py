@@ -19,6 +19,7 @@ from typing import Annotated
 import typer
 
 from mergesvc.cli import bench, files, fleet, projection, view
+from mergesvc.cli.errors import show_tracebacks
 
 __all__ = ["app", "hoist_verbose", "main"]
 
@@ -41,13 +42,15 @@ app = typer.Typer(
 
 @app.callback()
 def _main(
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="more logs")] = 0,
+    verbose: Annotated[int, typer.Option(
+        "--verbose", "-v", count=True, help="more logs; -vv: debug, and tracebacks of errors")] = 0,
 ) -> None:
     logging.basicConfig(
         level=logging.WARNING - 10 * min(verbose, 2),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    show_tracebacks(verbose >= 2)
 
 
 for _command in (
