@@ -1,5 +1,6 @@
 """Command line: `mergesvc match`, `example`, `schemas`, `config`, `serve`, `agent`, `demo`,
-`export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `link`. Only this package exits.
+`export`, `view`, `bench`, `codec`, `scenario`, `uncertainty`, `solver`, `link`. Only this package
+exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
 `config --dump`), `bench` (benchmarks), `fleet` (the service, vehicles, the demo and the
@@ -17,7 +18,7 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli import bench, files, fleet, view
+from mergesvc.cli import bench, files, fleet, solver, view
 
 __all__ = ["app", "hoist_verbose", "main"]
 
@@ -49,6 +50,7 @@ app.add_typer(bench.app, name="bench")
 app.add_typer(files.codec_app, name="codec")
 app.add_typer(files.scenario_app, name="scenario")
 app.add_typer(files.uncertainty_app, name="uncertainty")
+app.add_typer(solver.solver_app, name="solver")
 app.add_typer(fleet.link_app, name="link")
 
 

@@ -38,6 +38,7 @@ class SolverName(str, Enum):
     SM = "sm"
     IPFP = "ipfp"
     EXACT = "exact"
+    NGM = "ngm"  # the neural solver (core/solvers/ngm.py), trained on our formulation
 
 
 class _Section(BaseModel):
