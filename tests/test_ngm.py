@@ -94,8 +94,22 @@ def test_shipped_weights_on_a_paper_mode_K_match_pygmtools() -> None:
     sigma, radius = edge_scales(map_, cfg.affinity)
     K = paper_K(paper_node_affinity(sub, map_, cfg.affinity), sub, map_, sigma, radius)
     got = ngm.solve_dense(K, sub.n, map_.n)
-    ref = pygmtools_ngm(K, sub.n, map_.n, dict(ngm.packaged_weights().arrays))
+    K_ref = np.where(np.abs(K) < ngm.EDGE_MIN, 0.0, K)  # what the association graph keeps
+    ref = pygmtools_ngm(K_ref, sub.n, map_.n, dict(ngm.packaged_weights().arrays))
     np.testing.assert_allclose(got, ref, atol=1e-9)
+
+
+def test_affinities_below_edge_min_are_no_edges() -> None:
+    """Edge affinities that underflow (subnormal float64 included) are not edges: the result is
+    the one without them, and they do not count in a pair's degree."""
+    rng = np.random.default_rng(11)
+    n1, n2 = 4, 6
+    K = random_K(n1 * n2, rng)
+    tiny = K.copy()
+    off = ~np.eye(n1 * n2, dtype=bool) & (K == 0)
+    tiny[off & (rng.random(K.shape) < 0.5)] = 1e-310  # a subnormal, as exp(-(...)) gives
+    assert np.array_equal(ngm.association_graph(tiny).toarray(), K)
+    np.testing.assert_array_equal(ngm.solve_dense(tiny, n1, n2), ngm.solve_dense(K, n1, n2))
 
 
 @pytest.mark.parametrize(("n1", "n2", "steps"), [(3, 7, 20), (5, 2, 20), (4, 4, 7)])

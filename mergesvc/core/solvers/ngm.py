@@ -1,12 +1,12 @@
 """NGM, the neural graph-matching network (Wang et al., PAMI 2022) as pygmtools packages it:
 a numpy forward pass over the candidate pairs of a Lawler QAP, with weights we trained.
 
-The network is pygmtools' `NGM_Net` (graph convolutions on the association graph whose nodes are
-the assignment pairs p and whose edges are the non-zero K[p, q], each layer followed by a
-Sinkhorn embedding; a last Sinkhorn with dummy rows). Run on all n1*n2 pairs it computes what
-pygmtools' numpy `ngm` computes with the same weights (tests/test_ngm.py checks it); run on a
-candidate set, the pairs that are not candidates are absent (zero mass). The first embedding is
-the node affinity diag(K) (NGM's first-order input), pygmtools' `x0`.
+The network is pygmtools' `NGM_Net`: graph convolutions on the association graph (a node per
+assignment pair p, an edge per K[p, q] of magnitude at least EDGE_MIN), each layer followed by a
+Sinkhorn embedding; a last Sinkhorn with dummy rows. Run on all n1*n2 pairs it computes what
+pygmtools' numpy `ngm` computes with the same weights on K with its entries below EDGE_MIN set
+to 0 (tests/test_ngm.py); run on a candidate set, the other pairs are absent (zero mass). The
+first embedding is the node affinity diag(K) (NGM's first-order input), pygmtools' `x0`.
 
 Weights live in `ngm_weights` (a generated module: the core reads no files); `mergesvc solver
 train` writes new ones.
@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from mergesvc.core.solvers.problem import AssignmentProblem
 from mergesvc.errors import SolverError
@@ -32,6 +33,10 @@ from mergesvc.errors import SolverError
 # pygmtools' defaults for NGM, which the shipped weights use
 SK_ITERS = 20
 SK_TAU = 0.05
+# An edge of the association graph is an entry of K of at least this magnitude (pygmtools: any
+# non-zero one). Smaller affinities are nothing; float64 subnormals (< 2.2e-308) among them made
+# each product with K ~100x slower, and training in float32 cannot tell them from zero.
+EDGE_MIN = 1e-30
 
 
 def param_names(n_layers: int) -> list[str]:
@@ -125,6 +130,21 @@ def sinkhorn(
     return (X.T if flip else X)[rows, cols]
 
 
+def association_graph(K: np.ndarray, block_entries: int = 1 << 24) -> csr_matrix:
+    """NGM's association graph: K's entries of magnitude at least EDGE_MIN, sparse (m, m).
+
+    Messages are averaged over these edges (pygmtools normalises its 0/1 adjacency by the row
+    sums). Read in blocks of rows so that a dense paper-mode K is never copied whole."""
+    m = K.shape[0]
+    step = max(1, block_entries // max(m, 1))
+    parts = []
+    for start in range(0, m, step):
+        r, c = np.nonzero(np.abs(K[start : start + step]) >= EDGE_MIN)
+        parts.append((r + start, c, K[r + start, c]))
+    r, c, v = (np.concatenate(x) for x in zip(*parts)) if parts else ([], [], [])
+    return csr_matrix((v, (r, c)), shape=(m, m))
+
+
 def ngm_soft(
     K: np.ndarray, rows: np.ndarray, cols: np.ndarray, n1: int, n2: int,
     weights: NGMWeights | None = None, x0_m: np.ndarray | None = None,
@@ -142,15 +162,14 @@ def ngm_soft(
     x0 = np.diag(K).astype(np.float64) if x0_m is None else np.asarray(x0_m, np.float64)
     mean = float(x0.mean())
     x = (x0 / mean if mean > 1e-12 else np.ones(m))[:, None]
-    # association graph: edges where K is non-zero, messages averaged over them (pygmtools
-    # normalises the 0/1 adjacency by its row sums)
-    deg = np.count_nonzero(K, axis=1)
+    A = association_graph(K)
+    deg = np.diff(A.indptr)
     inv_deg = np.divide(1.0, deg, out=np.zeros(m), where=deg > 0)[:, None]
     sk = functools.partial(sinkhorn, rows=rows, cols=cols, n1=n1, n2=n2, tau=w.sk_tau,
                            iters=w.sk_iters)
     for i in range(w.n_layers):
         p = f"gnn_layer_{i}."
-        x2 = inv_deg * (K @ w.mlp(p + "n_func", x)) + w.mlp(p + "n_self_func", x)
+        x2 = inv_deg * (A @ w.mlp(p + "n_func", x)) + w.mlp(p + "n_self_func", x)
         x_sk = sk(w.linear(p + "classifier", x2)[:, 0])  # Sinkhorn embedding channel
         x = np.concatenate([x2, x_sk[:, None]], axis=1)
     return sk(w.linear("classifier", x)[:, 0])
@@ -246,9 +265,11 @@ def packaged_weights() -> NGMWeights:
 
 
 __all__ = [
+    "EDGE_MIN",
     "SK_ITERS",
     "SK_TAU",
     "NGMWeights",
+    "association_graph",
     "decode_weights",
     "encode_weights",
     "ngm_soft",

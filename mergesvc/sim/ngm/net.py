@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.core.solvers.ngm import SK_ITERS, SK_TAU
+from mergesvc.core.solvers.ngm import EDGE_MIN, SK_ITERS, SK_TAU
 
 
 def make_net(torch: Any, channels: tuple[int, ...] = (16, 16, 16), sk_emb: int = 1) -> Any:
@@ -87,7 +87,7 @@ def batch(torch: Any, problems: Sequence[Any]) -> dict[str, Any]:
     at = n_lines = n_cols = 0
     for k, p in enumerate(problems):
         K = np.asarray(p.K, dtype=np.float32)
-        i, j = np.nonzero(K)
+        i, j = np.nonzero(np.abs(K) >= EDGE_MIN)  # the numpy pass's association graph
         ki.append(i + at)
         kj.append(j + at)
         kv.append(K[i, j])

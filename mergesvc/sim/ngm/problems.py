@@ -144,7 +144,7 @@ def _kitti_scenario(seed: int, rng: np.random.Generator) -> list[Scenario]:
     return [make_scenario(Family.KITTI, seed, n_map=n_map,
                           n_sub=int(rng.integers(2, min(40, n_map) + 1)),
                           n_outliers=int(rng.integers(0, 6)),
-                          instance_scale=float(rng.uniform(0.25, 0.9)))]
+                          instance_scale=float(rng.uniform(0.15, 0.9)))]
 
 
 def _pool(seed: int, rng: np.random.Generator) -> list[Scenario]:

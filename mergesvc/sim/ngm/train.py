@@ -40,8 +40,11 @@ class TrainConfig:
     p_paper: float = 0.5  # share of problems in the paper formulation (else verified)
     channels: tuple[int, ...] = (16, 16, 16)  # pygmtools' NGM
     threads: int = 1
+    # relative frequency of each kind of world; a pool run yields 8 problems, a drive or a
+    # harbour pool 4, a drawn scenario 1: about 25 % pool runs, 12 % drives, 6 % drawn pool
+    # scenarios, 31 % drawn street scenarios (look-alikes, maps up to 1,000), 25 % harbours
     sources: dict[str, float] = field(default_factory=lambda: {
-        "uw-run": 2.0, "drive": 1.0, "uw-scenario": 1.0, "kitti-scenario": 2.0, "pool": 2.0})
+        "uw-run": 1.0, "drive": 1.0, "uw-scenario": 2.0, "kitti-scenario": 10.0, "pool": 2.0})
 
     @classmethod
     def quick(cls, seed: int = 0) -> TrainConfig:
