@@ -44,7 +44,7 @@ from mergesvc.core.model import (
     RejectReason,
     Transform,
 )
-from mergesvc.core.solvers import dense, heuristic
+from mergesvc.core.solvers import dense, heuristic, ngm
 from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
@@ -139,6 +139,8 @@ def _solve_candidates(
         soft = heuristic.spectral(positive, scfg.max_iter)
     elif name is SolverName.IPFP:
         soft = heuristic.ipfp(signed, heuristic.spectral(positive, scfg.max_iter), scfg.max_iter)
+    elif name is SolverName.NGM:  # NGM takes edge affinities in [0, 1]: undo their weight
+        soft = ngm.solve(positive, edge_scale=1.0 / edge_pair_weight(positive.n1, config.affinity))
     else:  # exact: start from the node scores alone
         soft = np.diag(signed.K).copy()
     assignment = harden(signed, soft, unmatched_value=0.0)
@@ -690,7 +692,10 @@ def _match_paper(
         assignment = exact.assignment
         soft = A
     else:
-        soft = dense.solve_dense(config.solver.name.value, K, n1, n2, config.solver.max_iter)
+        if config.solver.name is SolverName.NGM:
+            soft = ngm.solve_dense(K, n1, n2)
+        else:
+            soft = dense.solve_dense(config.solver.name.value, K, n1, n2, config.solver.max_iter)
         del K
         assignment = harden_dense(soft)
     timer.lap("solve")
