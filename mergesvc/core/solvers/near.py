@@ -53,9 +53,13 @@ class NearOptimal:
         lower bound if the threshold is at most the optimum less margin_needed)."""
         p = self.problem
         out = np.full(p.n1, np.nan)
-        best = p.score(assignment)
         matched = np.flatnonzero(assignment != UNMATCHED)
         idx = p.assignment_to_indices(assignment)
+        top = int(np.argmax(self.score)) if len(self.score) else -1
+        pick = np.full(p.n1, -1, dtype=np.int64)
+        pick[matched] = idx
+        best = float(self.score[top]) if top >= 0 and np.array_equal(self.chosen[top], pick) \
+            else p.score(assignment)
         ch = self.chosen
         for i, c in zip(matched.tolist(), idx.tolist(), strict=True):
             other = (p.rows == i) & (np.arange(p.m) != c)
@@ -82,53 +86,62 @@ def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int =
     rank = np.empty(n1, dtype=np.int64)
     rank[order] = np.arange(len(order))
     o = np.argsort(rank[rows], kind="stable")
-    K = problem.K[np.ix_(o, o)]
+    same_order = bool(np.all(o[1:] > o[:-1]))
+    K = problem.K if same_order else problem.K[np.ix_(o, o)]
     if not problem.invalid_zero:
         K = 0.5 * (K + K.T)
-    r, c = rows[o], cols[o]
-    compat = (r[:, None] != r[None, :]) & (c[:, None] != c[None, :])
+    r, c = (rows, cols) if same_order else (rows[o], cols[o])
+    compat = r[:, None] != r[None, :]
+    compat &= c[:, None] != c[None, :]
     if problem.conflict is not None:
-        compat &= ~problem.conflict[np.ix_(o, o)]
+        compat &= ~(problem.conflict if same_order else problem.conflict[np.ix_(o, o)])
     starts = np.searchsorted(rank[r], np.arange(len(order)))
     # best partner of each candidate in each row (>= 0: the row may stay unmatched), and its
     # suffix sums in the decision order: half_from[:, k] = sum over rows k.. of that
-    best_in = np.maximum.reduceat(np.where(compat, K, -np.inf), starts, axis=1) if m else \
-        np.zeros((0, 0))
-    np.maximum(best_in, 0.0, out=best_in)
     half_from = np.zeros((m, len(order) + 1))
-    half_from[:, :-1] = np.cumsum(best_in[:, ::-1], axis=1)[:, ::-1]
+    if m:
+        best_in = np.maximum.reduceat(np.where(compat, K, -np.inf), starts, axis=1)
+        np.maximum(best_in, 0.0, out=best_in)
+        half_from[:, :-1] = np.cumsum(best_in[:, ::-1], axis=1)[:, ::-1]
     two_K = 2.0 * K
     tol = ABS_TOL + REL_TOL * abs(threshold)
     score = np.zeros(1)
     gain = K.diagonal()[None, :].copy()  # gain of adding each candidate to each state
     ok = np.ones((1, m), dtype=bool)
-    pick = np.zeros((1, 0), dtype=np.int64)  # per state, the candidate of each decided row
+    trail = []  # per row: (parent state, candidate or -1) of each state kept
     most = 1
     for k in range(len(order)):
         lo, hi = starts[k], starts[k + 1] if k + 1 < len(order) else m
         si, ci = np.nonzero(ok[:, lo:hi])
         q = lo + ci
         s = len(score)
+        parent = np.concatenate([np.arange(s), si])
+        took = np.concatenate([np.full(s, -1), q])
         score = np.concatenate([score, score[si] + gain[si, q]])
-        pick = np.vstack([np.hstack([pick, np.full((s, 1), -1)]),
-                          np.hstack([pick[si], q[:, None]])])
-        gain = np.vstack([gain, gain[si] + two_K[q]])
-        ok = np.vstack([ok, ok[si] & compat[q]])
+        gain = np.concatenate([gain, gain[si] + two_K[q]])
+        ok = np.concatenate([ok, ok[si] & compat[q]])
         # bound of each state's completions over the open rows k + 1 ..
-        bound = score.copy()
+        bound = score
         if hi < m:
-            v = np.where(ok[:, hi:], gain[:, hi:] + half_from[hi:, k + 1][None, :], -np.inf)
+            v = np.where(ok[:, hi:], gain[:, hi:] + half_from[hi:, k + 1], -np.inf)
             top = np.maximum.reduceat(v, starts[k + 1:] - hi, axis=1)
-            bound += np.maximum(top, 0.0).sum(axis=1)
+            bound = score + np.maximum(top, 0.0).sum(axis=1)
         live = bound > threshold - tol  # rounding keeps a borderline state, never drops it
-        score, pick, gain, ok = score[live], pick[live], gain[live], ok[live]
+        if not live.all():
+            score, gain, ok = score[live], gain[live], ok[live]
+            parent, took = parent[live], took[live]
+        trail.append((parent, took))
         most = max(most, len(score))
         if len(score) > max_states:
             return None
-    keep = score > threshold
-    chosen = np.full((int(keep.sum()), n1), -1, dtype=np.int64)
-    picked = pick[keep]
-    chosen[:, order] = np.where(picked >= 0, o[np.maximum(picked, 0)], -1)
+    keep = np.flatnonzero(score > threshold)
+    chosen = np.full((len(keep), n1), -1, dtype=np.int64)
+    state = keep
+    for k in range(len(order) - 1, -1, -1):
+        parent, took = trail[k]
+        t = took[state]
+        chosen[:, order[k]] = np.where(t >= 0, o[np.maximum(t, 0)], -1)
+        state = parent[state]
     return NearOptimal(problem, threshold, score[keep], chosen), most
 
 
