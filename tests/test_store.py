@@ -184,6 +184,7 @@ def test_stats(tmp_path: Path) -> None:
             "factors": 1,
             "frames": 1,
             "meta": 0,
+            "held_factors": 0,
         }
         assert st["journal_mode"] == "wal"
         assert st["synchronous"] == "FULL"

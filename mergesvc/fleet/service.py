@@ -229,8 +229,9 @@ class ServiceConfig(BaseModel):
         ConsistencyConfig(), description="the pairwise-consistency test factors between two "
         "sessions pass before the graph trusts them (fleet/closures.py)")
     solve_inflation: float = Field(
-        1.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
-        "when solving (not in what is sent): successive factors share objects and errors")
+        4.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
+        "when solving (not in what is sent): successive factors share objects and errors, "
+        "so the graph counts them as fewer (docs/uncertainty.md)")
     local_fit: bool = Field(
         True, description="fit each factor on the matched objects with the other session's "
         "placed around its anchoring keyframe by odometry (not by the merged solution, whose "
@@ -278,7 +279,8 @@ class ServiceStats:
     submaps_duplicate: int = 0
     submaps_processed: int = 0
     submaps_rejected: int = 0  # refused at the boundary (bad payloads, limits)
-    factors_accepted: int = 0
+    factors_accepted: int = 0  # sent: trusted by the consistency sets
+    factors_matched: int = 0  # fitted from accepted matches (sent, held or replayed)
     factors_retracted: int = 0
     matches_tried: int = 0
     relocalize_queries: int = 0
@@ -1110,6 +1112,7 @@ class MergeService:
         # A replay after a crash finds a factor stored already: it is published again (its id
         # is deterministic, so receivers see the same factor twice at most)
         new_factors = [f for _, f in new_factors]
+        self.stats.factors_matched += len(new_factors)
         with self._lock:
             closes_loop = self._add_submap(sub)
             sent, withdrawn = self._trust(new_factors)
