@@ -8,7 +8,7 @@
      ├── ConfigError       invalid configuration
      ├── CodecError        a model cannot be encoded (value outside what a profile can carry)
      ├── LinkError         the (simulated) link failed: a message was lost after all retries
-     ├── TransportError    the network failed (a busy port, a dead endpoint, a closed session)
+     ├── TransportError    the network refused: a port in use, an endpoint that does not answer
      └── StoreError        persistence failed (database unreadable, disk full)
 
 "No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
@@ -17,6 +17,8 @@ Error text meant for one line (a log line, a wrapped error, stderr) goes through
 """
 
 from __future__ import annotations
+
+from enum import Enum
 
 
 def one_line(exc: BaseException | str) -> str:
@@ -61,12 +63,28 @@ class LinkError(MergeError):
     """The link could not deliver a message (lost after every retry, or closed)."""
 
 
-class StoreError(MergeError):
-    """Persistence failed."""
+class TransportFault(str, Enum):
+    """Why a network session could not be opened (`TransportError.fault`)."""
+
+    IN_USE = "in_use"  # a listen endpoint's port is taken by another process
+    CANNOT_LISTEN = "cannot_listen"  # a listen endpoint this machine cannot open (address, TLS)
+    NO_ANSWER = "no_answer"  # no connect endpoint answered within the connect timeout
+    OTHER = "other"
 
 
 class TransportError(MergeError):
-    """The network failed: an endpoint in use or unreachable, a closed session."""
+    """A network session could not be opened; `endpoint` names the endpoint at fault (None
+    when no single one is) and `fault` says what went wrong."""
+
+    def __init__(self, message: str, *, fault: TransportFault = TransportFault.OTHER,
+                 endpoint: str | None = None) -> None:
+        super().__init__(message)
+        self.fault = fault
+        self.endpoint = endpoint
+
+
+class StoreError(MergeError):
+    """Persistence failed."""
 
 
 __all__ = [
@@ -80,5 +98,6 @@ __all__ = [
     "SolverError",
     "StoreError",
     "TransportError",
+    "TransportFault",
     "one_line",
 ]

@@ -51,7 +51,7 @@ def test_match_json_output_is_exactly_the_documented_object(files: Path) -> None
 
 
 @pytest.mark.parametrize("mode", ["paper", "verified"])
-@pytest.mark.parametrize("solver", ["rrwm", "sm", "ipfp", "exact"])
+@pytest.mark.parametrize("solver", ["rrwm", "sm", "ipfp", "exact"])  # ngm: test_ngm.py
 def test_match_all_modes_and_solvers(files: Path, mode: str, solver: str) -> None:
     r = run("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
             "--mode", mode, "--solver", solver, "--affinity", "mahalanobis", "--json")
@@ -146,9 +146,17 @@ def test_bench_paper_quick_end_to_end(tmp_path: Path) -> None:
     r = run("bench", "paper", "--quick", "--out", str(out))
     assert r.returncode == 0, r.stderr
     report = json.loads((out / "paper_bench.json").read_text())
-    assert set(report["table1"]) == {"paper/rrwm/ucos", "verified/rrwm/ucos"}
+    assert set(report["table1"]) == {"paper/rrwm/ucos", "verified/rrwm/ucos",
+                                     "paper/ngm/ucos", "verified/ngm/ucos"}
     assert set(report["table1"]["paper/rrwm/ucos"]) == {"run1/n3", "run1/n5", "average"}
-    assert "verified/rrwm/ucos" in report["table2"]
+    assert "verified/rrwm/ucos" in report["table2"] and "verified/ngm/ucos" in report["table2"]
+    # the neural solver beside the paper's best neural cell, and each solver's solve time
+    ngm_rows = report["ngm_vs_paper"]["table1"]
+    assert set(ngm_rows) == {"paper/ucos", "verified/ucos"}
+    assert ngm_rows["paper/ucos"]["cells"] == 2
+    assert 0 <= ngm_rows["paper/ucos"]["cells_above"] <= 2
+    assert set(report["solve_ms"]["underwater"]) == {"paper/rrwm", "paper/ngm", "verified/rrwm",
+                                                     "verified/ngm"}
     for table in (report["table1"], report["table2"]):
         for row in table.values():
             assert all(0.0 <= v <= 1.0 for v in row.values())
@@ -160,6 +168,7 @@ def test_bench_paper_quick_end_to_end(tmp_path: Path) -> None:
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     md = (out / "paper_bench.md").read_text()
     assert "### Table I" in md and "### Table II" in md and "| verified | rrwm | ucos |" in md
+    assert "### The neural solver" in md and "| paper | ngm | ucos |" in md
 
 
 def test_scenario_files_feed_match(tmp_path: Path) -> None:

@@ -65,8 +65,10 @@ def test_the_factor_target_is_reached_within_the_bound(report: dict) -> None:
 
 
 def test_both_modes_ran_the_same_submaps_and_accepted_the_same_factors(report: dict) -> None:
-    """per_submap fed the batched stream's first submaps (up to the target) and accepted the
-    same factors from each: when the graph is solved changes the cost, not the answers."""
+    """per_submap fed the batched stream's first submaps (up to the target) and matched the
+    same factors from each: when the graph is solved changes the cost, not the matches. Which
+    of them the consistency sets trust at once may differ: each solve recalibrates the odometry
+    noise their test uses (docs/uncertainty.md); the totals stay close."""
     (run,) = report["runs"]
     bat, per = run["batched"], run["per_submap"]
     n = per["submaps"]
@@ -74,9 +76,12 @@ def test_both_modes_ran_the_same_submaps_and_accepted_the_same_factors(report: d
     key = [(r["robot"], r["session"], r["seq"]) for r in bat["rows"]]
     assert len(set(key)) == len(key)
     assert [(r["robot"], r["session"], r["seq"]) for r in per["rows"]] == key[:n]
-    assert [r["factors_added"] for r in per["rows"]] == [r["factors_added"]
-                                                         for r in bat["rows"][:n]]
-    assert per["factors_accepted"] == sum(r["factors_added"] for r in bat["rows"][:n])
+    assert [r["factors_matched"] for r in per["rows"]] == [r["factors_matched"]
+                                                           for r in bat["rows"][:n]]
+    sent_bat = sum(r["factors_added"] for r in bat["rows"][:n])
+    assert per["factors_accepted"] == sum(r["factors_added"] for r in per["rows"])
+    assert abs(per["factors_accepted"] - sent_bat) <= 0.05 * sent_bat, (per["factors_accepted"],
+                                                                       sent_bat)
 
 
 def test_per_submap_solves_after_every_submap_batched_once_per_batch(report: dict) -> None:

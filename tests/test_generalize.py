@@ -14,6 +14,7 @@ import pytest
 
 from mergesvc.bench.generalize import (
     METHODS,
+    NGM_METHODS,
     Cell,
     GeneralizePlan,
     cosine_hungarian,
@@ -277,9 +278,9 @@ def _check_metrics(report: dict) -> None:
     for name, e in report["cells"].items():
         if e["skipped"]:
             continue
-        for m in METHODS:
+        for m in report["methods"]:
             o = e["methods"][m]["over_seeds"]
-            if m == "paper" and not o.get("cases"):
+            if m.startswith("paper") and not o.get("cases"):
                 continue
             assert o["cases"] > 0, (name, m)
             for k in ("node_accuracy", "paper_accuracy", "accepted_fraction"):
@@ -300,6 +301,7 @@ def test_quick_matrix_returns_every_cell_with_sane_metrics() -> None:
     plan = GeneralizePlan.quick(seed=0, data_dir=SHARED_DATA)
     report = run_generalize(plan)
     assert list(report["cells"]) == [c.name for c in quick_plan()]
+    assert tuple(report["methods"]) == METHODS + NGM_METHODS
     _check_metrics(report)
     for c in quick_plan():
         e = report["cells"][c.name]
@@ -318,6 +320,27 @@ def test_quick_matrix_returns_every_cell_with_sane_metrics() -> None:
         assert cos["node_accuracy"]["median"] > 0.5
     json.dumps(report, default=float)  # JSON-ready
     assert "| cell |" in report["markdown"]
+
+
+def test_ngm_is_compared_with_the_default_solver_cell_by_cell() -> None:
+    """NGM beside RRWM on the same cases: node accuracy, precision, p50 ratio, the verified
+    target; the cell's rows and the comparison in the markdown."""
+    cell = Cell("gen-pool/camera", "gen-pool", frame="camera", n_map=0, n_cases=3, sub_size=0,
+                paper_cases=1)
+    report = run_generalize(GeneralizePlan([cell], methods=("verified", "paper", *NGM_METHODS)))
+    rows = report["ngm_vs_default"]["gen-pool/camera"]
+    assert set(rows) == {"verified", "paper"}
+    v = rows["verified"]
+    o = report["cells"]["gen-pool/camera"]["methods"]
+    assert v["node_accuracy"]["ngm"] == o["verified-ngm"]["over_seeds"]["node_accuracy"]["median"]
+    assert v["node_accuracy_diff"] == pytest.approx(
+        v["node_accuracy"]["ngm"] - v["node_accuracy"]["default"])
+    assert v["p50_ratio"] > 0 and isinstance(v["meets_target"], bool)
+    assert "meets_target" not in rows["paper"]
+    assert o["paper-ngm"]["over_seeds"]["cases"] == 1  # paper methods: the paper cases only
+    md = report["markdown"]
+    assert "| gen-pool/camera | base | 45 | verified-ngm |" in md
+    assert "### NGM against the default solver" in md and "of 1 cells" in md
 
 
 def test_cells_needing_absent_data_are_skipped_cleanly(tmp_path: Path) -> None:

@@ -14,9 +14,10 @@ import pytest
 
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.connectivity import bridges as _bridges
+from mergesvc.core.folding import _fuse, _pack, _unpack
 from mergesvc.core.frames import frame_name, split_frame
 from mergesvc.core.fusion import ObjectLink, fuse_objects, links_from_factor
-from mergesvc.core.graph import PoseGraph, _fuse, _pack, _unpack
+from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import (
     Correspondence,
     Factor,
@@ -29,7 +30,7 @@ from mergesvc.core.model import (
 from mergesvc.core.poses import compose_with_covariance as _compose
 from mergesvc.core.poses import inverse_with_covariance as _inverse
 from mergesvc.core.poses import pose3_from_transform, pose_error
-from mergesvc.errors import InputError
+from mergesvc.errors import InputError, SolverError
 
 A, B, C, D, E, F = (f"{r}/s0" for r in "ABCDEF")
 SIGMA_ROT_RAD = 0.01
@@ -1020,6 +1021,41 @@ def test_removing_a_representative_folds_the_rest_into_the_first_of_them() -> No
     assert set(graph.optimize().weights) >= {"c1"}
 
 
+def _fold_state(graph: PoseGraph) -> tuple:
+    """What remove_factor may change: the factors, where each is folded, the fused measurements."""
+    return (graph.revision, graph.factor_ids, [graph.representative(f) for f in graph.factor_ids],
+            {r: (T.matrix().tolist(), C.tolist()) for r, (T, C) in graph._fused.items()})
+
+
+def test_a_removal_that_fails_half_way_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """remove_factor raising leaves the graph as it was: a folded factor (its representative's
+    measurement fused again), a representative (its folded ones folded again into the first of
+    them) and the odometry they were carried along (every folded one judged again), each while
+    the fusion fails; then each goes as it should."""
+    import mergesvc.core.folding as folding
+
+    graph, truth = _two_chains(97, 8, hops=5, odo_scale=1e-4)
+    for c in _closures(97, truth, [(k, k) for k in range(4)]):
+        graph.add_factor(*c)
+    assert graph._deps == {"c0": ["c1", "c2", "c3"]}
+    before = _fold_state(graph)
+
+    def failing(items: Sequence[tuple[gtsam.Pose3, np.ndarray]]) -> Any:
+        raise SolverError("fusion optimisation failed: (the test)")
+
+    monkeypatch.setattr(folding, "_fuse", failing)
+    for fid in ("c2", "c0", f"odom:{B}#1-2"):
+        with pytest.raises(SolverError, match="the test"):
+            graph.remove_factor(fid)
+        assert _fold_state(graph) == before, fid
+    monkeypatch.undo()
+    assert graph.remove_factor("c2") and graph._deps == {"c0": ["c1", "c3"]}
+    assert graph.remove_factor("c0")
+    assert [graph.representative(f) for f in ("c1", "c3")] == [None, "c1"]
+    assert graph.remove_factor(f"odom:{B}#1-2")  # c3's path back to B#1 is cut: solved
+    assert graph.folded_count == 0 and "c3" in graph.optimize().weights
+
+
 # -- rule 6: freezing ------------------------------------------------------------------------
 
 STEP = gtsam.Pose3(gtsam.Rot3.Rz(0.2), np.array([2.0, 0.0, 0.0]))
@@ -1303,6 +1339,43 @@ def test_nothing_folds_into_a_sealed_factor() -> None:
     copy_into(unbounded, graph, [f for f in graph.factor_ids if f != "near-c1"])
     unbounded.add_factor("near-c1", *MEASURED[graph]["near-c1"][:4])
     assert unbounded.representative("near-c1") is not None  # it would fold, unsealed
+
+
+def test_a_folded_factor_is_retracted_after_its_odometry_froze() -> None:
+    """Rules 5 and 6 together: d1, c2 and d2 fold into c1, then the keyframes between them
+    freeze and the odometry they were carried along is sealed (no longer held). Removing c2
+    makes c1's fused measurement again from its own and the other two as they were carried
+    (as a graph that never froze does, carrying them along its odometry again); removing c1
+    then sends d1 and d2 back to the graph, solved (against the frozen poses) and kept."""
+    graph, _, _ = driven(690, 6, 12, closures=lambda k: k in (1, 2, 6), fold_hops=3,
+                         fold_drift=100.0)
+    assert [graph.representative(f) for f in ("d1", "c2", "d2")] == ["c1"] * 3
+    assert {f"{A}#2", f"{B}#2"} <= set(graph._frozen)
+    assert graph._factors[f"odom:{B}#1"].T_a_b is None  # sealed: nothing is carried along it
+    unfrozen = PoseGraph(anchor=f"{A}#0", config=GraphConfig(fold_hops=3, fold_drift=100.0))
+    copy_into(unfrozen, graph, list(MEASURED[graph]))  # in the order they came
+    assert [unfrozen.representative(f) for f in ("d1", "c2", "d2")] == ["c1"] * 3
+    frozen = dict(graph._frozen)
+    assert graph.remove_factor("c2") and unfrozen.remove_factor("c2")
+    assert not graph.remove_factor("c2")
+    with pytest.raises(InputError, match="unknown factor"):
+        graph.representative("c2")
+    assert graph.factor_ids == unfrozen.factor_ids
+    T, C = graph._measurement(graph._factors["c1"])
+    T_ref, C_ref = unfrozen._measurement(unfrozen._factors["c1"])
+    assert T.equals(T_ref, 1e-9)
+    np.testing.assert_allclose(C, C_ref, rtol=1e-9, atol=1e-15)
+    sol = graph.optimize(marginals=False)
+    assert "c2" not in sol.weights and sol.folded == {"d1": "c1", "d2": "c1", "d6": "c6"}
+    assert sol.outlier_factor_ids == [] == sol.ambiguous_factor_ids
+    assert graph.remove_factor("c1")
+    assert graph.representative("d1") is None and graph.representative("d2") is None
+    sol = graph.optimize(marginals=False)
+    assert "c1" not in sol.weights and {"d1", "d2"} <= set(sol.errors)  # solved
+    assert sol.outlier_factor_ids == [] == sol.ambiguous_factor_ids
+    assert {"d1", "d2"} <= set(graph._sealed)  # kept, between frozen nodes: settled
+    for n, T_n in frozen.items():
+        assert sol.T_anchor_frame[n].equals(T_n, 0.0), n
 
 
 def test_a_chain_joined_by_one_closure_does_not_freeze_on_it() -> None:

@@ -13,7 +13,7 @@ import zenoh
 from helpers import Inbox, free_port, wait_for
 from pydantic import ValidationError
 
-from mergesvc.errors import ConfigError, DecodeError, LinkError
+from mergesvc.errors import ConfigError, DecodeError, InputError, LinkError
 from mergesvc.link.arq import (
     FRAGMENT_HEADER_BYTES,
     MAX_MESSAGE_BYTES,
@@ -582,7 +582,7 @@ def test_bridge_rejects_bad_arguments() -> None:
 def test_make_zenoh_config_maps_errors() -> None:
     with pytest.raises(ConfigError):
         make_zenoh_config(mode="bogus")
-    with pytest.raises(ConfigError):
+    with pytest.raises(InputError):  # a malformed endpoint is bad input, before zenoh sees it
         make_zenoh_config(connect=["not-an-endpoint"])
     config = make_zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447"], scouting=False)
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False

@@ -333,7 +333,7 @@ def test_yaw_fit_about_a_tilted_vertical_matches_brute_force() -> None:
 
 def test_four_dof_covariance_puts_the_gravity_prior_on_the_tilts() -> None:
     """Matches on a horizontal line leave the roll about that line to the prior alone: its
-    variance is the prior's; the yaw is fixed by the points (GTSAM order: rotation first, in
+    variance is the prior's on both frames' verticals (2 sigma^2); the yaw is fixed by the points (GTSAM order: rotation first, in
     the submap frame)."""
     up = np.array([0.0, 0.0, 1.0])
     sub = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
@@ -343,7 +343,7 @@ def test_four_dof_covariance_puts_the_gravity_prior_on_the_tilts() -> None:
     fit = fit_about_vertical(sub, mp, np.full(4, 0.3), up, up, sigma_g, sigma_floor_m=0.05)
     assert fit.accepted
     C = fit.covariance_66
-    assert np.isclose(C[0, 0], sigma_g**2, rtol=1e-6)  # roll about the line (x): prior only
+    assert np.isclose(C[0, 0], 2 * sigma_g**2, rtol=1e-6)  # roll about the line (x): prior only
     assert C[2, 2] < 0.1 * sigma_g**2  # yaw (z): the points fix it
 
 

@@ -180,6 +180,7 @@ def _one(svc: CostService, sub: Submap, solve: bool, overhead: list[float]) -> d
     """One submap through `ingest`, timed; a solve is attributed as described in the module
     docstring."""
     factors0, solves0 = svc.stats.factors_accepted, svc.stats.optimizations
+    matched0 = svc.stats.factors_matched
     n0 = svc.stats.submaps_processed
     t0 = time.perf_counter()
     svc.ingest(sub, optimize=solve)
@@ -194,6 +195,7 @@ def _one(svc: CostService, sub: Submap, solve: bool, overhead: list[float]) -> d
         overhead.append(wall_ms - service_ms)
     return {"factors_before": int(factors0),
             "factors_added": int(svc.stats.factors_accepted - factors0),
+            "factors_matched": int(svc.stats.factors_matched - matched0),
             "process_ms": wall_ms - solve_ms, "solve_ms": solve_ms, "solved": solved,
             "robot": sub.robot_id, "session": sub.session_id, "seq": sub.seq}
 

@@ -1,6 +1,7 @@
 """Generalization benchmark (issue 9): a matrix of worlds that do not share the generator's
 assumptions (axis conventions, embedding dimension, map size, look-alikes, duplicates, range
-noise, declared vertical), with verified mode, paper mode and cosine + Hungarian side by side.
+noise, declared vertical), with verified mode, paper mode and cosine + Hungarian side by side,
+and the neural solver (NGM) in both modes beside the default solver (RRWM).
 
 The worlds are simulation (mergesvc.sim: worlds.py builds them gravity-aligned from real data
 in `../shared/data` where it exists and from the project's own generators, conventions.py
@@ -83,6 +84,14 @@ def cosine_hungarian_outcome(
 
 
 METHODS = ("verified", "paper", "cos-hungarian")
+# the neural solver in each mode, beside the default solver (`<mode>-<solver>`)
+NGM_METHODS = ("verified-ngm", "paper-ngm")
+
+
+def method_config(method: str, base: MatchConfig | None) -> MatchConfig:
+    """`base` with the method's mode set, and its solver when the method names one."""
+    mode, _, solver = method.partition("-")
+    return match_config(base, mode=mode, **({"solver": {"name": solver}} if solver else {}))
 
 
 # ============================================================================================
@@ -384,7 +393,7 @@ class GeneralizePlan:
     cells: list[Cell]
     seed: int = 0
     seeds: int = 1
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] = METHODS + NGM_METHODS
     paper_max_map: int = 700  # paper mode's dense K: only maps up to this size
     data_dir: Path = field(default_factory=lambda: DEFAULT_DATA_DIR)
 
@@ -415,8 +424,7 @@ def run_generalize(
     plan.seeds below 1."""
     check_count("seeds", plan.seeds)
     t_start = time.perf_counter()
-    configs = {"verified": match_config(base, mode="verified"),
-               "paper": match_config(base, mode="paper")}
+    configs = {m: method_config(m, base) for m in plan.methods if m != "cos-hungarian"}
     data = _Data(Path(plan.data_dir))
     has_up = supports_up()
     report: dict[str, Any] = {
@@ -463,7 +471,7 @@ def run_generalize(
                 n_map = len(sc.map.objects)
                 confusion.append(confusers(sc))
                 for method in plan.methods:
-                    if method == "paper" and (k >= cell.paper_cases
+                    if method.startswith("paper") and (k >= cell.paper_cases
                                               or n_map > plan.paper_max_map):
                         continue
                     outcome = _run_method(method, sc, configs)
@@ -477,7 +485,8 @@ def run_generalize(
                     progress(f"{cell.name} seed {seed} case {k}", done)
             for m in plan.methods:
                 per_seed[m].append(summarize(rows[m]))
-        if "paper" in plan.methods and (cell.paper_cases == 0 or n_map > plan.paper_max_map):
+        if any(m.startswith("paper") for m in plan.methods) and (
+                cell.paper_cases == 0 or n_map > plan.paper_max_map):
             notes.append(f"paper skipped (map {n_map} objects > {plan.paper_max_map} or capped)")
         entry["notes"] = notes
         entry["n_map"] = n_map
@@ -485,9 +494,70 @@ def run_generalize(
         for m in plan.methods:
             entry["methods"][m] = {"over_seeds": over_seeds(per_seed[m]),
                                    "per_seed": per_seed[m]}
+    report["ngm_vs_default"] = ngm_comparison(report)
     report["elapsed_s"] = round(time.perf_counter() - t_start, 1)
     report["markdown"] = markdown(report)
     return report
+
+
+# the neural solver's target in verified mode (issue 28): node accuracy within this much of the
+# default solver's, at a p50 latency at most this many times its
+NGM_ACC_TOLERANCE = 0.02
+NGM_P50_RATIO = 2.0
+
+
+def ngm_comparison(report: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:
+    """Per cell and mode, NGM against the default solver on the same cases: node accuracy,
+    precision and p50 latency (medians over seeds), and in verified mode whether NGM meets the
+    target (NGM_ACC_TOLERANCE, NGM_P50_RATIO)."""
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for name, e in report["cells"].items():
+        for mode in ("verified", "paper"):
+            base = e["methods"].get(mode, {}).get("over_seeds", {})
+            ngm = e["methods"].get(f"{mode}-ngm", {}).get("over_seeds", {})
+            if not (base.get("cases") and ngm.get("cases")):
+                continue
+            row = {k: {"default": base[k]["median"], "ngm": ngm[k]["median"]}
+                   for k in ("node_accuracy", "precision", "latency_p50_ms")}
+            row["node_accuracy_diff"] = ngm["node_accuracy"]["median"] - \
+                base["node_accuracy"]["median"]
+            row["p50_ratio"] = ngm["latency_p50_ms"]["median"] / \
+                max(base["latency_p50_ms"]["median"], 1e-9)
+            if mode == "verified":
+                row["meets_target"] = bool(row["node_accuracy_diff"] >= -NGM_ACC_TOLERANCE
+                                           and row["p50_ratio"] <= NGM_P50_RATIO)
+            out.setdefault(name, {})[mode] = row
+    return out
+
+
+def ngm_markdown(comparison: dict[str, dict[str, dict[str, Any]]]) -> str:
+    """NGM against the default solver, one row per cell and mode (empty without NGM)."""
+    if not comparison:
+        return ""
+    lines = ["| cell | mode | node acc default / NGM | diff | precision default / NGM "
+             "| p50 ms default / NGM | p50 ratio | target met |",
+             "|---|---|---|---|---|---|---|---|"]
+    met = total = 0
+    for name, modes in comparison.items():
+        for mode, r in modes.items():
+            target = "-"
+            if "meets_target" in r:
+                total += 1
+                met += r["meets_target"]
+                target = "yes" if r["meets_target"] else "no"
+            na, pr, lat = r["node_accuracy"], r["precision"], r["latency_p50_ms"]
+            lines.append(
+                f"| {name} | {mode} | {na['default']:.2f} / {na['ngm']:.2f} "
+                f"| {r['node_accuracy_diff']:+.2f} | {_num(pr['default'])} / {_num(pr['ngm'])} "
+                f"| {lat['default']:.1f} / {lat['ngm']:.1f} | {r['p50_ratio']:.2f} | {target} |")
+    lines.append("")
+    lines.append(f"NGM in verified mode within {NGM_ACC_TOLERANCE} node accuracy of the default "
+                 f"solver at a p50 at most {NGM_P50_RATIO:g}x: {met} of {total} cells.")
+    return "\n".join(lines)
+
+
+def _num(x: float) -> str:
+    return f"{x:.2f}" if np.isfinite(x) else "-"
 
 
 def _fmt(s: dict[str, float] | None, digits: int = 2, seeds: int = 1) -> str:
@@ -518,9 +588,9 @@ def markdown(report: dict[str, Any]) -> str:
                 continue
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(o["reasons"].items(),
                                                               key=lambda kv: -kv[1]))
-            hits = o.get("exact_budget_hits_total", "-") if m == "verified" else "-"
+            hits = o.get("exact_budget_hits_total", "-") if m.startswith("verified") else "-"
             exact = (f"{_fmt(o.get('exact_p50_ms'), 1, 1)} / {_fmt(o.get('exact_p99_ms'), 1, 1)}"
-                     if m == "verified" else "-")
+                     if m.startswith("verified") else "-")
             lines.append(
                 f"| {name} | {e['cell']['varies']} | {e['n_map']} | {m} "
                 f"| {_fmt(o['node_accuracy'], 2, seeds)} | {_fmt(o['precision'], 2, seeds)} "
@@ -541,11 +611,15 @@ def markdown(report: dict[str, Any]) -> str:
         "rejected an answer); look-alikes: mean map "
         "objects closer by cosine than the true match, per matchable submap object."
     )
+    if report.get("ngm_vs_default"):
+        text += "\n\n### NGM against the default solver\n\n" + ngm_markdown(
+            report["ngm_vs_default"])
     return text
 
 
 __all__ = [
     "METHODS",
+    "NGM_METHODS",
     "Cell",
     "GeneralizePlan",
     "build_world",
@@ -555,6 +629,9 @@ __all__ = [
     "cosine_hungarian_outcome",
     "full_plan",
     "markdown",
+    "method_config",
+    "ngm_comparison",
+    "ngm_markdown",
     "over_seeds",
     "quick_plan",
     "run_generalize",

@@ -1,6 +1,7 @@
 """The paper's tables (`mergesvc bench paper`): Table I (underwater runs x submap sizes) and
 Table II (KITTI-like loop-closure places) for the paper's pipeline and ours, each solver and
-affinity, with figures; and the scale sweep (one submap against maps grown by look-alikes).
+affinity (the neural solver, NGM, beside the paper's best neural cell), with figures; and the
+scale sweep (one submap against maps grown by look-alikes).
 """
 
 from __future__ import annotations
@@ -37,7 +38,10 @@ from mergesvc.sim import Scenario
 # side, on trajectory runs (mergesvc.sim's underwater_run / drive_run), plus a scale sweep.
 # ============================================================================================
 
-SOLVERS = ("rrwm", "sm", "ipfp")
+SOLVERS = ("rrwm", "sm", "ipfp", "ngm")
+# The best node accuracy the paper reports for its neural solver (pygmtools' NGM, pretrained on
+# image keypoints) in any cell of its tables, which range 0.00-0.79 (docs/benchmarks/ngm.md)
+PAPER_NEURAL_BEST = 0.79
 AFFINITIES = ("ucos", "bhattacharyya", "mahalanobis")
 MODES = ("paper", "verified")
 
@@ -64,7 +68,7 @@ class PaperBenchPlan:
     @classmethod
     def quick(cls) -> PaperBenchPlan:
         return cls(
-            runs=(1,), sizes=(3, 5), per_size=2, places=1, solvers=("rrwm",),
+            runs=(1,), sizes=(3, 5), per_size=2, places=1, solvers=("rrwm", "ngm"),
             affinities=("ucos",), repeats=1, kitti_paper=False, scale_sizes=(600, 2000),
         )
 
@@ -79,10 +83,12 @@ def _run_cases(
            dict[str, MatchOutcome]]:
     """Every case x mode x solver x affinity, each `base` (default: the defaults) with those
     set. Returns per-combination case scores (key mode/solver/affinity/case), stage timings
-    per mode, and the outcomes of the first case (for the figures)."""
+    per mode, the outcomes of the first case (for the figures), and the solve stage's time
+    per mode/solver."""
     scores: dict[str, list[dict[str, float]]] = {}
     stages: dict[str, dict[str, list[float]]] = {}
     first: dict[str, MatchOutcome] = {}
+    solve_ms: dict[str, list[float]] = {}
     for label, sc in cases:
         for mode in modes:
             for solver in plan.solvers:
@@ -93,12 +99,14 @@ def _run_cases(
                     for run in outcomes:
                         for k, v in run.result.timings_ms.items():
                             stages.setdefault(mode, {}).setdefault(k, []).append(v)
+                        solve_ms.setdefault(f"{mode}/{solver}", []).append(
+                            run.result.timings_ms.get("solve", float("nan")))
                     outcome = outcomes[-1]  # plan.repeats >= 1: checked by run_paper_bench
                     key = f"{mode}/{solver}/{affinity}"
                     scores.setdefault(f"{key}/{label}", []).append(score_case(sc, outcome))
                     first.setdefault(f"{key}/{label}", outcome)
                     progress(f"{label} {key}")
-    return scores, stages, first
+    return scores, stages, first, solve_ms
 
 
 def run_paper_bench(
@@ -139,9 +147,11 @@ def run_paper_bench(
     total = (len(uw_cases) * len(plan.modes)
              + len(kitti_cases) * (len(plan.modes) if plan.kitti_paper else 1)) * combos
     progress = progress_factory(total) if progress_factory else (lambda _msg: None)
-    uw_scores, uw_stages, uw_first = _run_cases(uw_cases, plan, plan.modes, progress, base)
+    uw_scores, uw_stages, uw_first, uw_solve = _run_cases(uw_cases, plan, plan.modes, progress,
+                                                          base)
     k_modes = plan.modes if plan.kitti_paper else tuple(m for m in plan.modes if m != "paper")
-    k_scores, k_stages, k_first = _run_cases(kitti_cases, plan, k_modes, progress, base)
+    k_scores, k_stages, k_first, k_solve = _run_cases(kitti_cases, plan, k_modes, progress,
+                                                      base)
 
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -155,7 +165,10 @@ def run_paper_bench(
             world: {m: {k: _spread(v) for k, v in st.items()} for m, st in stages.items()}
             for world, stages in (("underwater", uw_stages), ("kitti", k_stages))
         },
+        "solve_ms": {world: {k: _spread(v) for k, v in solve.items()}
+                     for world, solve in (("underwater", uw_solve), ("kitti", k_solve)) if solve},
     }
+    report["ngm_vs_paper"] = ngm_vs_paper(report)
     report["summary"] = {
         "underwater": {
             f"{mode}/{s}/{a}": _aggregate([x for key, v in uw_scores.items()
@@ -243,6 +256,26 @@ def _table2(scores: dict[str, list[dict[str, float]]], plan: PaperBenchPlan,
     return out
 
 
+def ngm_vs_paper(report: dict[str, Any]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per table and mode/affinity, the NGM row's worst cell, average and how many of its cells
+    beat PAPER_NEURAL_BEST (so beat the paper's neural solver in that cell whatever it scored
+    there), with RRWM's average beside it. Empty when NGM was not run."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for table in ("table1", "table2"):
+        for key, row in report[table].items():
+            mode, solver, affinity = key.split("/")
+            cells = [v for c, v in row.items() if c != "average" and np.isfinite(v)]
+            if solver != "ngm" or not cells:
+                continue
+            rrwm = report[table].get(f"{mode}/rrwm/{affinity}", {}).get("average", float("nan"))
+            out.setdefault(table, {})[f"{mode}/{affinity}"] = {
+                "min_cell": float(min(cells)), "average": float(np.mean(cells)),
+                "cells": len(cells), "cells_above": sum(v > PAPER_NEURAL_BEST for v in cells),
+                "rrwm_average": rrwm,
+            }
+    return out
+
+
 def paper_markdown(report: dict[str, Any], plan: PaperBenchPlan) -> str:
     """The report as markdown: Table I and II layouts per mode, then the rest."""
     lines = [f"Run {report['date']} on {report['machine']}; {report.get('elapsed_s', '?')} s.", ""]
@@ -257,6 +290,16 @@ def paper_markdown(report: dict[str, Any], plan: PaperBenchPlan) -> str:
             mode, s, a = key.split("/")
             lines.append(f"| {mode} | {s} | {a} | "
                          + " | ".join(_fmt(row.get(c, float("nan"))) for c in cols) + " |")
+        lines.append("")
+    if report.get("ngm_vs_paper"):
+        lines += ["### The neural solver: NGM trained on our formulation vs the paper's "
+                  f"(pretrained, best cell {PAPER_NEURAL_BEST:.2f})", "",
+                  "| table | mode/affinity | NGM worst cell | NGM average | cells above "
+                  f"{PAPER_NEURAL_BEST:.2f} | RRWM average |", "|---|---|---|---|---|---|"]
+        for table, rows in report["ngm_vs_paper"].items():
+            for key, r in rows.items():
+                lines.append(f"| {table} | {key} | {_fmt(r['min_cell'])} | {_fmt(r['average'])} "
+                             f"| {r['cells_above']}/{r['cells']} | {_fmt(r['rrwm_average'])} |")
         lines.append("")
     lines += ["### Beyond the paper: accepted correspondences and transforms", "",
               "| world | mode/solver/affinity | node acc. | accepted | precision | recall | "
@@ -278,6 +321,12 @@ def paper_markdown(report: dict[str, Any], plan: PaperBenchPlan) -> str:
         for mode, st in per_mode.items():
             for k, v in st.items():
                 lines.append(f"| {world} | {mode} | {k} | {v['median']:.1f} | {v['iqr']:.1f} |")
+    if report.get("solve_ms"):
+        lines += ["", "### Solve stage per solver, ms: median (IQR)", "",
+                  "| world | mode/solver | median | IQR |", "|---|---|---|---|"]
+        for world, per in report["solve_ms"].items():
+            for k, v in per.items():
+                lines.append(f"| {world} | {k} | {v['median']:.1f} | {v['iqr']:.1f} |")
     if "scale" in report:
         lines += ["", "### Scale: one 20-object submap against growing maps (verified mode)", "",
                   "| map objects | latency median ms (IQR) [min-max] | peak memory MB | "
@@ -360,9 +409,11 @@ def run_scale_sweep(
 __all__ = [
     "AFFINITIES",
     "MODES",
+    "PAPER_NEURAL_BEST",
     "SOLVERS",
     "PaperBenchPlan",
     "grow_map",
+    "ngm_vs_paper",
     "paper_markdown",
     "run_paper_bench",
     "run_scale_sweep",

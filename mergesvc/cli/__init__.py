@@ -1,6 +1,6 @@
 """Command line: `mergesvc match`, `convert`, `example`, `schemas`, `config`, `serve`, `agent`,
-`demo`, `export`, `view`, `bench`, `codec`, `projection`, `scenario`, `uncertainty`, `link`.
-Only this package exits.
+`demo`, `export`, `view`, `bench`, `codec`, `projection`, `scenario`, `uncertainty`, `solver`,
+`link`. Only this package exits.
 
 The command tree is assembled here; the commands live in `files` (commands on files, and
 `config --dump`), `projection` (the fleet's projection), `bench` (benchmarks), `fleet` (the
@@ -18,7 +18,8 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli import bench, files, fleet, projection, view
+from mergesvc.cli import bench, files, fleet, projection, solver, view
+from mergesvc.cli.errors import show_tracebacks
 
 __all__ = ["app", "hoist_verbose", "main"]
 
@@ -41,13 +42,15 @@ app = typer.Typer(
 
 @app.callback()
 def _main(
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="more logs")] = 0,
+    verbose: Annotated[int, typer.Option(
+        "--verbose", "-v", count=True, help="more logs; -vv: debug, and tracebacks of errors")] = 0,
 ) -> None:
     logging.basicConfig(
         level=logging.WARNING - 10 * min(verbose, 2),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    show_tracebacks(verbose >= 2)
 
 
 for _command in (
@@ -60,6 +63,7 @@ app.add_typer(files.codec_app, name="codec")
 app.add_typer(projection.projection_app, name="projection")
 app.add_typer(files.scenario_app, name="scenario")
 app.add_typer(files.uncertainty_app, name="uncertainty")
+app.add_typer(solver.solver_app, name="solver")
 app.add_typer(fleet.link_app, name="link")
 
 

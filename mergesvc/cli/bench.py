@@ -184,7 +184,7 @@ def bench_generalize(
     cosine + Hungarian side by side."""
     from rich.progress import Progress
 
-    from mergesvc.bench import METHODS, GeneralizePlan, run_generalize
+    from mergesvc.bench import GeneralizePlan, run_generalize
 
     if data is not None and not data.is_dir():
         raise typer.BadParameter(f"{data} is not a folder", param_hint="--data")
@@ -197,7 +197,7 @@ def bench_generalize(
                 f"no cell matches {', '.join(cell)}; cells: {', '.join(names)}",
                 param_hint="--cell")
     if not paper:
-        plan.methods = tuple(m for m in METHODS if m != "paper")
+        plan.methods = tuple(m for m in plan.methods if not m.startswith("paper"))
     with exit_on_error():
         tree = resolve_settings(settings)
     with Progress(transient=True) as bar:

@@ -1,34 +1,73 @@
 """Known errors at the command line, mapped to exit codes in one place.
 
-Every command runs the code that can fail inside `exit_on_error()`: a `MergeError` becomes one
-line `error: ...` on stderr and exit code 2 when it is bad input (`InputError` and its
-subclasses), 1 otherwise. A command that reads user-typed values through constructors that
-raise `ValueError`/`OSError` (a file path, a name) lists those types too: they are bad input,
-exit 2. Anything else is a bug and keeps its traceback.
+    code  meaning
+    0     done
+    1     failed: a MergeError that is neither of the two below (a settings or Zenoh config
+          file that cannot be used, the store, a solver, a benchmark's or the demo's checks)
+    2     bad input: InputError (a file, a flag value, an endpoint), and typer's usage errors
+    3     network: TransportError (a --listen port in use or not on this machine, nothing
+          answering at --connect within --connect-timeout)
+
+Every command runs the code that can fail inside `exit_on_error()`: a known error becomes one
+line `error: ...` on stderr (a TransportError's line also says what to do) and its exit code. A
+command that reads user-typed values through constructors that raise `ValueError`/`OSError` (a
+file path, a name) lists those types too: they are bad input, exit 2. With `-vv` the traceback
+is printed above the line. Anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
+import sys
+import traceback
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import NoReturn
 
 import typer
 
-from mergesvc.errors import InputError, MergeError, one_line
+from mergesvc.errors import InputError, MergeError, TransportError, TransportFault, one_line
 
-EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+EXIT_NETWORK = 3
+
+# what to do about a session that could not open, by its fault
+TRANSPORT_ADVICE = {
+    TransportFault.IN_USE: "pick another --listen, or stop the process that holds it",
+    TransportFault.CANNOT_LISTEN: "--listen needs an address of this machine (and TLS "
+                                  "endpoints their files in --config)",
+    TransportFault.NO_ANSWER: "start the service or router there, or fix --connect (wrong "
+                              "credentials in --config look the same)",
+    TransportFault.OTHER: "check --listen, --connect and --config",
+}
+
+_traceback = {"on": False}
+
+
+def show_tracebacks(on: bool) -> None:
+    """Print each known error's traceback above its line (`-vv`)."""
+    _traceback["on"] = on
+
+
+def message(exc: BaseException) -> str:
+    """The error's line: its text, and for a TransportError what to do about it."""
+    msg = one_line(exc)
+    if isinstance(exc, TransportError):
+        msg = f"{msg}: {TRANSPORT_ADVICE[exc.fault]}"
+    return msg
 
 
 def fail(exc: BaseException, code: int) -> NoReturn:
-    """One line on stderr (the message's first line, or the error's type) and exit `code`."""
-    msg = one_line(exc)
-    typer.echo(f"error: {msg}", err=True)
+    """One line on stderr (`message`) and exit `code`; with -vv the traceback first."""
+    if _traceback["on"]:
+        traceback.print_exception(exc, file=sys.stderr)
+    typer.echo(f"error: {message(exc)}", err=True)
     raise typer.Exit(code) from exc
 
 
 def exit_code(exc: MergeError) -> int:
+    if isinstance(exc, TransportError):
+        return EXIT_NETWORK
     return EXIT_BAD_INPUT if isinstance(exc, InputError) else EXIT_FAILED
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import re
 import time
 from collections.abc import Iterable, Iterator
 from enum import Enum
@@ -24,6 +23,7 @@ from mergesvc.cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, exit_on_error, fail
 from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
+    ConnectTimeout,
     LinkKind,
     Listen,
     Mode,
@@ -106,6 +106,7 @@ def serve(
     listen: Listen = None,
     connect: ConnectTo = None,
     config: ZenohConfigFile = None,
+    connect_timeout: ConnectTimeout = None,
     projection: Annotated[
         list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
     ] = None,
@@ -126,10 +127,9 @@ def serve(
     import signal
     import threading
 
-    import zenoh
-
     from mergesvc.fleet.service import MergeService
     from mergesvc.wire import Projection
+    from mergesvc.wire.session import open_session
 
     if mode is ZenohMode.ROUTER and not listen and not config:
         listen = [DEFAULT_ENDPOINT]
@@ -141,9 +141,9 @@ def serve(
         cfg = resolve_settings(settings, {"service": flags},
                                bare_match=bare_match_for(SettingsCommand.SERVE))
         cfg = cfg.service
-        zconf = zenoh_config(mode, connect, listen, config)
+        zconf = zenoh_config(mode, connect, listen, config, connect_timeout=connect_timeout)
         projections = [Projection.load(p) for p in projection or []]
-        with zenoh.open(zconf) as session, MergeService(cfg, session, projections) as svc, \
+        with open_session(zconf) as session, MergeService(cfg, session, projections) as svc, \
                 _ros2_bridge(ros2, session, cfg.fleet, ros2_domain, ros2_namespace, service=svc):
             typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
                        f"store {cfg.store}")
@@ -220,6 +220,7 @@ def agent(
     mode: AgentMode = ZenohMode.CLIENT,
     connect: Connect = None,
     config: ZenohConfigFile = None,
+    connect_timeout: ConnectTimeout = None,
     linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
     settings: AgentSettingsFile = None,
     ros2: Ros2 = False,
@@ -249,15 +250,15 @@ def agent(
     )
     with exit_on_error(ValueError, OSError):
         frames = _agent_frames(robot, acfg.session, seed, laps, objects, log_file)
-        zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,))
+        zconf = zenoh_config(mode, connect, None, config, default_connect=(DEFAULT_ENDPOINT,),
+                             connect_timeout=connect_timeout)
         with contextlib.ExitStack() as ros:
             if ros2:  # a session of its own beside the vehicle's (run_agent opens that one)
-                import zenoh
-
                 from mergesvc.wire import keys
+                from mergesvc.wire.session import open_session
 
                 root = keys.uw_root(acfg.fleet) if acoustic else keys.fleet_root(acfg.fleet)
-                ros_session = ros.enter_context(zenoh.open(zconf))
+                ros_session = ros.enter_context(open_session(zconf))
                 ros.enter_context(_ros2_bridge(True, ros_session, acfg.fleet, ros2_domain,
                                                ros2_namespace, robot=robot, root=root))
             stats = run_agent(run, zconf, frames)
@@ -296,10 +297,11 @@ def demo(
 
     Every process the demo starts reads OUT/settings.json."""
     from mergesvc.fleet.demo import SESSION, STORE_FILE, DemoPlan, run_demo
+    from mergesvc.wire.session import make_zenoh_config, open_session
 
-    if listen is not None and not re.fullmatch(r"[a-z0-9]+/\S+:\d{1,5}", listen):
-        raise typer.BadParameter(f"{listen!r} is not a Zenoh endpoint such as "
-                                 "tcp/127.0.0.1:7447", param_hint="--listen")
+    if listen is not None:  # the service will listen there: a bad or busy endpoint fails now
+        with exit_on_error():
+            open_session(make_zenoh_config(mode="router", listen=[listen], scouting=False)).close()
     plan = (DemoPlan.quick if quick else DemoPlan)(seed=seed, link=link.value, profile=profile,
                                                    listen=listen)
     with exit_on_error():
@@ -385,6 +387,7 @@ def link_bridge(
     connect: Connect = None,
     listen: Listen = None,
     config: ZenohConfigFile = None,
+    connect_timeout: ConnectTimeout = None,
     seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
 ) -> None:
     """Bridge the vehicle side of the key space to the topside through the simulated modem."""
@@ -409,7 +412,8 @@ def link_bridge(
         )
         # scouting stays on here even with a --config file (unlike serve and agent)
         zconf = zenoh_config(mode, connect, listen, config,
-                             default_connect=(DEFAULT_ENDPOINT,), scouting=True)
+                             default_connect=(DEFAULT_ENDPOINT,), scouting=True,
+                             connect_timeout=connect_timeout)
         with AcousticBridge(cfg, uw_prefix=uw_root(fleet), top_prefix=fleet_root(fleet),
                             zenoh_config=zconf, time_scale=time_scale) as bridge:
             typer.echo(f"bridging {all_under(uw_root(fleet))} <-> {all_under(fleet_root(fleet))} "

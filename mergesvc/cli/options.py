@@ -1,9 +1,9 @@
 """Options shared by several commands, defined once.
 
 The Zenoh flags follow the zenoh-python examples: every program that opens a session takes
-`--mode/--connect/--listen/--config`, and `zenoh_config` turns them into a `zenoh.Config`.
-`serve`, `agent` and `link bridge` take them. The factories keep the help text each command
-has always shown; the plain aliases carry the usual one.
+`--mode/--connect/--listen/--config` (and `--connect-timeout`), and `zenoh_config` turns them
+into a `zenoh.Config`. `serve`, `agent`, `view` and `link bridge` take them. The factories
+keep the help text each command has always shown; the plain aliases carry the usual one.
 
 The settings tree (mergesvc/settings.py): every command that has settings takes
 `--settings FILE` (`settings_file(...)`, its help naming what that command reads) and resolves
@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Connect",
+    "ConnectTimeout",
     "DeprecatedConfig",
     "LinkKind",
     "Listen",
@@ -57,6 +58,8 @@ __all__ = [
 ]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# how long a client or peer keeps trying its --connect endpoints before it gives up (exit 3)
+DEFAULT_CONNECT_TIMEOUT_S = 5.0
 
 
 class ZenohMode(str, Enum):
@@ -114,6 +117,11 @@ Mode = zenoh_mode()
 Connect = zenoh_connect()
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="zenoh listen endpoint(s)")]
 ZenohConfigFile = Annotated[Path | None, typer.Option("--config", help="zenoh JSON5 config file")]
+ConnectTimeout = Annotated[float | None, typer.Option(
+    "--connect-timeout",
+    help="seconds to keep trying the --connect endpoints before giving up (exit 3); negative: "
+         f"forever [default: {DEFAULT_CONNECT_TIMEOUT_S:g} for a client or peer; with --config, "
+         "its connect/timeout_ms; a router keeps trying in the background]")]
 
 
 def settings_file(reads: str, *, bare: str | None = None) -> Any:
@@ -152,18 +160,24 @@ def zenoh_config(
     *,
     default_connect: Sequence[str] = (),
     scouting: bool | None = None,
+    connect_timeout: float | None = None,
 ) -> zenoh.Config:
-    """The Zenoh flags as a `zenoh.Config` (raises ConfigError). `default_connect` applies when
-    no --connect is given; `scouting=None` means scouting stays on unless a --config file is
-    given (what serve and agent have always done)."""
+    """The Zenoh flags as a `zenoh.Config` (raises ConfigError, InputError for a malformed
+    endpoint). `default_connect` applies when no --connect is given; `scouting=None` means
+    scouting stays on unless a --config file is given (what serve and agent have always done);
+    `connect_timeout=None` (not typed) means DEFAULT_CONNECT_TIMEOUT_S for a client or peer
+    without a --config file, else the file's (or Zenoh's) own."""
     from mergesvc.wire.session import make_zenoh_config
 
+    if connect_timeout is None and config is None and mode is not ZenohMode.ROUTER:
+        connect_timeout = DEFAULT_CONNECT_TIMEOUT_S
     return make_zenoh_config(
         config_file=str(config) if config else None,
         mode=mode.value if mode is not None else None,
         connect=tuple(connect or default_connect),
         listen=tuple(listen or ()),
         scouting=config is None if scouting is None else scouting,
+        connect_timeout_s=connect_timeout,
     )
 
 

@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-import numpy as np
 import typer
 
 from mergesvc.cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, exit_on_error, fail
@@ -16,12 +15,17 @@ from mergesvc.cli.files import CodecSettingsFile
 from mergesvc.cli.options import resolve_settings
 from mergesvc.errors import InputError, MergeError
 
+if TYPE_CHECKING:
+    import numpy as np
+
 projection_app = typer.Typer(no_args_is_help=True, help="the fleet's projection (compact profile)")
 
 
 def _embeddings_of(path: Path) -> np.ndarray:
     """(n, d) embeddings of a map or submap JSON file, a wire message (.bin, not compact) or
     a numpy array file (.npy, (n, d))."""
+    import numpy as np
+
     from mergesvc.core.model import ObjectMap
     from mergesvc.wire import decode_message
     from mergesvc.wire.files import load_objects
@@ -48,6 +52,8 @@ def _embeddings_of(path: Path) -> np.ndarray:
 
 
 def _describe(proj: Any, budget_bits: int) -> dict[str, Any]:
+    import numpy as np
+
     bits = proj.bit_allocation(budget_bits)
     kept = proj.variance_kept
     scale2 = proj.scale_k.astype(np.float64) ** 2
@@ -84,6 +90,8 @@ def make(
     """Make the fleet's projection: a PCA of embeddings the fleet already shares (a survey,
     maps of earlier missions), not of what it will send. Give the same file to `serve
     --projection` and to every `agent --projection`."""
+    import numpy as np
+
     from mergesvc.sim import Family, survey_embeddings
     from mergesvc.wire import Projection
 

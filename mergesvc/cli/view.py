@@ -14,6 +14,7 @@ from mergesvc.cli.errors import exit_on_error
 from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
+    ConnectTimeout,
     Listen,
     ZenohConfigFile,
     ZenohMode,
@@ -32,6 +33,7 @@ def view(
     connect: Connect = None,
     listen: Listen = None,
     config: ZenohConfigFile = None,
+    connect_timeout: ConnectTimeout = None,
     projection: Annotated[
         list[Path] | None, typer.Option(help="fleet projection(s): compact submaps need it")
     ] = None,
@@ -59,10 +61,9 @@ def view(
     import signal
     import threading
 
-    import zenoh
-
     from mergesvc.view import LiveView, ViewSink, ZenohFeed
     from mergesvc.wire import Projection
+    from mergesvc.wire.session import open_session
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -70,9 +71,10 @@ def view(
     with exit_on_error(ValueError, OSError):
         projections = [Projection.load(p) for p in projection or []]
         zconf = zenoh_config(mode, connect, listen, config,
-                             default_connect=(DEFAULT_ENDPOINT,))
+                             default_connect=(DEFAULT_ENDPOINT,), connect_timeout=connect_timeout)
         sink = ViewSink(save=save, web=serve_web, web_port=web_port, grpc_port=grpc_port)
-        with LiveView.open(sink) as live, zenoh.open(zconf) as session:
+        # the session first: a fleet that cannot be reached opens no viewer
+        with open_session(zconf) as session, LiveView.open(sink) as live:
             feed = ZenohFeed(live, session, fleet, projections, status_period_s=status_period)
             with feed:
                 where = (live.url if serve_web else None) or (str(save) if save else "viewer")

@@ -247,11 +247,11 @@ class GraphConfig(BaseModel):
         0, ge=0, le=1000,
         description="fold a new factor into a factor of the graph that it agrees with, when "
         "both pairs of ends are at most this many known-inlier (odometry) factors apart (rule "
-        "5 of core/graph.py: bounds a long mission's graph); 0: never fold",
+        "5 of docs/pose_graph.md: bounds a long mission's graph); 0: never fold",
     )
     max_live_nodes: int = Field(
         0, ge=0,
-        description="bound the solve (rule 6 of core/graph.py): a node placed beyond doubt "
+        description="bound the solve (rule 6 of docs/pose_graph.md): a node placed beyond doubt "
         "freezes at its solved pose once this many nodes joined the anchor's component after "
         "it; later solves hold it fixed and solve only the other nodes and the factors that "
         "touch them; 0: never freeze (the whole graph every time; set on a graph with frozen "

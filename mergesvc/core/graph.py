@@ -1,200 +1,42 @@
-"""Global graph stage: poses aligned by a pose graph of inter-robot factors, solved with GTSAM's
-GncLMOptimizer and the truncated-least-squares loss (Yang et al., "Graduated Non-Convexity for
-Robust Spatial Perception", RA-L 2020). The objects of aligned frames are fused in fusion.py.
+"""The global pose graph: nodes (robot-session frames, or their keyframes joined by odometry)
+aligned by inter-robot factors, solved with GTSAM's GncLMOptimizer and the truncated-least-squares
+loss; the objects of aligned frames are fused in fusion.py.
 
-Nodes are names: robot-session frames "{robot}/{session}" (one pose per session), or keyframes
-"{robot}/{session}#{k}" (frames.KeyframeId: one pose per keyframe of a session, joined by the
-vehicle's odometry, added as known inliers). The merge service uses keyframes only.
-
-Outlier rules (a factor can only be judged against other factors that close a loop with it):
-  1. The anchor prior, every factor marked `known_inlier` (odometry, operator-confirmed) and
-     every bridge factor (removing it splits its component) are known inliers: nothing in the
-     graph can contradict a bridge, and a known inlier is never doubted, so GNC must not weigh
-     them.
-  2. Every other factor gets a GNC TLS weight; weight < `outlier_weight` flags it. Least
-     squares over every factor comes first (from the warm start): when every factor to judge
-     is within the TLS threshold there, that solution is a minimum of the TLS cost with every
-     weight 1 and GNC is not iterated (GTSAM's GNC would start its schedule again from the
-     residuals at the initial values, about six full solves for the same verdict on a long
-     mission's graph). Otherwise GNC runs from the initial values as before.
-  3. A flagged factor is a confirmed outlier only if its two nodes stay joined by at least two
-     paths of unflagged factors that share no factor other than known inliers (paths may share
-     odometry: it cannot be wrong; computed as 2-edge-connectivity with the known-inlier
-     factors contracted). Then keeping it would need at least two other factors to be wrong
-     instead of one, so rejecting it is the minimum-outlier explanation. Otherwise (e.g. one
-     inconsistent triangle, or two closures between two odometry chains that disagree) the
-     choice is arbitrary: the factor is reported as ambiguous, kept, and the service should
-     wait for more factors. With keyframe nodes this is rule 3 of the frame-level graph: the
-     odometry chains contracted, each session is one node again.
-  4. Poses and marginals come from a final Levenberg-Marquardt solve over the prior and every
-     factor but the confirmed outliers, started from the GNC estimate (the least-squares
-     solution of rule 2 already is that solve when GNC was skipped).
-
-  5. Folding (opt-in: `GraphConfig.fold_hops` > 0): a new factor (not a known inlier) whose two
-     ends are each within `fold_hops` known-inlier factors of the two ends of a factor g
-     already solved, and which agrees with g (its measurement carried to g's ends along the
-     odometry, covariances propagated to first order, the difference to g's measurement within
-     the chi-square quantile `inlier_probability`, 6 dof), where that odometry is known well
-     (what it adds to the covariance, whitened by the factor's own, at most `fold_drift`: where
-     it drifts more, the factor corrects it and is solved), is *folded* into g: held, listed
-     and reported, but not a factor of the solve. g is solved with its own measurement fused
-     with the carried ones (information-weighted mean, summed information), so what they
-     measured still counts and a majority of agreeing closures still outweighs a wrong one in
-     GNC. A robot that sees the same objects again and again adds a closure per keyframe that
-     says what the graph knows already (the 20-robot soak stream, 3,200 submaps: 4,981 of 7,472
-     closures fold, the solved factors 10,550 -> 5,568, the solve's peak memory 66 -> 47 MB),
-     so the solve grows more with the places seen than with the time spent there. Off in the
-     merge service by default: on KITTI-00 with visual odometry (its drift larger than its
-     covariance says) one seed of three lost half its factors in force (docs/benchmarks.md).
-     A folded factor shares g's weight (ambiguous or unchecked with it) and counts as a
-     parallel path of g in rule 3. When g is a confirmed outlier, g alone is reported: removing
-     it sends the folded ones back to the graph (folded again, or solved), and the next solve
-     judges them on their own (they agreed with a wrong factor, but a correct one may also
-     have been within the test). A factor that disagrees is solved and judged as any other.
-     The approximation: a carried measurement's covariance includes the odometry it was
-     carried along, which the graph also holds (that correlation is ignored).
-
-  6. Freezing (opt-in: `GraphConfig.max_live_nodes` > 0): a node freezes at its solved pose
-     once max_live_nodes nodes have joined the anchor's component in later solves than it did
-     (the oldest first; a session that joins late, on one closure nothing can check yet, stays
-     live until later closures can judge it), and only when it is placed beyond doubt: joined to
-     the anchor twice over by closures GNC kept, odometry contracted (rule 3's structure), and
-     no ambiguous closure touches its odometry chain: no node freezes on a single closure, on
-     GNC's arbitrary pick between two that disagree, or where a doubtful closure still pulls
-     (rule 4 keeps ambiguous closures in the solve; frozen, the pull could not be undone).
-     Such nodes stay live as long as that lasts: the bound is soft. Later solves hold a
-     frozen node fixed where a factor joins it to a live node (a prior at its frozen pose,
-     `anchor_sigma`: treated as exact) and leave out the settled factors between two frozen
-     nodes (known inliers and closures GNC kept: they keep the weight of the last solve that
-     held them; ambiguous, outlying and unchecked closures stay in the solve and
-     are judged again; a sealed factor's measurement is no longer held, and the same id
-     added again with the same ends is taken as a replay). So a long mission's solve
-     stays the size of its live part (the 20-robot soak: a graph of thousands of keyframes, a
-     solve of about a thousand) while a closure to an old place still ties the new part to it.
-     Rules 1 and 3 are still decided on every factor of the component (pure graph structure,
-     cheap): a frozen part's closures still make bridges and confirm outliers as before.
-     What it gives up: a closure no longer moves frozen nodes (a frozen stretch keeps the
-     drift it had), and removing a factor does not move them back. Off by default in
-     PoseGraph; the merge service bounds its graph. `settle()` solves a graph loaded at once
-     (a restart) in insertion order, so that no solve holds the whole graph and the old nodes
-     freeze much as they did live (at other moments: near, not equal, poses).
-
-`optimize` returns its last solution again while nothing changed (no node, factor or anchor
-added or removed since): callers may call it after every change without paying twice.
+Guarantees (docs/pose_graph.md gives the rules in full): known inliers and bridges are never
+judged (rule 1); a factor GNC flags is a confirmed outlier only where two other paths contradict
+it, else it is ambiguous and kept (rules 2, 3); the poses are a least-squares solve without the
+confirmed outliers (rule 4). Folding (rule 5) and freezing (rule 6) are policies it holds
+(core/folding.py, core/freezing.py). `optimize` returns its last solution again while nothing
+changed. Pure: no I/O.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
 import numpy as np
-from scipy.linalg import eigh
 from scipy.stats import chi2
 
 from mergesvc.core.calibration import scale_covariance, updated_scale, variance_components
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.connectivity import UnionFind, two_edge_connected
 from mergesvc.core.connectivity import bridges as find_bridges
+from mergesvc.core.folding import Folding, Measurement
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name
+from mergesvc.core.freezing import Freezing
+from mergesvc.core.graph_factor import GraphFactor, check_covariance
+from mergesvc.core.graph_factor import levenberg_marquardt as _levenberg_marquardt
+from mergesvc.core.graph_start import initial_poses
 from mergesvc.core.model import Factor, FactorStatus
 from mergesvc.core.poses import as_pose3, pose3_from_model
-from mergesvc.core.poses import compose_with_covariance as _compose
-from mergesvc.core.poses import inverse_with_covariance as _inverse
 from mergesvc.errors import InputError, SolverError, one_line
 
 log = logging.getLogger(__name__)
-
-# Symmetry tolerance of covariance inputs, relative to the largest entry.
-_SYM_RTOL = 1e-9
-
-
-# --------------------------------------------------------------------------------------------
-# Input checks
-# --------------------------------------------------------------------------------------------
-
-
-def _check_covariance(C: Any, name: str) -> np.ndarray:
-    """A valid covariance as a read-only float64 array: `C` itself when it is one already
-    (read-only, owning its data, exactly symmetric: a long mission's graph shares its
-    odometry's arrays; whoever made it must not make it writable again), else a symmetrised
-    copy."""
-    S = np.asarray(C, dtype=np.float64)
-    if S.shape != (6, 6) or not np.all(np.isfinite(S)):
-        raise InputError(f"{name} must be a finite (6, 6) matrix")
-    if np.abs(S - S.T).max() > _SYM_RTOL * max(np.abs(S).max(), 1e-300):
-        raise InputError(f"{name} must be symmetric")
-    # shared only when nobody can write to it: read-only, owning its data, exactly symmetric
-    shared = (S is C and not S.flags.writeable and S.base is None
-              and np.array_equal(S, S.T))
-    if not shared:
-        S = 0.5 * (S + S.T)
-    try:
-        np.linalg.cholesky(S)
-    except np.linalg.LinAlgError:
-        raise InputError(f"{name} must be positive definite") from None
-    S.setflags(write=False)
-    return S
-
-
-_TRIU = np.triu_indices(6)
-
-
-def _pack(T: gtsam.Pose3, C: np.ndarray) -> np.ndarray:
-    """A measurement in 28 float64s: translation, quaternion (w, x, y, z), the covariance's
-    upper triangle."""
-    q = T.rotation().toQuaternion()
-    return np.concatenate([np.asarray(T.translation(), dtype=np.float64),
-                           [q.w(), q.x(), q.y(), q.z()], C[_TRIU]])
-
-
-def _unpack(v: np.ndarray) -> tuple[gtsam.Pose3, np.ndarray]:
-    T = gtsam.Pose3(gtsam.Rot3.Quaternion(*v[3:7]), v[:3].copy())
-    C = np.zeros((6, 6))
-    C[_TRIU] = v[7:]
-    C = C + np.triu(C, 1).T
-    C.setflags(write=False)
-    return T, C
-
-
-def _fuse(items: Sequence[tuple[gtsam.Pose3, np.ndarray]]) -> tuple[gtsam.Pose3, np.ndarray]:
-    """Measurements of one relative pose, fused by GTSAM: each a prior on one pose, solved by
-    Levenberg-Marquardt from the first (the minimum of the summed squared Mahalanobis errors,
-    as the pose graph would weigh them as parallel factors), with its marginal covariance."""
-    key = gtsam.symbol("x", 0)
-    graph = gtsam.NonlinearFactorGraph()
-    for T, C in items:
-        graph.add(gtsam.PriorFactorPose3(key, T, gtsam.noiseModel.Gaussian.Covariance(
-            np.array(C, dtype=np.float64), False)))
-    initial = gtsam.Values()
-    initial.insert(key, items[0][0])
-    estimate = _levenberg_marquardt(graph, initial, "fusion")
-    try:
-        cov = np.asarray(gtsam.Marginals(graph, estimate).marginalCovariance(key),
-                         dtype=np.float64)
-    except RuntimeError as exc:
-        raise SolverError(f"fusion marginals failed: {exc}") from exc
-    return estimate.atPose3(key), 0.5 * (cov + cov.T)
-
-
-# --------------------------------------------------------------------------------------------
-# Pose graph
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class _Factor:
-    factor_id: str
-    frame_a: str
-    frame_b: str
-    T_a_b: gtsam.Pose3 | None  # None once sealed (rule 6): never solved again
-    covariance_66: np.ndarray | None
-    known_inlier: bool
-    group: str | None = None  # its noise group (calibration), None: not calibrated
 
 
 @dataclass(frozen=True)
@@ -256,30 +98,13 @@ class PoseGraph:
         self.config = config or GraphConfig()
         self._frames: dict[str, int] = {}
         self._names: list[str] = []  # node names by index: factors hold these string objects
-        self._factors: dict[str, _Factor] = {}
+        self._factors: dict[str, GraphFactor] = {}  # the solved ones (folded: self._folding)
         self._anchor = anchor
         self._revision = 0  # bumped by every change: optimize() reuses a solution while equal
         self._solved: tuple[tuple[int, str, GraphConfig, bool], GraphSolution] | None = None
         self._cold_next = False  # a factor was removed: the next solve starts cold
-        # rule 5: folded factor -> (it, its representative); representative -> its folded
-        # (node a, node b, representative, measurement packed: _pack, group): a long mission holds
-        # thousands, so each is one small array rather than a Pose3 and a 6x6 matrix
-        self._folded: dict[str, tuple[str, str, str, np.ndarray, str | None]] = {}
-        self._deps: dict[str, list[str]] = {}
-        # representative -> its measurement fused with its folded ones'
-        self._fused: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
-        # node -> ids of the solved factors at it: known inliers, and the others (rule 5 only:
-        # kept once folding was asked for, built then from the factors)
-        self._known_at: dict[str, list[str]] = defaultdict(list)
-        self._closures_at: dict[str, list[str]] = defaultdict(list)
-        self._at_kept = False
-        # rule 6: frozen node -> its pose in the anchor frame (the anchor it was solved with);
-        # a settled factor between two frozen nodes -> its weight in the last solve that held it
-        self._frozen: dict[str, gtsam.Pose3] = {}
-        self._frozen_anchor: str | None = None
-        self._sealed: dict[str, float] = {}
-        # live node -> how many nodes had joined the anchor's component once it had; how many now
-        self._joined: dict[str, int] = {}
+        self._folding = Folding(self._factors)  # rule 5
+        self._freezing = Freezing()  # rule 6
         # calibration: noise group -> sigma scale per axis (6,), applied when solving
         self._scales: dict[str, np.ndarray] = {}
         self._components: dict[str, Any] = {}  # the last estimate's sums, per group
@@ -290,6 +115,23 @@ class PoseGraph:
         if anchor is not None:
             self.add_frame(anchor)
 
+    # the policies' state, as the solve reads it
+    @property
+    def _frozen(self) -> dict[str, gtsam.Pose3]:
+        return self._freezing.frozen
+
+    @property
+    def _sealed(self) -> dict[str, float]:
+        return self._freezing.sealed
+
+    @property
+    def _deps(self) -> dict[str, list[str]]:
+        return self._folding.deps
+
+    @property
+    def _fused(self) -> dict[str, Measurement]:
+        return self._folding.fused
+
     # -- building ----------------------------------------------------------------------------
 
     @property
@@ -298,7 +140,7 @@ class PoseGraph:
 
     @anchor.setter
     def anchor(self, frame: str) -> None:
-        self._check_anchor(frame)
+        self._freezing.check_anchor(frame)
         self.add_frame(frame)
         if frame != self._anchor:
             self._anchor = frame
@@ -327,39 +169,33 @@ class PoseGraph:
         f = self._factors.get(factor_id)
         if f is not None:
             return f.frame_a, f.frame_b, f.known_inlier
-        if factor_id in self._folded:
-            a, b = self._folded[factor_id][:2]
+        if factor_id in self._folding.folded:
+            a, b = self._folding.folded[factor_id][:2]
             return a, b, False
         raise InputError(f"unknown factor {factor_id!r}")
 
     @property
     def factor_ids(self) -> list[str]:
         """Every factor held: the solved ones in order of arrival, then the folded ones."""
-        return [*self._factors, *self._folded]
+        return [*self._factors, *self._folding.folded]
 
     def representative(self, factor_id: str) -> str | None:
         """The factor a folded factor is folded into (rule 5); None for a solved one.
         InputError if unknown."""
-        if factor_id in self._folded:
-            return self._folded[factor_id][2]
-        if factor_id not in self._factors:
+        rep = self._folding.representative(factor_id)
+        if rep is None and factor_id not in self._factors:
             raise InputError(f"unknown factor {factor_id!r}")
-        return None
+        return rep
 
     @property
     def frozen_count(self) -> int:
         """How many nodes are frozen (rule 6)."""
-        return len(self._frozen)
-
-    def _check_anchor(self, frame: str) -> None:
-        if self._frozen and frame != self._frozen_anchor:
-            raise InputError(f"{len(self._frozen)} nodes are frozen in the frame of "
-                             f"{self._frozen_anchor!r}: the anchor cannot be {frame!r}")
+        return len(self._freezing.frozen)
 
     @property
     def folded_count(self) -> int:
         """How many factors are folded (held but not solved, rule 5)."""
-        return len(self._folded)
+        return len(self._folding.folded)
 
     def key(self, frame: str) -> int:
         """The gtsam key of a frame."""
@@ -403,10 +239,10 @@ class PoseGraph:
         if frame_a == frame_b:
             raise InputError(f"factor {factor_id}: frame_a and frame_b are both {frame_a!r}")
         T = as_pose3(T_a_b, f"factor {factor_id}: T_a_b")
-        C = _check_covariance(covariance_66, f"factor {factor_id}: covariance_66")
+        C = check_covariance(covariance_66, f"factor {factor_id}: covariance_66")
         old = self._factors.get(factor_id)
-        if old is None and factor_id in self._folded:
-            old = self._unfold(factor_id)
+        if old is None and factor_id in self._folding.folded:
+            old = self._folding.unfold(factor_id)
         if old is not None:
             if (
                 (old.frame_a, old.frame_b, old.known_inlier)
@@ -420,154 +256,25 @@ class PoseGraph:
         self.add_frame(frame_a)
         self.add_frame(frame_b)
         # the node names the graph holds already (one string per node, not one per factor)
-        self._insert(_Factor(factor_id, self._names[self._frames[frame_a]],
-                             self._names[self._frames[frame_b]], T, C, bool(known_inlier),
-                             group))
+        self._insert(GraphFactor(factor_id, self._names[self._frames[frame_a]],
+                                 self._names[self._frames[frame_b]], T, C, bool(known_inlier),
+                                 group))
         self._revision += 1
         return True
 
-    def _insert(self, f: _Factor) -> None:
+    def _insert(self, f: GraphFactor) -> None:
         """A factor into the graph: folded into the factor it agrees with (rule 5), or solved."""
-        found = self._representative_for(f) if not f.known_inlier else None
+        found = self._folding.find(f, self.config, self._freezing.sealed)
         if found is not None:
-            rep, carried = found
-            fused = _fuse([self._measurement(self._factors[rep]), carried])  # before any change
-            self._folded[f.factor_id] = (f.frame_a, f.frame_b, rep,
-                                         _pack(f.T_a_b, f.covariance_66), f.group)
-            self._deps.setdefault(rep, []).append(f.factor_id)
-            self._fused[rep] = fused
+            self._folding.fold(f, *found)
             return
         self._factors[f.factor_id] = f
-        if self._at_kept:
-            self._index_at(f)
+        self._folding.solved(f)
 
-    def _index_at(self, f: _Factor) -> None:
-        at = self._known_at if f.known_inlier else self._closures_at
-        at[f.frame_a].append(f.factor_id)
-        at[f.frame_b].append(f.factor_id)
-
-    def _unfold(self, factor_id: str) -> _Factor:
-        """A folded factor as it was added."""
-        a, b, _, packed, group = self._folded[factor_id]
-        return _Factor(factor_id, a, b, *_unpack(packed), False, group)
-
-    def _measurement(self, g: _Factor) -> tuple[gtsam.Pose3, np.ndarray]:
+    def _measurement(self, g: GraphFactor) -> Measurement:
         """What the solve uses of a solved factor: its own measurement, or fused with those
         folded into it (rule 5)."""
-        return self._fused.get(g.factor_id, (g.T_a_b, g.covariance_66))
-
-    def _refuse(self, rep: str) -> None:
-        """The representative's fused measurement made again from its folded ones (after one
-        left), each carried to its ends again along the odometry (which has not changed: a
-        removed known inlier takes every folded factor out first, remove_factor)."""
-        g = self._factors[rep]
-        deps = self._deps.get(rep)
-        if not deps:
-            self._deps.pop(rep, None)
-            self._fused.pop(rep, None)
-            return
-        items = [(g.T_a_b, g.covariance_66)]
-        for d in deps:
-            f = self._unfold(d)
-            near_a = self._near(f.frame_a, self.config.fold_hops)
-            near_b = self._near(f.frame_b, self.config.fold_hops)
-            _, n, o = min((near_a[n][0] + near_b[o][0], n, o)
-                          for n, o in ((g.frame_a, g.frame_b), (g.frame_b, g.frame_a))
-                          if n in near_a and o in near_b)
-            items.append(self._carry(f, g, near_a[n], near_b[o], n)[:2])
-        self._fused[rep] = _fuse(items)
-
-    def _take_folded(self, ids: list[str]) -> list[_Factor]:
-        """These folded factors out of their representatives (whose fused measurements are
-        made again), as they were added."""
-        out, reps = [], set()
-        for d in ids:
-            out.append(self._unfold(d))
-            rep = self._folded.pop(d)[2]
-            self._deps[rep].remove(d)
-            reps.add(rep)
-        for rep in reps:
-            self._refuse(rep)
-        return out
-
-    def _near(self, node: str, hops: int) -> dict[str, tuple[int, gtsam.Pose3, np.ndarray]]:
-        """The nodes at most `hops` known-inlier factors from `node`: node -> (hops, pose in
-        `node`'s frame, its 6x6 covariance composed along the path, first order)."""
-        out = {node: (0, gtsam.Pose3(), np.zeros((6, 6)))}
-        todo = [node]
-        for h in range(1, hops + 1):
-            nxt = []
-            for n in todo:
-                _, T_n, S_n = out[n]
-                for fid in self._known_at.get(n, ()):
-                    k = self._factors[fid]
-                    if k.T_a_b is None:  # sealed (rule 6): not carried along
-                        continue
-                    m, T_step, C_step = ((k.frame_b, k.T_a_b, k.covariance_66) if k.frame_a == n
-                                         else (k.frame_a, *_inverse(k.T_a_b, k.covariance_66)))
-                    if m not in out:
-                        out[m] = (h, *_compose(T_n, S_n, T_step, C_step))
-                        nxt.append(m)
-            todo = nxt
-        return out
-
-    def _representative_for(self, f: _Factor) -> tuple[str, tuple[gtsam.Pose3,
-                                                                   np.ndarray]] | None:
-        """The solved factor g that `f` folds into (rule 5), with f's measurement carried to g's
-        ends (T, covariance, in g's direction): of the factors with their ends near f's, the
-        nearest; `f` folds if the odometry between is known well enough (fold_drift) and it
-        agrees with g's measurement (fused, if g holds folded ones)."""
-        hops = self.config.fold_hops
-        if hops <= 0 or f.frame_a not in self._frames or f.frame_b not in self._frames:
-            return None
-        if not self._at_kept:  # the first fold asked for: index the factors at their nodes
-            for g in self._factors.values():
-                self._index_at(g)
-            self._at_kept = True
-        near_a = self._near(f.frame_a, hops)
-        near_b = self._near(f.frame_b, hops)
-        best: tuple[int, str, str, str] | None = None  # (hops, factor, its end near a, near b)
-        for n, (h_n, _, _) in near_a.items():
-            for gid in self._closures_at.get(n, ()):
-                if gid in self._sealed:  # not solved again (rule 6): nothing to fold into
-                    continue
-                g = self._factors[gid]
-                o = g.frame_b if g.frame_a == n else g.frame_a
-                if o in near_b and (best is None or h_n + near_b[o][0] < best[0]):
-                    best = (h_n + near_b[o][0], gid, n, o)
-        if best is None:
-            return None
-        _, gid, n, o = best
-        g = self._factors[gid]
-        T, S, drift = self._carry(f, g, near_a[n], near_b[o], n)
-        if drift > self.config.fold_drift:
-            return None
-        T_g, C_g = self._measurement(g)
-        e = np.asarray(gtsam.Pose3.Logmap(T_g.between(T)), dtype=np.float64)
-        d2 = float(e @ np.linalg.solve(C_g + S, e))
-        if d2 >= float(chi2.ppf(self.config.inlier_probability, 6)):
-            return None
-        return gid, (T, S)
-
-    @staticmethod
-    def _carry(f: _Factor, g: _Factor, at_a: tuple[int, gtsam.Pose3, np.ndarray],
-               at_b: tuple[int, gtsam.Pose3, np.ndarray],
-               n: str) -> tuple[gtsam.Pose3, np.ndarray, float]:
-        """f's measurement carried to g's ends n (near f's a) and o (near f's b), in g's
-        direction: (T, covariance, drift). at_a / at_b: n's and o's pose and covariance in
-        f.a's / f.b's frame (_near). drift: the largest eigenvalue of what the odometry adds to
-        the covariance, whitened by f's own (first order, S = S_own + odometry): large, and f
-        says something about the odometry between its ends and g's that folding would lose."""
-        _, T_an, S_an = at_a
-        _, T_bo, S_bo = at_b
-        zero = np.zeros((6, 6))
-        T_na, S_na = _inverse(T_an, S_an)
-        T, S = _compose(*_compose(T_na, S_na, f.T_a_b, f.covariance_66), T_bo, S_bo)  # n->a->b->o
-        _, S_own = _compose(*_compose(T_na, zero, f.T_a_b, f.covariance_66), T_bo, zero)
-        drift = float(eigh(S - S_own, S_own, eigvals_only=True).max())
-        if g.frame_a != n:
-            T, S = _inverse(T, S)  # g's direction
-        return T, 0.5 * (S + S.T), drift
+        return self._folding.measurement(g)
 
     def add_factor_model(
         self, factor: Factor, *, known_inlier: bool = False, keyframe_nodes: bool | None = None,
@@ -597,33 +304,39 @@ class PoseGraph:
 
     def remove_factor(self, factor_id: str) -> bool:
         """Drop a factor (e.g. retracted); its frames stay. True if it was present. The factors
-        folded into it go back to the graph (rule 5: folded again, or solved)."""
-        if factor_id in self._folded:
-            self._take_folded([factor_id])
-            self._revision += 1
-            self._cold_next = True  # its representative's fused measurement moved
-            return True
-        f = self._factors.pop(factor_id, None)
-        if f is None:
-            return False
-        at = self._known_at if f.known_inlier else self._closures_at
-        for node in (f.frame_a, f.frame_b) if self._at_kept else ():
-            at[node].remove(factor_id)
-            if not at[node]:
-                del at[node]
-        self._fused.pop(factor_id, None)
-        self._sealed.pop(factor_id, None)
-        deps = self._deps.pop(factor_id, [])
-        back = [self._unfold(d) for d in deps]
-        for d in deps:
-            del self._folded[d]
-        if f.known_inlier:  # folded factors may have been carried along it: judged again
-            back += self._take_folded(list(self._folded))
-        for unfolded in back:
-            self._insert(unfolded)
+        folded into it go back to the graph (rule 5: folded again, or solved); a representative
+        keeps the folded ones' measurements as they were carried when they folded (their
+        odometry may be sealed since, rule 6). Raising, it changes nothing."""
+        if self._folding.representative(factor_id) is not None:
+            self._folding.remove(factor_id)  # (a failure changes nothing)
+        else:
+            f = self._factors.get(factor_id)
+            if f is None:
+                return False
+            undo = self._checkpoint() if self._folding.releases(f) else None
+            try:
+                del self._factors[factor_id]
+                for back in self._folding.release(f):
+                    self._insert(back)
+            except BaseException:
+                if undo is not None:
+                    undo()
+                raise
+            self._freezing.sealed.pop(factor_id, None)
         self._revision += 1
         self._cold_next = True  # the last solution may hold what this factor pulled
         return True
+
+    def _checkpoint(self) -> Callable[[], None]:
+        """A function that puts the factors (solved and folded) back as they are now."""
+        factors, folding = dict(self._factors), self._folding.checkpoint()
+
+        def undo() -> None:
+            self._factors.clear()
+            self._factors.update(factors)
+            folding()
+
+        return undo
 
     # -- structure ---------------------------------------------------------------------------
 
@@ -647,7 +360,8 @@ class PoseGraph:
     # -- solving -----------------------------------------------------------------------------
 
     def optimize(self, anchor: str | None = None, *, marginals: bool = True) -> GraphSolution:
-        """Solve the component of `anchor` (default: the graph's anchor); see the module rules.
+        """Solve the component of `anchor` (default: the graph's anchor) by the rules of
+        docs/pose_graph.md.
 
         marginals=False skips the marginal covariances (covariance_66 stays empty): they cost
         about as much as the GNC solve on long keyframe chains, and the service does not use
@@ -682,8 +396,8 @@ class PoseGraph:
         if not isinstance(step, int) or isinstance(step, bool) or step <= 0:
             raise InputError(f"settle: step must be a positive whole number, not {step!r}")
         if cap > 0:  # (every prefix holds the anchor)
-            start = max(len(self._frozen) + step, self._frames[anchor] + 1)
-            for limit in range(start, len(self._frames), step):
+            for limit in self._freezing.settle_limits(self._frames[anchor], len(self._frames),
+                                                      step):
                 self._remember(None, self._solve(anchor, False, limit=limit))
         return self.optimize(marginals=False)
 
@@ -693,7 +407,7 @@ class PoseGraph:
             raise InputError("the pose graph is empty: no anchor frame")
         if anchor not in self._frames:
             raise InputError(f"unknown anchor frame {anchor!r}")
-        self._check_anchor(anchor)
+        self._freezing.check_anchor(anchor)
         return anchor
 
     def _solve(self, anchor: str, marginals: bool, limit: int | None = None) -> GraphSolution:
@@ -771,7 +485,8 @@ class PoseGraph:
         comps.sort(key=lambda c: anchor not in c)
         comp = comps[0]
         local = {f: i for i, f in enumerate(comp)}
-        frozen, sealed = self._frozen, self._sealed
+        frozen, sealed = self._freezing.frozen, self._freezing.sealed
+        deps = self._folding.deps  # rule 5: representative -> its folded factors
         live = [n for n in comp if n not in frozen]
         # the component's factors; rules 1 and 3 are judged on all of them (a frozen part
         # still says which factors are bridges and which close loops twice over)
@@ -846,7 +561,7 @@ class PoseGraph:
             if not f.known_inlier
             and weight.get(f.factor_id, sealed.get(f.factor_id, 1.0))
             >= cfg.outlier_weight
-            for _ in range(2 if f.factor_id in self._deps else 1)
+            for _ in range(2 if f.factor_id in deps else 1)
         ]
         twice = two_edge_connected(len(comp), [(u, v) for u, v in kept if u != v])
         outliers = [
@@ -878,7 +593,7 @@ class PoseGraph:
                 facs[i].group for i in range(len(facs)) if i not in rejected])
 
         def with_folded(fid: str) -> list[str]:  # a factor, then those folded into it
-            return [fid, *self._deps.get(fid, ())]
+            return [fid, *deps.get(fid, ())]
 
         poses = {n: frozen[n] if n in frozen else estimate.atPose3(self.key(n)) for n in comp}
         covs, marg_err = self._marginals(final, estimate, live) if marginals else ({}, None)
@@ -910,52 +625,22 @@ class PoseGraph:
             errors={fid: v[2] for fid, v in held.items()},
             gnc_ran=gnc_ran,
             gnc_skipped=gnc_skipped,
-            folded={d: fid for fid in every_v for d in self._deps.get(fid, ())},
+            folded={d: fid for fid in every_v for d in deps.get(fid, ())},
             marginals_error=marg_err,
             frozen_nodes=len(comp) - len(live),
         )
-        # rule 6 freezes only nodes placed beyond doubt: joined to the anchor twice over by
-        # closures GNC kept (as rule 3 confirms), and not in a chain an ambiguous closure pulls
-        if cfg.max_live_nodes > 0:
-            placed = twice[group[local[anchor]]]
-            pulled = {group[local[n]] for i in ambiguous
-                      for n in (facs[i].frame_a, facs[i].frame_b)}
-            self._freeze(anchor, [n for n in live if twice[group[local[n]]] == placed
-                                  and group[local[n]] not in pulled], poses, facs, held, live)
+        if cfg.max_live_nodes > 0:  # rule 6
+            sealed_now = self._freezing.update(
+                anchor, live, poses, facs, held, lambda n: group[local[n]],
+                lambda n: twice[group[local[n]]],
+                [n for i in ambiguous for n in (facs[i].frame_a, facs[i].frame_b)],
+                cfg.max_live_nodes)
+            for f in sealed_now:
+                if f.factor_id not in deps:  # never solved again: its ends are enough
+                    self._factors[f.factor_id] = f.sealed()
         return sol
 
-    def _freeze(self, anchor: str, placed: list[str], poses: dict[str, gtsam.Pose3],
-                facs: list[_Factor], held: dict[str, tuple[float, str, float]],
-                live: list[str]) -> None:
-        """Rule 6: a live node placed beyond doubt (`placed`) freezes at its solved pose once
-        max_live_nodes nodes joined the anchor's component in later solves than it did (so a
-        session that joins late, on one closure nothing can check yet, stays live until more
-        closures judge it). Seals the factors between two frozen nodes that are settled: known
-        inliers and closures GNC kept (ambiguous, outlying and unchecked ones stay in the solve
-        and are judged again)."""
-        cap = self.config.max_live_nodes
-        new = [n for n in live if n not in self._joined]
-        # nodes ever joined: live ones (in _joined) and frozen ones (they left _joined)
-        total = len(self._joined) + len(self._frozen) + len(new)
-        for n in new:
-            self._joined[n] = total  # (those that join in one solve: alike)
-        frozen = [n for n in placed if total - self._joined[n] >= cap]
-        for n in frozen:
-            self._frozen[n] = poses[n]
-            del self._joined[n]  # (only live nodes need it)
-        if frozen:
-            self._frozen_anchor = anchor
-            log.debug("pose graph: %d nodes frozen, %d live", len(self._frozen),
-                      len(live) - len(frozen))
-        for f in facs:  # (also one added between two frozen nodes: solved, then sealed)
-            if (f.frame_a in self._frozen and f.frame_b in self._frozen
-                    and (f.known_inlier or held[f.factor_id][1] == "")):
-                self._sealed[f.factor_id] = held[f.factor_id][0]
-                if f.factor_id not in self._deps:  # never solved again: its ends are enough
-                    self._factors[f.factor_id] = _Factor(f.factor_id, f.frame_a, f.frame_b,
-                                                         None, None, f.known_inlier, f.group)
-
-    def _between(self, f: _Factor) -> gtsam.BetweenFactorPose3:
+    def _between(self, f: GraphFactor) -> gtsam.BetweenFactorPose3:
         T, C = self._measurement(f)
         s = self._scales.get(f.group) if f.group is not None else None
         if s is not None:
@@ -964,66 +649,18 @@ class PoseGraph:
         return gtsam.BetweenFactorPose3(self.key(f.frame_a), self.key(f.frame_b), T, noise)
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
-                        facs: list[_Factor]) -> gtsam.Values:
+                        facs: list[GraphFactor]) -> gtsam.Values:
         """The seeds (the anchor, the frozen nodes the factors touch) at their poses, every live
-        node chained from them along a spanning tree of the factors.
-
-        Frame pairs are ranked: known inliers first, then pairs with more parallel factors, then
-        the smaller covariance; within a pair the medoid measurement is used, so a single gross
-        factor beside correct parallel ones does not spoil the starting point.
-
-        Warm start: a node the last solution (same anchor) placed starts there; only new nodes
-        are chained from their tree parent. It keeps a long mission's solve short (a synthetic
-        chain of 850 keyframes with 2,000 loop closures: GNC 34.6 s from the chained start,
-        0.44 s from the converged poses; `mergesvc bench cost` measures it in the service).
-        It is not neutral: GTSAM's GNC sets its schedule (mu) from the residuals at the start
-        and starts each weighted solve there, so verdicts on a borderline factor may depend on
-        the graph's history. tests/test_graph.py checks warm against cold at every step of
-        graphs with a wrong closure, a late chain and a retraction. After a factor is removed
-        the next solve starts cold: the last poses may hold what that factor pulled.
-        """
-        prev: dict[str, gtsam.Pose3] = {}
+        node chained from them along a spanning tree of the factors (core/graph_start.py). Warm
+        start: a node the last solution (same anchor) placed starts there, except after a
+        factor was removed (the last poses may hold what that factor pulled)."""
         last = self._solved[1] if self._solved is not None else None
-        if (self.config.warm_start and last is not None and last.anchor == anchor
-                and not self._cold_next):
-            prev = last.T_anchor_frame
-        by_pair: dict[tuple[str, str], list[tuple[_Factor, gtsam.Pose3]]] = defaultdict(list)
-        for f in facs:
-            a, b = sorted((f.frame_a, f.frame_b))
-            T = f.T_a_b if (a, b) == (f.frame_a, f.frame_b) else f.T_a_b.inverse()
-            by_pair[(a, b)].append((f, T))
-        ranked = []
-        for pair, items in by_pair.items():
-            dist = [
-                sum(np.linalg.norm(gtsam.Pose3.Logmap(T.between(U))) for _, U in items)
-                for _, T in items
-            ]
-            k = int(np.argmin(dist))
-            f, T = items[k]
-            known = any(g.known_inlier for g, _ in items)
-            ranked.append(((not known, -len(items), float(np.trace(f.covariance_66))), pair, T))
-        ranked.sort(key=lambda r: r[0])
-        adj: dict[str, list[tuple[str, gtsam.Pose3]]] = defaultdict(list)
-        nodes = [*seeds, *(n for n in live if n not in seeds)]
-        uf = UnionFind(len(nodes))
-        index = {f: i for i, f in enumerate(nodes)}
-        for i in range(1, len(seeds)):  # the seeds are placed: one tree joins them all
-            uf.union(0, i)
-        for _, (a, b), T in ranked:  # Kruskal: best pairs first
-            if uf.union(index[a], index[b]):
-                adj[a].append((b, T))
-                adj[b].append((a, T.inverse()))
-        poses = dict(seeds)
-        todo = list(seeds)
-        while todo:
-            a = todo.pop()
-            for b, T_a_b in adj[a]:
-                if b not in poses:
-                    poses[b] = prev[b] if b in prev else poses[a].compose(T_a_b)
-                    todo.append(b)
+        warm = (self.config.warm_start and last is not None and last.anchor == anchor
+                and not self._cold_next)
         values = gtsam.Values()
-        for frame in nodes:
-            values.insert(self.key(frame), poses[frame])
+        for node, T in initial_poses(seeds, live, facs,
+                                     last.T_anchor_frame if warm else {}).items():
+            values.insert(self.key(node), T)
         return values
 
     def _marginals(
@@ -1039,16 +676,6 @@ class PoseGraph:
         except RuntimeError as exc:  # e.g. an indeterminant linear system
             log.warning("pose-graph marginals failed: %s", exc)
             return {}, one_line(exc)
-
-
-def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-                         what: str) -> gtsam.Values:
-    try:
-        return gtsam.LevenbergMarquardtOptimizer(
-            graph, initial, gtsam.LevenbergMarquardtParams()
-        ).optimize()
-    except RuntimeError as exc:
-        raise SolverError(f"{what} optimisation failed: {exc}") from exc
 
 
 __all__ = ["GraphSolution", "PoseGraph"]

@@ -23,6 +23,7 @@ class SolverName(str, Enum):
     SM = "sm"
     IPFP = "ipfp"
     EXACT = "exact"
+    NGM = "ngm"  # the neural solver (core/solvers/ngm.py), trained on our formulation
 
 
 class SearchKind(str, Enum):

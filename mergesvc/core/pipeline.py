@@ -44,10 +44,11 @@ from mergesvc.core.model import (
     RejectReason,
     Transform,
 )
-from mergesvc.core.solvers import dense, heuristic
+from mergesvc.core.solvers import dense, heuristic, ngm
 from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
+from mergesvc.core.solvers.near import NearOptimal, near_optimal
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 from mergesvc.core.threads import blas_threads
 from mergesvc.core.verify import (
@@ -63,6 +64,10 @@ from mergesvc.core.windows import consensus, one_to_one, partition
 from mergesvc.errors import SchemaError
 
 log = logging.getLogger(__name__)
+
+# problems this small get every near-optimal assignment at once (solvers/near.py)
+_NEAR_MAX_ROWS = 8
+_NEAR_MAX_CANDIDATES = 128
 
 
 class StageTimer:
@@ -139,6 +144,8 @@ def _solve_candidates(
         soft = heuristic.spectral(positive, scfg.max_iter)
     elif name is SolverName.IPFP:
         soft = heuristic.ipfp(signed, heuristic.spectral(positive, scfg.max_iter), scfg.max_iter)
+    elif name is SolverName.NGM:  # NGM takes edge affinities in [0, 1]: undo their weight
+        soft = ngm.solve(positive, edge_scale=1.0 / edge_pair_weight(positive.n1, config.affinity))
     else:  # exact: start from the node scores alone
         soft = np.diag(signed.K).copy()
     assignment = harden(signed, soft, unmatched_value=0.0)
@@ -427,6 +434,28 @@ def _unmatch_gains(problem: AssignmentProblem, assignment: np.ndarray) -> np.nda
     return out
 
 
+def _exact(
+    signed: AssignmentProblem, incumbent: np.ndarray, config: MatchConfig
+) -> tuple[ExactResult, NearOptimal | None]:
+    """The optimum over the candidates: on tiny problems every assignment within the margin
+    of the incumbent at once (solvers/near.py; the margin test reads its margins from the
+    same set), else, or when that set grows too large, the branch and bound."""
+    v = config.verify
+    if signed.n1 <= _NEAR_MAX_ROWS and signed.m <= _NEAR_MAX_CANDIDATES:
+        margin = v.margin if v.margin_max_matches > 0 else 0.0
+        floor = max(signed.score(incumbent), 0.0)  # leaving every row unmatched scores 0
+        found = near_optimal(signed, floor - max(margin, 1e-9))
+        if found is not None:
+            near, states = found
+            best = near.best(states)
+            if best is not None:
+                return best, near
+    exact = solve_exact(signed, allow_unmatched=True, incumbent=incumbent,
+                        max_nodes=v.max_nodes, time_limit_s=v.time_limit_s,
+                        gap=v.optimality_gap)
+    return exact, None
+
+
 def _verify(
     sub: ObjectArrays,
     map_: ObjectArrays,
@@ -438,16 +467,9 @@ def _verify(
 ) -> _Pass:
     """Exact search over the candidates -> margin test -> rigid fit -> accept or reject."""
     assignment = prop.assignment
-    exact = None
+    exact = near = None
     if config.verify.exact or config.solver.name is SolverName.EXACT:
-        exact = solve_exact(
-            prop.signed,
-            allow_unmatched=True,
-            incumbent=assignment,
-            max_nodes=config.verify.max_nodes,
-            time_limit_s=config.verify.time_limit_s,
-            gap=config.verify.optimality_gap,
-        )
+        exact, near = _exact(prop.signed, assignment, config)
         if exact.score >= prop.signed.score(assignment) - 1e-9:
             assignment = exact.assignment
         timer.lap("exact")
@@ -464,7 +486,10 @@ def _verify(
         cand_xyz = map_.position_xyz_m[prop.local[prop.signed.cols]]
         dist = np.linalg.norm(cand_xyz - chosen_xyz[prop.signed.rows], axis=1)
         same = dist <= config.verify.inlier_sigmas * sigma_m
-        margins = row_margins(prop.signed, assignment, config.verify.margin, same=same)
+        if near is not None:
+            margins = near.margins(assignment, config.verify.margin, same=same)
+        else:
+            margins = row_margins(prop.signed, assignment, config.verify.margin, same=same)
         # leaving the object unmatched is an alternative too (a false detection that happens
         # to fit a look-alike adds little): its gain over that must clear the margin as well
         margins = np.fmin(margins, _unmatch_gains(prop.signed, assignment))
@@ -690,7 +715,10 @@ def _match_paper(
         assignment = exact.assignment
         soft = A
     else:
-        soft = dense.solve_dense(config.solver.name.value, K, n1, n2, config.solver.max_iter)
+        if config.solver.name is SolverName.NGM:
+            soft = ngm.solve_dense(K, n1, n2)
+        else:
+            soft = dense.solve_dense(config.solver.name.value, K, n1, n2, config.solver.max_iter)
         del K
         assignment = harden_dense(soft)
     timer.lap("solve")

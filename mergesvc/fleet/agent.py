@@ -608,8 +608,9 @@ class AgentRun:
 def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> AgentStats:
     """Build the vehicle (codec, keys), open a Zenoh session with `zenoh_config`, run `frames`
     through an `Agent`, linger for factors, close. Raises MergeError (ConfigError for the
-    compact profile without a projection), ValueError/OSError for unreadable input."""
-    import zenoh
+    compact profile without a projection, TransportError when the session cannot open),
+    ValueError/OSError for unreadable input."""
+    from mergesvc.wire.session import open_session
 
     proj = Projection.load(run.projection) if run.projection is not None else None
     if run.profile is Profile.COMPACT and proj is None:
@@ -625,7 +626,7 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> Agen
     def encode(sub: Submap, seq: int) -> bytes:
         return encode_message(sub, run.profile, run.robot, seq, projection=proj)
 
-    with zenoh.open(zenoh_config) as session, Agent(
+    with open_session(zenoh_config) as session, Agent(
         acfg, session, encode, decode_factor,
         submap_key=keys.submap_key(root, run.robot, run.session),
         factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),

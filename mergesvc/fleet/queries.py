@@ -37,7 +37,8 @@ class ServiceStats:
     submaps_duplicate: int = 0
     submaps_processed: int = 0
     submaps_rejected: int = 0  # refused at the boundary (bad payloads, limits)
-    factors_accepted: int = 0
+    factors_accepted: int = 0  # sent: trusted by the consistency sets
+    factors_matched: int = 0  # fitted from accepted matches (sent, held or replayed)
     factors_retracted: int = 0
     matches_tried: int = 0
     relocalize_queries: int = 0

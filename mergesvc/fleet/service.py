@@ -337,6 +337,7 @@ class MergeService:
         for f in uow.withdrawn:
             self.outbox.factor(f.model_copy(update={"status": FactorStatus.RETRACTED}))
         self.stats.count("factors_accepted", len(uow.sent))
+        self.stats.count("factors_matched", len(uow.factors))
         self.stats.count("factors_retracted", len(uow.withdrawn))
         self.stats.count("submaps_processed")
         self.outbox.result(uow.result)

@@ -24,6 +24,7 @@ from mergesvc.errors import ConfigError, DecodeError, LinkError
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator, LossEvent
 from mergesvc.wire.keys import BRIDGE_DOWNLINK, all_under, under
+from mergesvc.wire.session import open_session
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ class AcousticBridge:
         self._t0 = clock()
         try:
             if self._session is None:
-                self._session = zenoh.open(
+                self._session = open_session(
                     zenoh_config if zenoh_config is not None else zenoh.Config()
                 )
             remote = zenoh.Locality.REMOTE  # never re-bridge what this session republished

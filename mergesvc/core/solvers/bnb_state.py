@@ -103,7 +103,7 @@ class Tables:
         excl[idx, idx] = True
 
         self.conf: np.ndarray | None = None
-        if problem.conflict is not None and problem.conflict.any() and len(rows):
+        if problem.conflict is not None and len(rows):
             flat = p.reshape(-1)
             Cb = problem.conflict.take(flat, axis=0).take(flat, axis=1)  # bool: take is fast
             conf = Cb.reshape(n1, kmax, n1, kmax).transpose(0, 2, 1, 3).copy()

@@ -43,6 +43,7 @@ from mergesvc.core.solvers.bounds import Bound, bound
 from mergesvc.core.solvers.consistency import repair_conflicts
 from mergesvc.core.solvers.primal import local_search, slots_score, to_cols
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.reduce import eliminate
 from mergesvc.errors import SolverError
 
 log = logging.getLogger(__name__)
@@ -217,26 +218,33 @@ def solve_exact(
         that nothing beats cutoff (upper_bound <= max(score, cutoff) stays valid either way).
     Raises SolverError when allow_unmatched=False and no full assignment exists (with
     conflicts: also when the budget runs out before the search finds one).
-    With unmatched rows allowed, dominated candidates (`dominated`) are removed first: the
-    optimum over what is left is the optimum over the whole candidate set.
+    With unmatched rows allowed, candidates in no assignment beating the incumbent (or the
+    cutoff) by more than gap, and dominated ones, are removed first (reduce.eliminate; the
+    incumbent's are kept): the answer over what is left is the answer over the whole set.
     Conflicts (problem.conflict): an incumbent holding conflicting pairs is repaired first
     (`repair_conflicts`) when rows may stay unmatched, else ignored.
     """
     if cutoff is not None and not allow_unmatched:
         raise SolverError("a cutoff needs allow_unmatched (the empty assignment is the fallback)")
     incumbent = _repaired(problem, incumbent, allow_unmatched)
+    dropped_bound = -math.inf
     if allow_unmatched and 0 < problem.m <= _PRESOLVE_MAX_CANDIDATES:
-        gone = dominated(problem)
-        if gone.any():
-            if incumbent is not None and problem.is_feasible(np.asarray(incumbent)):
-                # unmatching a dominated candidate never lowers the incumbent's score
-                incumbent = np.asarray(incumbent).copy()
-                lookup = set(zip(problem.rows[gone].tolist(), problem.cols[gone].tolist()))
-                for i, a in enumerate(incumbent.tolist()):
-                    if (i, a) in lookup:
-                        incumbent[i] = UNMATCHED
-            problem = problem.subset(~gone)
-    return _solve_exact(
+        # candidates in no assignment beating the incumbent (or the cutoff) by the gap, and
+        # dominated ones, go before the search (reduce.py); the incumbent's stay
+        floor, protect = 0.0, None  # leaving every row unmatched scores 0
+        inc = None if incumbent is None else np.asarray(incumbent)
+        if inc is not None and np.issubdtype(inc.dtype, np.integer) and \
+                problem.is_feasible(inc):
+            floor = max(floor, problem.score(inc))
+            protect = np.zeros(problem.m, dtype=bool)
+            protect[problem.assignment_to_indices(inc)] = True
+        threshold = max(floor, -math.inf if cutoff is None else float(cutoff)) + gap
+        red = eliminate(problem, threshold, protect)
+        if not red.alive.all():
+            problem = problem.subset(red.alive)
+        # what a dropped candidate's assignments can score: no more than the threshold
+        dropped_bound = min(red.dropped_bound, threshold)
+    res = _solve_exact(
         problem,
         allow_unmatched=allow_unmatched,
         incumbent=incumbent,
@@ -246,6 +254,10 @@ def solve_exact(
         cutoff=cutoff,
         gap=gap,
     )
+    if dropped_bound > res.upper_bound:
+        res = ExactResult(res.assignment, res.score, res.optimal, res.nodes_expanded,
+                          dropped_bound)
+    return res
 
 
 def _repaired(

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.core.solvers.exact import ExactSearch, dominated
+from mergesvc.core.solvers.exact import ExactSearch
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.reduce import eliminate
 
 
 def row_margins(
@@ -43,13 +44,14 @@ def row_margins(
     if len(matched) == 0:
         return out
     bonus = 2.0 * np.abs(problem.K).sum() + 1.0
-    # Dominated candidates stay dominated in every variant, except on the row that gets the
-    # bonus, where a candidate can go only if every alternative through it falls short of the
-    # solution by the margin anyway: one reduced problem serves every row.
-    slack = np.where(np.isin(problem.rows, matched), margin_needed, 0.0)
-    keep = ~dominated(problem, slack)
-    base = problem.subset(keep)
-    search = ExactSearch(base)
+    # One reduced problem serves every row: a candidate in no assignment that comes within the
+    # margin of the solution is no alternative for any row (reduce.py: its star bound); the
+    # dominance test (unmatching never lowers) holds for the rows that get no bonus only.
+    unmatched_rows = np.ones(problem.n1, dtype=bool)
+    unmatched_rows[matched] = False
+    keep = eliminate(problem, best - margin_needed, dominance=unmatched_rows[problem.rows]).alive
+    base = problem.subset(keep) if not keep.all() else problem
+    search = None  # its tables only when some row still has alternatives to search
     for i in matched:
         on_row = base.rows == i
         chosen = on_row & (base.cols == assignment[i])
@@ -65,11 +67,14 @@ def row_margins(
             continue
         unary_add = np.where(chosen, -bonus, np.where(on_row, bonus, 0.0))
         cutoff = best - margin_needed + bonus
+        search = search or ExactSearch(base)
         res = search.run(
             max_nodes=max_nodes, time_limit_s=time_limit_s, cutoff=cutoff, unary_add=unary_add
         )
-        # the proven upper bound on the alternatives (their best score when it beat the cutoff)
-        out[i] = (best + bonus) - res.upper_bound
+        # the proven upper bound on the alternatives (their best score when it beat the
+        # cutoff; the dropped ones score at most the cutoff)
+        upper = res.upper_bound if base is problem else max(res.upper_bound, cutoff)
+        out[i] = (best + bonus) - upper
         if res.optimal and res.score <= cutoff:
             # nothing came within the margin (exact in the search; the bonus arithmetic may
             # round the reported bound a hair below it)
