@@ -49,11 +49,16 @@ class InterRobotFactors:
         self.key_of = key_of
         self.graph = gtsam.NonlinearFactorGraph()
         self.index: dict[str, int] = {}  # factor id -> its slot in self.graph
+        self.ends: dict[str, tuple[str, ...]] = {}  # factor id -> the sessions it ties
 
     def apply(self, f: Mapping[str, Any]) -> str:
         """Add a factor, replace one with the same id, or drop it when its status is
-        "retracted"; returns what it did."""
+        "retracted"; returns what it did. A factor whose id was seen tying other sessions is
+        refused (ids never collide, docs/wire.md §6.3: it is not from the service)."""
         fid = f["factor_id"]
+        ends = tuple(f[k] for k in ("robot_a", "session_a", "robot_b", "session_b"))
+        if self.ends.setdefault(fid, ends) != ends:
+            return "refused: the id names another pair of sessions"
         old = self.index.pop(fid, None)
         if old is not None:
             self.graph.remove(old)  # leaves an empty slot: indices of the others stay valid

@@ -108,3 +108,8 @@ def test_gtsam_snippet_builds_the_factors_the_service_solved_with(run) -> None:
     np.testing.assert_allclose(g.graph.at(g.index[second["factor_id"]]).measured().translation(),
                                [9.0, 9.0, 9.0])
     assert g.apply({**first, "status": "retracted"}) == "unknown, ignored"
+    # an id seen tying other sessions is refused: a robot cannot shadow another's factors
+    shadow = {**second, "robot_a": "intruder"}
+    assert g.apply(shadow).startswith("refused")
+    np.testing.assert_allclose(g.graph.at(g.index[second["factor_id"]]).measured().translation(),
+                               [9.0, 9.0, 9.0])

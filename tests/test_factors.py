@@ -4,9 +4,13 @@ refused, and the factor exactly as the service built it inline before (same id, 
 
 from __future__ import annotations
 
+from urllib.parse import unquote
+
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import mergesvc
 from mergesvc.core.factors import (
@@ -359,3 +363,39 @@ def test_one_line_is_what_the_wire_and_store_use() -> None:
 
     for module in (envelope, files, projection, store, graph, cli_errors):
         assert module.one_line is one_line, module.__name__
+
+
+# -------------------------------------------------------------------------- factor ids
+
+
+def test_factor_ids_of_the_review_collide_no_more() -> None:
+    """("p","q-r")+("s","t") and ("p","q")+("r-s","t") once both gave p.q-r-s.t-5."""
+    one = match_factor_id(FrameId("p", "q-r"), FrameId("s", "t"), 5)
+    two = match_factor_id(FrameId("p", "q"), FrameId("r-s", "t"), 5)
+    assert one != two
+    assert (one, two) == ("p.q%2Dr-s.t-5", "p.q-r%2Ds.t-5")  # docs/wire.md §6.3's vectors
+    assert match_factor_id(FrameId("auv1", "s0"), FrameId("auv2", "s0"), 12) == "auv1.s0-auv2.s0-12"
+    assert match_factor_id(FrameId("r" * 70, "s" * 60), FrameId("x", "y"), 7) == (
+        "h-55689ed34e0cea41a457d44505c56e32")
+
+
+_HOSTILE = st.text(alphabet=st.sampled_from(list("ab.-%2DE5_水")), min_size=1, max_size=70)
+_SESSION = st.text(alphabet=st.sampled_from(list("ab.-%2DE5_/水")), min_size=1, max_size=70)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.tuples(_HOSTILE, _SESSION, _HOSTILE, _SESSION,
+                          st.integers(0, 12)), min_size=2, max_size=6, unique=True))
+def test_factor_ids_never_collide_for_hostile_names(tuples: list) -> None:
+    """Names made of the separators and the escape itself: distinct tuples, distinct ids, each
+    at most 128 characters, and an escaped id gives back its tuple."""
+    ids = [match_factor_id(FrameId(ra, sa), FrameId(rb, sb), seq)
+           for ra, sa, rb, sb, seq in tuples]
+    assert len(set(ids)) == len(ids)
+    for fid, (ra, sa, rb, sb, seq) in zip(ids, tuples, strict=True):
+        assert 1 <= len(fid) <= 128
+        if fid.startswith("h-"):
+            continue
+        a, b, s = fid.split("-")
+        back = [unquote(x) for x in (*a.split("."), *b.split("."))]
+        assert back == [ra, sa, rb, sb] and int(s) == seq

@@ -21,6 +21,8 @@ Pure computation: no Zenoh, no files.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -30,7 +32,14 @@ import gtsam
 import numpy as np
 
 from mergesvc.core.frames import FrameId, KeyframeId
-from mergesvc.core.model import Correspondence, Factor, FactorStatus, MatchResult, Submap
+from mergesvc.core.model import (
+    MAX_ID_LENGTH,
+    Correspondence,
+    Factor,
+    FactorStatus,
+    MatchResult,
+    Submap,
+)
 from mergesvc.core.poses import as_pose3, pose3_from_model, transform_from_pose3
 from mergesvc.core.verify import (
     align_about_vertical,
@@ -61,11 +70,22 @@ def inflate_covariance(
     return cov + np.diag([r_sig**2] * 3 + [t_sig**2] * 3)
 
 
+_ID_ESCAPES = str.maketrans({"%": "%25", ".": "%2E", "-": "%2D"})
+
+
 def match_factor_id(frame_a: FrameId, frame_b: FrameId, seq: int) -> str:
-    """The id of the factor from submap `seq` of frame_b matched against frame_a:
-    "{robot_a}.{session_a}-{robot_b}.{session_b}-{seq}". Deterministic, so a replay of the
-    same submap gives the same id (the store keeps the factor once)."""
-    return f"{frame_a.robot}.{frame_a.session}-{frame_b.robot}.{frame_b.session}-{seq}"
+    """The id of the factor from submap `seq` of frame_b matched against frame_a (docs/wire.md
+    §6.3): "{robot_a}.{session_a}-{robot_b}.{session_b}-{seq}" with `%`, `.` and `-` in each
+    name written %25, %2E, %2D, so two tuples never share an id; when that is longer than an
+    id may be (128), "h-" and the first 32 hex digits of the SHA-256 of the tuple as compact
+    JSON. Deterministic, so a replay of the same submap gives the same id."""
+    names = (frame_a.robot, frame_a.session, frame_b.robot, frame_b.session)
+    ra, sa, rb, sb = (n.translate(_ID_ESCAPES) for n in names)
+    fid = f"{ra}.{sa}-{rb}.{sb}-{seq}"
+    if len(fid) <= MAX_ID_LENGTH:
+        return fid
+    text = json.dumps([*names, seq], separators=(",", ":"), ensure_ascii=False)
+    return "h-" + hashlib.sha256(text.encode("utf-8")).hexdigest()[:32]
 
 
 def yields_factor(result: MatchResult | MatchOutcome) -> bool:
