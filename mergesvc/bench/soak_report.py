@@ -1,0 +1,326 @@
+"""The soak's judge: the `Ledger` of what every robot sent and was answered (counted from the
+monitor's subscriptions), the report built from it and from the store read through
+`StoreReader` once the service has stopped (lost, duplicated, failed, pending submaps;
+latency and throughput per time bin; RSS growth without the clients' shared memory), its
+summary for people and its figure.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import re
+import threading
+import time
+from collections import Counter, defaultdict
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote
+
+import numpy as np
+
+from mergesvc.bench.soak_world import HOSTILE_ROBOTS, SoakPlan
+from mergesvc.core.model import ErrorMessage
+from mergesvc.errors import MergeError
+from mergesvc.store import StoreReader
+from mergesvc.wire import decode_message
+
+RSS_TARGET_MB = 100.0
+_FACTOR_ID = re.compile(r"^(?P<ra>[^.]+)\.(?P<sa>[^-]+)-(?P<rb>[^.]+)\.(?P<sb>[^-]+)-(?P<seq>\d+)$")
+
+
+# ------------------------------------------------------------------------------ the ledger
+
+
+@dataclass
+class Ledger:
+    """What was sent and what came back, shared by the driver's threads."""
+
+    t0: float = field(default_factory=time.time)
+    valid: dict[tuple[str, str, int], float] = field(default_factory=dict)  # key -> sent at
+    mismatch: dict[tuple[str, str, int], float] = field(default_factory=dict)
+    hostile: list[tuple[float, str]] = field(default_factory=list)  # (sent at, kind)
+    errors: dict[str, Counter] = field(default_factory=lambda: defaultdict(Counter))
+    factors: dict[str, set[str]] = field(default_factory=lambda: defaultdict(set))
+    first_factor_at: dict[tuple[str, str, int], float] = field(default_factory=dict)
+    results: dict[str, Counter] = field(default_factory=lambda: defaultdict(Counter))
+    first_result_at: dict[tuple[str, str, int], float] = field(default_factory=dict)
+    bytes_valid: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def hostile_answered(self) -> int:
+        with self.lock:
+            return sum(sum(self.errors[r].values()) for r in HOSTILE_ROBOTS)
+
+    def on_error(self, sample: Any) -> None:
+        robot = str(sample.key_expr).rsplit("/", 1)[-1]
+        try:
+            msg = decode_message(sample.payload.to_bytes())[1]
+            code = msg.code if isinstance(msg, ErrorMessage) else "?"
+        except MergeError:
+            code = "undecodable"
+        with self.lock:
+            self.errors[robot][code] += 1
+
+    def on_result(self, sample: Any) -> None:
+        """The service's result of one submap (JSON on result/{robot}): counted per outcome."""
+        robot = str(sample.key_expr).rsplit("/", 1)[-1]
+        now = time.time()
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+            outcome = str(doc["outcome"])
+            k = (robot, doc.get("session"), doc.get("seq"))
+        except (ValueError, KeyError, TypeError):
+            outcome, k = "unreadable", None
+        with self.lock:
+            self.results[robot][outcome] += 1
+            if k is not None and k[1] is not None and k[2] is not None:
+                self.first_result_at.setdefault((k[0], str(k[1]), int(k[2])), now)
+
+    def on_factor(self, sample: Any) -> None:
+        parts = str(sample.key_expr).rsplit("/", 2)
+        robot, fid = parts[-2], parts[-1]
+        now = time.time()
+        with self.lock:
+            self.factors[robot].add(fid)
+            m = _FACTOR_ID.match(fid)
+            if m is not None:
+                k = (unquote(m["rb"]), unquote(m["sb"]), int(m["seq"]))
+                self.first_factor_at.setdefault(k, now)
+
+
+# ------------------------------------------------------------------------------ the report
+
+
+def _pct(values: Sequence[float], q: float) -> float | None:
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else None
+
+
+def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict[str, Any]],
+            rss: list[tuple[float, float, int, float]], restarts: list[dict[str, float]],
+            rates: list[float], *, drained: bool, drain_s: float, exit_code: int | None,
+            log_text: str) -> dict[str, Any]:
+    with StoreReader(store) as db:
+        rows = db.submap_rows()
+        conflicts = db.conflicts()
+        factor_rows = db.factor_counts()
+        integrity = db.integrity()
+    t0 = ledger.t0
+    count = Counter((r, s, int(q)) for r, s, q, *_ in rows)
+    row_of = {(r, s, int(q)): (st, rec, proc) for r, s, q, st, rec, proc in rows}
+    valid = ledger.valid
+    stored_valid = [k for k in valid if k in row_of]
+    status_counts = Counter(row_of[k][0] for k in stored_valid)
+    foreign = [k for k in row_of if k not in valid]
+    # end-to-end latency (sent -> processed) and the store's delay (stored -> processed)
+    e2e = [(row_of[k][2] - t0, (row_of[k][2] - valid[k]) * 1e3) for k in stored_valid
+           if row_of[k][2] is not None and row_of[k][0] != "pending"]
+    end_s = max([plan.duration_s] + [t for t, _ in e2e])
+    bin_s = plan.bin_s or max(1.0, round(end_s / 40.0))
+    edges = np.arange(0.0, end_s + bin_s, bin_s)
+    series: dict[str, list] = {"t_s": [], "published_per_s": [], "processed_per_s": [],
+                               "e2e_p50_ms": [], "e2e_p99_ms": []}
+    sent_t = np.asarray([t - t0 for t in valid.values()])
+    for lo, hi in itertools.pairwise(edges):
+        lat = [ms for t, ms in e2e if lo <= t < hi]
+        series["t_s"].append(float(lo))
+        series["published_per_s"].append(float(np.sum((sent_t >= lo) & (sent_t < hi)) / bin_s))
+        series["processed_per_s"].append(len(lat) / bin_s)
+        series["e2e_p50_ms"].append(_pct(lat, 50))
+        series["e2e_p99_ms"].append(_pct(lat, 99))
+    rss_mb = [mb for _, mb, _, _ in rss]
+    own_mb = [mb - shm for _, mb, _, shm in rss]  # without the clients' shared memory
+    first = next((mb for _, mb, inc, _ in rss if inc == 1), None)
+    # baseline: the first process once warm (its imports and first matches done), the sample
+    # nearest to min(30 s, 10 % of the run) that precedes the first kill
+    warm_s = min(30.0, 0.1 * plan.duration_s)
+    warm = [(abs(t - warm_s), mb, mb - shm) for t, mb, inc, shm in rss if inc == 1]
+    baseline = min(warm)[1] if warm else None
+    own_baseline = min(warm)[2] if warm else None
+    growth = (max(own_mb) - own_baseline) if own_mb and own_baseline is not None else None
+    growth_total = (max(rss_mb) - baseline) if rss_mb and baseline is not None else None
+    per_inc = {}
+    for inc in sorted({r[2] for r in rss}):
+        mbs = [mb for _, mb, i, _ in rss if i == inc]
+        own = [mb for (_, _, i, _), mb in zip(rss, own_mb) if i == inc]
+        per_inc[str(inc)] = {"first_mb": mbs[0], "max_mb": max(mbs), "last_mb": mbs[-1],
+                             "max_own_mb": max(own), "last_own_mb": own[-1]}
+    with ledger.lock:
+        errors = {r: dict(c) for r, c in ledger.errors.items()}
+        factors = {r: len(f) for r, f in ledger.factors.items()}
+        first_factor = dict(ledger.first_factor_at)
+        results = {r: dict(c) for r, c in ledger.results.items()}
+        first_result = dict(ledger.first_result_at)
+        hostile = list(ledger.hostile)
+        mismatch = dict(ledger.mismatch)
+    answer_ms = [(first_factor[k] - valid[k]) * 1e3 for k in valid if k in first_factor]
+    result_ms = [(first_result[k] - valid[k]) * 1e3 for k in valid if k in first_result]
+    for r in restarts:  # what the service could only get back from the publishers' caches
+        down = (r["killed_at_s"] + t0, r["killed_at_s"] + r["down_s"] + t0)
+        r["valid_sent_while_down"] = sum(1 for t in valid.values() if down[0] <= t < down[1])
+    hostile_answers = sum(sum(errors.get(r, {}).values()) for r in HOSTILE_ROBOTS)
+    mismatch_robots = sorted({r for r, _, _ in mismatch})
+    valid_robots = sorted({r for r, _, _ in valid})
+    valid_errors = {r: errors[r] for r in valid_robots if r in errors}
+    lost = len(valid) - len(stored_valid)
+    duplicated = sum(1 for k, n in count.items() if n > 1) + conflicts
+    failed = status_counts.get("failed", 0)
+    pending = status_counts.get("pending", 0)
+    mismatch_refused = all(errors.get(r, {}).get("embedding_dim", 0) >= 1
+                           for r in mismatch_robots)
+    report: dict[str, Any] = {
+        "plan": {k: (v.value if isinstance(v, Enum) else v) for k, v in asdict(plan).items()},
+        "robot_rates_hz": rates,
+        "restarts": restarts,
+        "drained": drained, "drain_s": drain_s, "service_exit_code": exit_code,
+        "valid": {"sent": len(valid), "stored": len(stored_valid), "lost": lost,
+                  "duplicated": duplicated, "conflicts": conflicts,
+                  "processed": status_counts.get("processed", 0),
+                  "no_match": status_counts.get("no_match", 0), "failed": failed,
+                  "pending": pending, "bytes_sent": ledger.bytes_valid,
+                  "errors_answered": valid_errors},
+        "mismatch": {"robots": mismatch_robots, "sent": len(mismatch),
+                     "stored": sum(1 for k in row_of if k[0] in mismatch_robots),
+                     "answers": {r: errors.get(r, {}) for r in mismatch_robots}},
+        "hostile": {"sent": len(hostile), "by_kind": dict(Counter(k for _, k in hostile)),
+                    "answered": hostile_answers,
+                    "codes": dict(sum((Counter(errors.get(r, {})) for r in HOSTILE_ROBOTS),
+                                      Counter())),
+                    "stored": sum(1 for k in row_of if k[0] in HOSTILE_ROBOTS)},
+        "foreign_rows": len(foreign),
+        "factors": {"stored": {str(k): int(v) for k, v in factor_rows.items()},
+                    "messages_per_robot": factors,
+                    "answered_submaps": len(answer_ms),
+                    "answer_ms": {"p50": _pct(answer_ms, 50), "p99": _pct(answer_ms, 99)}},
+        "latency_ms": {"e2e_p50": _pct([ms for _, ms in e2e], 50),
+                       "e2e_p99": _pct([ms for _, ms in e2e], 99),
+                       "store_delay_p50": _pct([(row_of[k][2] - row_of[k][1]) * 1e3
+                                                for k in stored_valid if row_of[k][2]], 50),
+                       "store_delay_p99": _pct([(row_of[k][2] - row_of[k][1]) * 1e3
+                                                for k in stored_valid if row_of[k][2]], 99)},
+        "results": {"valid_answered": len(result_ms),
+                    "answer_ms": {"p50": _pct(result_ms, 50), "p99": _pct(result_ms, 99)},
+                    "per_robot": results},
+        "series": series,
+        "status_samples": samples,
+        "rss": {"t_s": [r[0] for r in rss], "mb": rss_mb, "incarnation": [r[2] for r in rss],
+                "shmem_mb": [r[3] for r in rss], "first_mb": first, "baseline_mb": baseline,
+                "baseline_at_s": warm_s, "max_mb": max(rss_mb) if rss_mb else None,
+                "own_baseline_mb": own_baseline, "max_own_mb": max(own_mb) if own_mb else None,
+                # the target's: RSS without shared memory (module docstring)
+                "growth_mb": growth, "growth_total_mb": growth_total,
+                "per_incarnation": per_inc},
+        "store_integrity": integrity,
+        "service_log": {"tracebacks": log_text.count("Traceback (most recent call last)"),
+                        "lines": log_text.count("\n")},
+    }
+    report["targets"] = {
+        "valid_none_lost_failed_pending": lost == 0 and failed == 0 and pending == 0,
+        "valid_none_duplicated": duplicated == 0,
+        "hostile_all_refused_and_answered": (report["hostile"]["stored"] == 0
+                                             and hostile_answers == len(hostile)),
+        "mismatch_refused_others_not": (report["mismatch"]["stored"] == 0 and mismatch_refused
+                                        and not valid_errors),
+        "rss_growth_under_100mb": growth is not None and growth < RSS_TARGET_MB,
+        "store_integrity_ok": integrity == "ok",
+    }
+    report["ok"] = all(report["targets"].values())
+    return report
+
+
+def soak_summary(report: dict[str, Any]) -> str:
+    """The report's numbers for people: a few lines, the targets last."""
+    v, h, m, r = report["valid"], report["hostile"], report["mismatch"], report["rss"]
+    lat = report["latency_ms"]
+    plan = report["plan"]
+
+    def ms(x: float | None) -> str:
+        return "-" if x is None else f"{x:.0f}"
+
+    lines = [
+        f"soak: {plan['robots']} robots, {plan['duration_s']:.0f} s, "
+        f"{len(report['restarts'])} kill -9 restarts, hostile {plan['hostile_fraction']:.0%}, "
+        f"{len(m['robots'])} robot(s) of another model",
+        f"valid submaps: {v['sent']} sent, {v['stored']} stored, lost {v['lost']}, duplicated "
+        f"{v['duplicated']}, failed {v['failed']}, pending {v['pending']} "
+        f"({v['processed']} with factors, {v['no_match']} without); drained in "
+        f"{report['drain_s']:.1f} s",
+        f"latency sent -> processed: p50 {ms(lat['e2e_p50'])} ms, p99 {ms(lat['e2e_p99'])} ms; "
+        f"stored -> processed p50 {ms(lat['store_delay_p50'])} ms, p99 "
+        f"{ms(lat['store_delay_p99'])} ms; first factor back p50 "
+        f"{ms(report['factors']['answer_ms']['p50'])} ms ({report['factors']['answered_submaps']} "
+        f"submaps)",
+        f"hostile: {h['sent']} sent, {h['answered']} answered, {h['stored']} stored; codes "
+        f"{json.dumps(h['codes'], sort_keys=True)}",
+        f"another model: {m['sent']} sent, {m['stored']} stored, answers "
+        f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
+        f"{json.dumps(v['errors_answered'], sort_keys=True)}",
+        f"RSS: first {ms(r['first_mb'])} MB, at {r['baseline_at_s']:.0f} s "
+        f"{ms(r['baseline_mb'])} MB, max {ms(r['max_mb'])} MB (without shared memory: at "
+        f"{r['baseline_at_s']:.0f} s {ms(r['own_baseline_mb'])} MB, max {ms(r['max_own_mb'])} "
+        f"MB); growth (max - at {r['baseline_at_s']:.0f} s) {ms(r['growth_mb'])} MB without "
+        f"shared memory, {ms(r['growth_total_mb'])} MB with; store integrity "
+        f"{report['store_integrity']}; tracebacks in the service log: "
+        f"{report['service_log']['tracebacks']}",
+        "targets: " + ", ".join(f"{k} {'ok' if ok else 'MISSED'}"
+                                for k, ok in report["targets"].items()),
+    ]
+    return "\n".join(lines)
+
+
+def plot_soak(report: dict[str, Any], path: Path) -> Path:
+    """Throughput, latency (end to end and the service's own), and RSS over time, with the
+    kills marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mergesvc.bench.figures import save_figure
+
+    s = report["series"]
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), dpi=110, sharex=True)
+    ax = axes[0]
+    ax.step(s["t_s"], s["published_per_s"], where="post", label="valid sent", color="0.5")
+    ax.step(s["t_s"], s["processed_per_s"], where="post", label="processed", color="tab:blue")
+    ax.set_ylabel("submaps / s")
+    ax = axes[1]
+
+    def nan(xs: list) -> list[float]:
+        return [np.nan if x is None else x for x in xs]
+
+    ax.plot(s["t_s"], nan(s["e2e_p50_ms"]), "o-", ms=3, label="sent -> processed p50")
+    ax.plot(s["t_s"], nan(s["e2e_p99_ms"]), "o-", ms=3, label="sent -> processed p99")
+    st = report["status_samples"]
+    if st:
+        t = [x["t_s"] for x in st]
+        ax.plot(t, nan([(x["latency_ms"] or {}).get("p50") for x in st]), ":", color="k",
+                label="status latency_ms p50 (processing)")
+        ax.plot(t, nan([(x["latency_ms"] or {}).get("p99") for x in st]), "--", color="k",
+                label="status latency_ms p99")
+    ax.set_yscale("log")
+    ax.set_ylabel("ms")
+    ax = axes[2]
+    ax.plot(report["rss"]["t_s"], report["rss"]["mb"], color="tab:green", label="service RSS")
+    ax.plot(report["rss"]["t_s"], np.subtract(report["rss"]["mb"], report["rss"]["shmem_mb"]),
+            color="tab:olive", label="without shared memory")
+    ax.set_ylabel("MB")
+    ax.set_xlabel("s since start")
+    for ax in axes:
+        for r in report["restarts"]:
+            ax.axvline(r["killed_at_s"], color="tab:red", lw=0.8, alpha=0.7)
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(alpha=0.3)
+    plan = report["plan"]
+    v = report["valid"]
+    axes[0].set_title(
+        f"soak: {plan['robots']} robots, {plan['duration_s']:.0f} s, {len(report['restarts'])} "
+        f"kill -9 (red), {plan['hostile_fraction']:.0%} hostile; {v['sent']} valid sent, lost "
+        f"{v['lost']}, failed {v['failed']}, pending {v['pending']}", fontsize=9)
+    return save_figure(fig, path)
+
+
+__all__ = ["RSS_TARGET_MB", "Ledger", "build_report", "plot_soak", "soak_summary"]

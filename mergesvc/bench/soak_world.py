@@ -1,0 +1,265 @@
+"""The soak's traffic: a seeded world the robots wander (`SoakWorld`, `RobotWalk`: keyframe
+submaps with odometry, so sessions overlap and the service finds factors), the attacker's
+hostile payloads (`hostile_payload`: each one the decoder or the service must refuse), and the
+agents' advanced publisher built the same way as fleet/agent.py's (bench may not import fleet).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from mergesvc.bench.scoring import check_count
+from mergesvc.core.model import ObjectNode, Odometry, Submap, Transform
+from mergesvc.errors import InputError, MergeError
+from mergesvc.wire import Profile, decode_message, encode_message, keys
+
+#: The agents' publisher (fleet/agent.py `Agent`): samples kept for a late or restarted service.
+CACHE_SAMPLES = 10_000
+#: Sample-miss heartbeat of the agents' publisher, s.
+HEARTBEAT_S = 0.5
+#: The service's default `max_payload_bytes` (fleet/config.py ServiceConfig).
+DEFAULT_MAX_PAYLOAD = 4 * 2**20
+HOSTILE_ROBOTS = ("h0", "h1", "h2", "h3")
+HOSTILE_SEQ0 = 10**9  # hostile submaps' seqs: never one a valid robot uses
+
+
+class HostileKind(str, Enum):
+    """What the attacker sends."""
+
+    RANDOM_BYTES = "random_bytes"
+    TRUNCATED = "truncated"
+    CORRUPTED = "corrupted"
+    SCHEMA_VERSION = "schema_version"
+    CODEC_VERSION = "codec_version"
+    NAN = "nan"
+    OVERSIZE = "oversize"
+    KEY_SESSION = "key_session"  # a valid submap on another session's key
+    EXTRA_LEVELS = "extra_levels"  # submap/{robot}/{session}/extra/deep
+    OTHER_ROBOT = "other_robot"  # a valid robot's submap on the attacker's key
+
+
+@dataclass
+class SoakPlan:
+    robots: int = 5
+    duration_s: float = 120.0
+    hostile_fraction: float = 0.1
+    mismatch_robots: int = 1
+    restarts: int = 2
+    seed: int = 0
+    rate_hz: tuple[float, float] = (0.2, 2.0)  # each robot's rate, uniform in this range
+    objects_per_submap: int = 8
+    dim: int = 384
+    mismatch_dim: int = 128
+    world_objects: int = 400
+    area_m: float = 240.0
+    step_m: float = 4.0  # distance between a robot's keyframes
+    second_session_p: float = 0.5  # robots that move to a second session during the run
+    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD  # the service's: oversize payloads exceed it
+    max_rate_hz: float = 5.0  # the service's submap_rate_hz: every robot must stay below it
+    fleet: str = "soak"
+    profile: Profile = Profile.INT8
+    status_period_s: float = 3.0
+    rss_period_s: float = 1.0
+    drain_timeout_s: float = 180.0
+    start_timeout_s: float = 60.0
+    restart_pause_s: tuple[float, float] = (0.0, 2.0)  # down time after a kill, uniform
+    bin_s: float | None = None  # time bins of the series; None: about 40 bins
+
+    @classmethod
+    def quick(cls, seed: int = 0) -> SoakPlan:
+        return cls(robots=3, duration_s=10.0, hostile_fraction=0.2, mismatch_robots=1,
+                   restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=1.0,
+                   drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
+                   area_m=80.0)
+
+    def check(self) -> None:
+        """InputError on a plan that cannot run or would break the service's limits."""
+        check_count("robots", self.robots)
+        check_count("mismatch robots", self.mismatch_robots, 0)
+        check_count("restarts", self.restarts, 0)
+        if not self.duration_s > 0:
+            raise InputError(f"duration must be > 0 s, got {self.duration_s}")
+        if not 0.0 <= self.hostile_fraction < 1.0:
+            raise InputError(f"hostile fraction must be in [0, 1), got {self.hostile_fraction}")
+        lo, hi = self.rate_hz
+        if not 0 < lo <= hi < self.max_rate_hz:
+            raise InputError(f"robot rates {lo}-{hi} Hz must be > 0 and below the service's "
+                             f"submap_rate_hz {self.max_rate_hz}")
+        if self.mismatch_dim == self.dim:
+            raise InputError("mismatch_dim must differ from the fleet's dim")
+        if self.objects_per_submap > self.world_objects:
+            raise InputError("objects_per_submap exceeds world_objects")
+
+
+# ------------------------------------------------------------------------------ the world
+
+
+@dataclass
+class SoakWorld:
+    """Objects of one area shared by the fleet: positions (M, 3) m and unit embeddings (M, D)."""
+
+    position_xyz_m: np.ndarray
+    embeddings_nd: np.ndarray
+    area_m: float
+
+    @classmethod
+    def make(cls, plan: SoakPlan) -> SoakWorld:
+        rng = np.random.default_rng([plan.seed, 1])
+        m = plan.world_objects
+        xyz = np.column_stack([rng.uniform(0, plan.area_m, (m, 2)), rng.uniform(-2, 2, m)])
+        e = rng.normal(size=(m, plan.dim))
+        return cls(xyz, e / np.linalg.norm(e, axis=1, keepdims=True), plan.area_m)
+
+
+def _pose(x: float, y: float, yaw: float) -> np.ndarray:
+    T = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def _transform(T: np.ndarray) -> Transform:
+    """A yaw-only pose (the walks turn about z only) as a Transform."""
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    return Transform(translation=tuple(float(x) for x in T[:3, 3]),
+                     quaternion_wxyz=(math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)))
+
+
+_ODOMETRY_COV = np.diag([1e-4, 1e-4, 1e-4, 4e-3, 4e-3, 4e-3]).tolist()
+
+
+class RobotWalk:
+    """One robot's submaps: a seeded walk through the world; each keyframe's submap holds the
+    nearest objects, positions in the keyframe's body frame (small noise), embeddings of `dim`
+    (the first `dim` of the world's, renormalised: another model when it differs), odometry
+    from the previous keyframe, z up."""
+
+    def __init__(self, world: SoakWorld, robot: str, dim: int, n_objects: int,
+                 step_m: float, rng: np.random.Generator) -> None:
+        self.world, self.robot, self.dim, self.n = world, robot, dim, n_objects
+        self.step_m, self.rng = step_m, rng
+        self.xy = rng.uniform(0.2, 0.8, 2) * world.area_m
+        self.yaw = float(rng.uniform(-math.pi, math.pi))
+        e = world.embeddings_nd[:, :dim]
+        self.emb = e / np.linalg.norm(e, axis=1, keepdims=True)
+        self.session = "s0"
+        self.keyframe = 0
+        self._T_prev: np.ndarray | None = None
+
+    def new_session(self, session: str) -> None:
+        self.session, self.keyframe, self._T_prev = session, 0, None
+
+    def next_submap(self, seq: int) -> Submap:
+        """The submap at the next keyframe (the robot moves `step_m` first, after keyframe 0)."""
+        if self._T_prev is not None:
+            self.yaw += float(self.rng.normal(0.0, 0.4))
+            nxt = self.xy + self.step_m * np.array([math.cos(self.yaw), math.sin(self.yaw)])
+            if not np.all((nxt > 0) & (nxt < self.world.area_m)):  # turn back at the edge
+                self.yaw += math.pi
+                nxt = self.xy + self.step_m * np.array([math.cos(self.yaw), math.sin(self.yaw)])
+            self.xy = np.clip(nxt, 0.0, self.world.area_m)
+        T = _pose(float(self.xy[0]), float(self.xy[1]), self.yaw)
+        d = np.linalg.norm(self.world.position_xyz_m[:, :2] - self.xy, axis=1)
+        near = np.argsort(d)[: self.n]
+        p_world = self.world.position_xyz_m[near]
+        Tinv = np.linalg.inv(T)
+        p_body = p_world @ Tinv[:3, :3].T + Tinv[:3, 3] + self.rng.normal(0, 0.05, p_world.shape)
+        objs = []
+        for j, p in zip(near, p_body):
+            e = self.emb[j] + self.rng.normal(0.0, 0.02 / math.sqrt(self.dim), self.dim)
+            objs.append(ObjectNode(id=f"o{j}", position=tuple(float(x) for x in p),
+                                   embedding=[float(x) for x in e / np.linalg.norm(e)],
+                                   variance=0.01, n_obs=int(self.rng.integers(2, 7))))
+        odo = None
+        if self._T_prev is not None:
+            odo = Odometry(from_keyframe=self.keyframe - 1,
+                           T_from_to=_transform(np.linalg.inv(self._T_prev) @ T),
+                           covariance=_ODOMETRY_COV)
+        sub = Submap(robot_id=self.robot, session_id=self.session, seq=seq, objects=objs,
+                     up=(0.0, 0.0, 1.0), keyframe=self.keyframe, odometry=odo,
+                     stamp=float(seq))
+        self._T_prev = T
+        self.keyframe += 1
+        return sub
+
+
+# ------------------------------------------------------------------------------ hostile payloads
+
+
+def _refused_by_decoder(data: bytes) -> bool:
+    try:
+        decode_message(data)
+    except MergeError:
+        return True
+    return False
+
+
+def hostile_payload(kind: HostileKind, robot: str, seq: int, good: Submap,
+                    other: Submap, max_payload_bytes: int, rng: np.random.Generator
+                    ) -> tuple[str, bytes]:
+    """(key suffix below the fleet root, payload) of one hostile message from `robot`.
+
+    `good` is a valid submap of `robot` (session s0, seq `seq`), `other` one of a valid robot.
+    Every kind is refused by the service: by the decoder (checked here for the corrupted kind,
+    re-drawn until it is), the size limit, or the key and name checks."""
+    full = encode_message(good, Profile.FULL, robot, seq)
+    key = f"submap/{robot}/{good.session_id}"
+    if kind is HostileKind.RANDOM_BYTES:
+        return key, rng.bytes(int(rng.integers(1, 4096)))
+    if kind is HostileKind.TRUNCATED:
+        return key, full[: int(rng.integers(1, len(full)))]
+    if kind is HostileKind.CORRUPTED:
+        for _ in range(50):
+            data = bytearray(full)
+            at = int(rng.integers(0, len(data) - 8))
+            n = int(rng.integers(1, 32))
+            data[at:at + n] = rng.bytes(min(n, len(data) - at))
+            if _refused_by_decoder(bytes(data)):
+                return key, bytes(data)
+        return key, full[: len(full) // 2]  # 50 corruptions the decoder took: truncate instead
+    if kind in (HostileKind.SCHEMA_VERSION, HostileKind.CODEC_VERSION, HostileKind.NAN):
+        tree = msgpack.unpackb(full, raw=False)
+        if kind is HostileKind.SCHEMA_VERSION:
+            tree[0] = 2
+        elif kind is HostileKind.CODEC_VERSION:
+            tree[1] = 99
+        else:
+            blob = bytearray(tree[6][13])
+            blob[-4:] = np.array([np.nan], dtype="<f4").tobytes()  # the last embedding value
+            tree[6][13] = bytes(blob)
+        return key, msgpack.packb(tree, use_bin_type=True)
+    if kind is HostileKind.OVERSIZE:
+        return key, rng.bytes(max_payload_bytes + 1)
+    if kind is HostileKind.KEY_SESSION:
+        return f"submap/{robot}/x{good.session_id}", full
+    if kind is HostileKind.EXTRA_LEVELS:
+        return f"{key}/extra/deep", full
+    # OTHER_ROBOT: a valid robot's message under the attacker's key
+    return key, encode_message(other, Profile.FULL, other.robot_id, seq)
+
+
+def agent_publisher(session: Any, key: str, cache_samples: int = CACHE_SAMPLES) -> Any:
+    """The submap publisher exactly as the reference agent declares it (fleet/agent.py Agent):
+    zenoh-ext advanced publisher with a cache, sample-miss detection (heartbeat), publisher
+    detection, blocking congestion control, the msgpack encoding."""
+    import zenoh
+    from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
+
+    return declare_advanced_publisher(
+        session, key, cache=CacheConfig(max_samples=cache_samples),
+        sample_miss_detection=MissDetectionConfig(heartbeat=HEARTBEAT_S),
+        publisher_detection=True, congestion_control=zenoh.CongestionControl.BLOCK,
+        encoding=zenoh.Encoding(keys.MSGPACK_ENCODING),
+    )
+
+
+__all__ = ["CACHE_SAMPLES", "DEFAULT_MAX_PAYLOAD", "HEARTBEAT_S", "HOSTILE_ROBOTS", "HOSTILE_SEQ0",
+           "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld", "agent_publisher",
+           "hostile_payload"]
