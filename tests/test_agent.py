@@ -10,7 +10,7 @@ import pytest
 
 from mergesvc.core.model import Factor, FactorStatus
 from mergesvc.core.odometry import chain_covariance, step_covariance
-from mergesvc.fleet.agent import AgentConfig, LocalMap, _transform, build_submaps
+from mergesvc.fleet.local_map import AgentConfig, LocalMap, _transform, build_submaps
 from mergesvc.sim import fleet_world
 
 try:

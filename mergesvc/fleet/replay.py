@@ -30,10 +30,10 @@ from mergesvc.core.model import Factor, Submap
 from mergesvc.core.trajectory import ate_rmse, final_pose_error, rotation_error_deg
 from mergesvc.core.whitened import lag1_correlation, whitened_stats
 from mergesvc.errors import MergeError
-from mergesvc.fleet.agent import AgentConfig, L, LocalMap, build_submaps
 from mergesvc.fleet.bound import BOUND_DRAWS, closure_bound
 from mergesvc.fleet.bound import error_sigma as bound_error_sigma
 from mergesvc.fleet.config import ServiceConfig, odometry_group
+from mergesvc.fleet.local_map import AgentConfig, L, LocalMap, build_submaps
 from mergesvc.fleet.scoring import OdometryEdgeRecord, align_once, fleet_ate, odometry_honesty
 from mergesvc.fleet.service import MergeService
 from mergesvc.link.config import LinkConfig
