@@ -21,12 +21,10 @@ import threading
 from collections import defaultdict
 from collections.abc import Callable
 
-import numpy as np
-
 from mergesvc.core.model import Submap
-from mergesvc.core.poses import check_covariance
-from mergesvc.errors import InputError, MergeError, SchemaError
+from mergesvc.errors import MergeError, SchemaError
 from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.merger import check_odometry
 from mergesvc.fleet.queries import ServiceStats
 from mergesvc.fleet.replies import RefusalCode
 from mergesvc.fleet.transport import Sample
@@ -100,6 +98,9 @@ class Ingress:
         self._bucket = TokenBucket(config.submap_rate_hz, config.submap_burst, clock)
         self._lock = threading.Lock()
         self._admitted = 0
+        # pruned every 256 admissions, and at least once per session_idle_s / 4 of them
+        self._prune_every_s = config.session_idle_s / 4
+        self._pruned_at_s = clock()
         self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue(
             maxsize=config.ingress_queue_size)
         self._thread: threading.Thread | None = None
@@ -201,11 +202,7 @@ class Ingress:
             raise SchemaError(f"key {key!r} does not match the submap (robot "
                               f"{sub.robot_id!r}, session {sub.session_id!r}): expected "
                               f"{expected!r}")
-        if sub.odometry is not None:  # as the pose graph will take it (symmetrised)
-            try:
-                check_covariance(np.asarray(sub.odometry.covariance), "odometry covariance")
-            except InputError as exc:
-                raise SchemaError(str(exc)) from None
+        check_odometry(sub)
         return sub
 
     def _answer(self, robot: str, key: str, exc: RefusedError, sub: Submap | None) -> None:
@@ -237,14 +234,14 @@ class Ingress:
         if stored == digest:
             return True
         with self._lock:
+            now = self.clock()
             self._admitted += 1
-            if self._admitted % 256 == 0:
+            if self._admitted % 256 == 0 or now - self._pruned_at_s >= self._prune_every_s:
                 self.prune()
             if stored is not None:  # a conflict: answered once the store has its hash
                 self._take(sub)
                 return False
             self.check_model(sub)
-            now = self.clock()
             sessions = self._open[sub.robot_id]
             if sub.session_id not in sessions:
                 idle = self.config.session_idle_s
@@ -273,6 +270,7 @@ class Ingress:
         """Drop what closed sessions and idle robots left: sessions idle for session_idle_s,
         robots with none open, buckets that filled up again."""
         now = self.clock()
+        self._pruned_at_s = now
         idle = self.config.session_idle_s
         for robot in list(self._open):
             sessions = self._open[robot]

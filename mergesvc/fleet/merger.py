@@ -32,6 +32,8 @@ from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.pipeline import match
+from mergesvc.core.poses import check_covariance
+from mergesvc.errors import InputError, SchemaError
 from mergesvc.fleet.closures import ClosureSets
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, odometry_group
 from mergesvc.fleet.held import FactorTable
@@ -40,6 +42,16 @@ from mergesvc.fleet.replies import NO_FRAMES, FrameTried, Outcome, SubmapResult
 from mergesvc.fleet.sessions import SessionMap, Sessions
 
 log = logging.getLogger(__name__)
+
+
+def check_odometry(sub: Submap) -> None:
+    """SchemaError unless the submap's odometry covariance is one the pose graph takes (it
+    symmetrises first: the wire model's check of the lower triangle is not enough)."""
+    if sub.odometry is not None:
+        try:
+            check_covariance(np.asarray(sub.odometry.covariance), "odometry covariance")
+        except InputError as exc:
+            raise SchemaError(str(exc)) from None
 
 
 @dataclass
@@ -87,7 +99,9 @@ class Merger:
         """Match, fit, take the submap into its session, weigh the new factors (module
         docstring); `lock` (the state lock) is held for the changes, not the matching.
         Raises what matching raises; the session may then hold the submap (a later plan of
-        the same row finds it there)."""
+        the same row finds it there). A submap the graph would refuse raises SchemaError
+        first, before any change."""
+        check_odometry(sub)  # (a row stored before the boundary checked it)
         me = str(FrameId(sub.robot_id, sub.session_id))
         code = self.views.note(me, payload)  # compact: how its embeddings were coded
         factors: list[Factor] = []
@@ -276,4 +290,4 @@ class Merger:
             range_weighted=self.config.local_range_weighted)
 
 
-__all__ = ["Merger", "UnitOfWork"]
+__all__ = ["Merger", "UnitOfWork", "check_odometry"]

@@ -30,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from mergesvc.core.frames import FrameId
 from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import ErrorMessage, Factor, FactorStatus, Submap
 from mergesvc.errors import MergeError, SchemaError, StoreError, one_line
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig
 from mergesvc.fleet.ingress import Ingress
-from mergesvc.fleet.merger import Merger, UnitOfWork
+from mergesvc.fleet.merger import Merger, UnitOfWork, check_odometry
 from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.outbox import Outbox
 from mergesvc.fleet.queries import Queries, ServiceStats
@@ -161,11 +162,12 @@ class MergeService:
         self.damage = self.acks.lost(self.store.final_seqs())
         for line in self.damage:
             log.error("store %s lost answered submaps: %s", self.store.path, line)
-        frames = self.store.frames()
-        anchor = self.store.meta(META_ANCHOR) or (frames[0].frame if frames else None)
+        # the anchor the first unit of work fixed; a store from before it was kept: the first
+        # processed submap's session, as the live run had it (restore below)
+        anchor = self.store.meta(META_ANCHOR)
         if anchor is not None:
             self.merger.set_anchor(anchor)
-        for fr in frames:
+        for fr in self.store.frames():
             self.ingress.seen(fr.robot_id, fr.session_id, fr.last_seen_s)
         views = self.merger.views
         for row in self.store.iter_submaps():  # a page at a time: a mission's worth
@@ -322,7 +324,8 @@ class MergeService:
             uow.row_id, uow.status, uow.detail,
             frame=(sub.robot_id, sub.session_id, self.clock()), sent=rows(uow.sent),
             withdrawn=[f.factor_id for f in uow.withdrawn],
-            held=rows([*uow.held, *uow.withdrawn]), anchor=self.merger.anchor)
+            held=rows([*uow.held, *uow.withdrawn]),
+            anchor=self.merger.anchor or str(FrameId(sub.robot_id, sub.session_id)))  # apply's
 
     def _answer(self, uow: UnitOfWork) -> None:
         """A committed unit's messages: its factors, retractions, its result (the answer is
@@ -350,6 +353,7 @@ class MergeService:
         if sub.seq is None:
             raise SchemaError("submap without seq")
         self.ingress.check_model(sub)
+        check_odometry(sub)
         data = encode_message(sub, profile, sub.robot_id, sub.seq)
         row_id, created = self.store.put_submap(sub.robot_id, sub.session_id, sub.seq, data,
                                                 self.clock())
