@@ -101,6 +101,8 @@ def test_agents_and_service_exchange_correct_factors(world, truth) -> None:
         try:
             assert wait_for(lambda: svc.status()["submaps"]["processed"] == sum(
                 ag.stats.submaps_sent for ag, _ in pairs) > 0)
+            # the solve runs after the batch, off the state lock: status may answer before it
+            assert wait_for(lambda: not svc._dirty and len(svc.status()["frame_poses"]) >= 2)
             st = svc.status()
             assert st["factors"]["accepted"] >= 2
             assert set(st["robots_alive"]) == set(ROBOTS)

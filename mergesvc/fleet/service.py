@@ -82,7 +82,9 @@ class MergeService:
         self.sessions = Sessions(config.min_map_objects)
         self.merger = Merger(config, self.graph, self.sessions, ProfileViews(self.projections))
         self._lock = threading.RLock()  # the state: held to apply work and solutions, to query
-        self._process_lock = threading.Lock()  # one submap at a time (worker, ingest)
+        # the graph's writers: one submap or one solve at a time (worker, ingest); queries
+        # never take it
+        self._process_lock = threading.Lock()
         self.queries = Queries(config, self.merger, self._lock)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
         self.outbox = Outbox(config, self.transport, self.stats)
@@ -379,6 +381,10 @@ class MergeService:
         """Solve (the state lock not held: queries go on), take the solution, retract what it
         rejects and publish the retractions. A failed solve keeps the graph dirty and is
         tried again after a backoff; status says so."""
+        with self._process_lock:  # no submap changes the graph while it is solved
+            self._solve_graph()
+
+    def _solve_graph(self) -> None:
         try:
             sol = self.graph.optimize(marginals=False)
         except MergeError as exc:
