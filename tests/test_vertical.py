@@ -333,8 +333,8 @@ def test_yaw_fit_about_a_tilted_vertical_matches_brute_force() -> None:
 
 def test_four_dof_covariance_puts_the_gravity_prior_on_the_tilts() -> None:
     """Matches on a horizontal line leave the roll about that line to the prior alone: its
-    variance is the prior's on both frames' verticals (2 sigma^2); the yaw is fixed by the points (GTSAM order: rotation first, in
-    the submap frame)."""
+    variance is the prior's on both frames' verticals (2 sigma^2); the yaw is fixed by the
+    points (GTSAM order: rotation first, in the submap frame)."""
     up = np.array([0.0, 0.0, 1.0])
     sub = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
     R = Rotation.from_euler("z", 40.0, degrees=True).as_matrix()
