@@ -1,4 +1,5 @@
-"""The `mergesvc` command as a user runs it: real files, real subprocesses."""
+"""The `mergesvc` command as a user runs it: real files; in this process through typer's runner
+(`run`), and in processes of their own where only a process shows it (`run_process`)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,14 @@ from pathlib import Path
 import gtsam
 import pytest
 from helpers import free_port
+from helpers import run_cli as run
 
 from mergesvc.sim import Family, make_scenario
 
 CLI = [sys.executable, "-m", "mergesvc.cli"]
 
 
-def run(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+def run_process(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """The command in a process of its own; a developer's MERGESVC_* settings left out (`env`
     adds variables)."""
     clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
