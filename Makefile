@@ -15,8 +15,10 @@ $(BIN)/.installed: pyproject.toml
 demo: $(BIN)/.installed
 	$(BIN)/mergesvc demo --out results/demo
 
+# The test files spread over the cores (whole files per worker: module and session fixtures
+# are built once per worker); one BLAS thread per worker, since the workers fill the cores.
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadfile
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check mergesvc tests

@@ -60,3 +60,20 @@ def small_kitti_scenario() -> Scenario:
 @pytest.fixture(scope="session")
 def underwater_scenario() -> Scenario:
     return make_scenario(Family.UNDERWATER, seed=4, n_map=30, n_sub=5, n_outliers=1)
+
+
+@pytest.fixture(scope="session")
+def quick_demo(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """`mergesvc demo --quick --listen EP --view-save FILE.rrd`, run once for the session (the
+    README's main job; its output, summary and recording are checked by tests/test_cli.py and
+    tests/test_view.py): {"out", "stdout", "endpoint", "rrd"}."""
+    from helpers import free_port, run_cli
+
+    out = tmp_path_factory.mktemp("demo")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rrd = out / "demo.rrd"
+    r = run_cli("demo", "--quick", "--out", str(out), "--listen", endpoint, "--view-save",
+                str(rrd))
+    assert r.returncode == 0, r.stdout + r.stderr
+    return {"out": out, "stdout": r.stdout, "endpoint": endpoint, "rrd": rrd}
+

@@ -4,8 +4,11 @@ inbox. Imported as `from helpers import ...` (pytest puts tests/ on sys.path).""
 
 from __future__ import annotations
 
+import io
 import json
+import logging
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Callable
@@ -96,8 +99,13 @@ class Inbox:
             return self._cond.wait_for(arrived, timeout_s)
 
 
+_STREAMS: dict[tuple[int, int], tuple[Any, list[Any]]] = {}
+
+
 def cost_stream(n: int, seed: int, robots: int) -> list[Any]:
-    """The first n submaps of `mergesvc bench cost`'s seeded pool stream (z-up vehicles)."""
+    """The first n submaps of `mergesvc bench cost`'s seeded pool stream (z-up vehicles). Built
+    once per test process and stream: a longer request extends what was built (the stream is
+    seeded, so its first n never change); callers must not change the submaps."""
     from mergesvc.bench.cost import CostBenchPlan, SubmapStream
     from mergesvc.fleet.agent import AgentConfig, build_submaps
 
@@ -105,5 +113,44 @@ def cost_stream(n: int, seed: int, robots: int) -> list[Any]:
         cfg = AgentConfig(robot=robot, session=session, up=(0.0, 0.0, 1.0))
         return build_submaps(cfg, frames)[1]
 
-    subs = SubmapStream(CostBenchPlan(seed=seed, robots=robots), seed, vehicle)
-    return [s for _, s in zip(range(n), subs, strict=False)]
+    if (seed, robots) not in _STREAMS:
+        stream = SubmapStream(CostBenchPlan(seed=seed, robots=robots), seed, vehicle)
+        _STREAMS[seed, robots] = (iter(stream), [])
+    it, built = _STREAMS[seed, robots]
+    while len(built) < n:
+        try:
+            built.append(next(it))
+        except StopIteration:
+            break
+    return list(built[:n])
+
+
+def run_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """`mergesvc ARGS` in this process (typer's runner: what `main` does, without a process's
+    start-up), with `env` added to the environment for its duration; stdout apart from stderr,
+    which also gets the log lines the process would print. Tests of what only a process shows
+    (the entry point, signals, imports) start one instead."""
+    from typer.testing import CliRunner
+
+    from mergesvc.cli import app, hoist_verbose
+
+    argv = hoist_verbose(list(args))
+    verbose = sum(2 if a == "-vv" else 1 for a in argv if a in ("-v", "-vv", "--verbose"))
+    level = logging.WARNING - 10 * min(verbose, 2)
+    logs = io.StringIO()  # what the process would print on stderr through logging
+    handler = logging.StreamHandler(logs)
+    handler.setLevel(level)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    old_level = root.level
+    root.addHandler(handler)
+    root.setLevel(min(level, old_level))
+    try:
+        r = CliRunner().invoke(app, argv, env=env)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return subprocess.CompletedProcess(list(args), r.exit_code, r.stdout,
+                                       logs.getvalue() + r.stderr)

@@ -1,4 +1,5 @@
-"""The `mergesvc` command as a user runs it: real files, real subprocesses."""
+"""The `mergesvc` command as a user runs it: real files; in this process through typer's runner
+(`run`), and in processes of their own where only a process shows it (`run_process`)."""
 
 from __future__ import annotations
 
@@ -7,18 +8,19 @@ import math
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import gtsam
 import pytest
-from helpers import free_port
+from helpers import run_cli as run
 
 from mergesvc.sim import Family, make_scenario
 
 CLI = [sys.executable, "-m", "mergesvc.cli"]
 
 
-def run(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+def run_process(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """The command in a process of its own; a developer's MERGESVC_* settings left out (`env`
     adds variables)."""
     clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
@@ -216,14 +218,13 @@ def test_link_sim_table() -> None:
     assert bad.returncode == 2
 
 
-def test_demo_quick_runs_to_completion(tmp_path: Path) -> None:
+def test_demo_quick_runs_to_completion(quick_demo: dict) -> None:
     """The README's main job in its quick form: processes start, factors are accepted, the
     frames end up aligned, every process is stopped; --listen picks the endpoint."""
-    port = free_port()
-    r = run("demo", "--quick", "--out", str(tmp_path), "--listen", f"tcp/127.0.0.1:{port}")
-    assert r.returncode == 0, r.stdout + r.stderr
+    tmp_path, endpoint = quick_demo["out"], quick_demo["endpoint"]
+    r = types.SimpleNamespace(stdout=quick_demo["stdout"])
     # --listen: the service on that endpoint, and the line that attaches a live view to it
-    assert (f"mergesvc view --connect tcp/127.0.0.1:{port} --fleet demo0 --projection "
+    assert (f"mergesvc view --connect {endpoint} --fleet demo0 --projection "
             f"{tmp_path / 'projection.npz'}") in r.stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["ok"] and summary["factors_accepted"] > 0

@@ -4,12 +4,12 @@ stderr and exit code 2, never a traceback (issue 14, item 6)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_cli
 
 from mergesvc.core.model import ObjectMap, Submap
 from mergesvc.errors import DecodeError, SchemaError
@@ -21,8 +21,7 @@ DEPTH = 100_000
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=300, env=clean)
+    return run_cli(*args)
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,11 @@ per_submap solved after every submap that changed the graph, batched only at bat
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,11 +39,31 @@ def build(robot: str, session: str, frames: Iterable[Frame]) -> list[Submap]:
 
 
 @pytest.fixture(scope="module")
-def report() -> dict:
+def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """`bench cost --quick --out --figure`, run once for the module: its JSON, the progress
+    it reported (recorded on the way to the CLI's bar) and where the figure went."""
+    from typer.testing import CliRunner
+
+    import mergesvc.bench.cost as cost
+    from mergesvc.cli import app
+
+    out = tmp_path_factory.mktemp("cost") / "cost.json"
     calls: list[float] = []
-    rep = run_cost_bench(make_service, build, CostBenchPlan.quick(),
-                         progress=lambda _msg, done: calls.append(done), echo=lambda _m: None)
+
+    def recorded(*args: Any, progress: Any, **kw: Any) -> dict:
+        def tick(msg: str, done: float) -> None:
+            calls.append(done)
+            progress(msg, done)
+        return run_cost_bench(*args, progress=tick, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cost, "run_cost_bench", recorded)
+        r = CliRunner().invoke(app, ["bench", "cost", "--quick", "--out", str(out), "--figure",
+                                     str(out.with_suffix(".png"))])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(out.read_text())
     rep["progress_calls"] = calls
+    rep["figure"] = str(out.with_suffix(".png"))
     return rep
 
 
@@ -138,13 +160,6 @@ def test_bad_plans_are_input_errors(change: dict) -> None:
         run_cost_bench(make_service, build, plan, echo=lambda _m: None)
 
 
-def test_the_cli_writes_the_cost_figure(tmp_path: Path) -> None:
+def test_the_cli_writes_the_cost_figure(report: dict) -> None:
     """`bench cost --quick --figure`: the cost figure (and nothing of another bench's)."""
-    from typer.testing import CliRunner
-
-    from mergesvc.cli import app
-
-    fig = tmp_path / "cost.png"
-    r = CliRunner().invoke(app, ["bench", "cost", "--quick", "--figure", str(fig)])
-    assert r.exit_code == 0, r.output
-    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert Path(report["figure"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

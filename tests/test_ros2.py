@@ -403,17 +403,20 @@ def test_a_factor_arrives_as_cdr_on_the_rmw_zenoh_key_with_tokens(two_sessions) 
             assert {parse_attachment(a)[2] for _, a in got.on(factors_key)} == {gid}
             assert pub.topics["/mergesvc/factors"] == factors_key
 
-            tokens = _tokens(ros)
             zid = str(ours.info.zid())
-            assert f"@ros2_lv/0/{zid}/{pub.node_id}/{pub.node_id}/NN/%/%mergesvc/" \
-                   f"merge_service" in tokens
-            pub_tokens = [t for t in tokens if "/MP/" in t]
-            assert any(t.endswith(
-                "/%mergesvc%factors/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/"
-                + PUBLISHED_HASHES["geometry_msgs/msg/PoseWithCovarianceStamped"]
-                + "/:1:,1000:,:,:,,") for t in pub_tokens), pub_tokens
-            assert any("%mergesvc%factor_links/nav_msgs::msg::dds_::Odometry_/" in t
-                       for t in pub_tokens)
+            node = f"@ros2_lv/0/{zid}/{pub.node_id}/{pub.node_id}/NN/%/%mergesvc/merge_service"
+            pose_topic = ("/%mergesvc%factors/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/"
+                          + PUBLISHED_HASHES["geometry_msgs/msg/PoseWithCovarianceStamped"]
+                          + "/:1:,1000:,:,:,,")
+            links = "%mergesvc%factor_links/nav_msgs::msg::dds_::Odometry_/"
+
+            def declared(tokens: set[str]) -> bool:
+                pub_tokens = [t for t in tokens if "/MP/" in t]
+                return (node in tokens and any(t.endswith(pose_topic) for t in pub_tokens)
+                        and any(links in t for t in pub_tokens))
+
+            # the tokens reach a late reader (liveliness propagation is asynchronous)
+            assert wait_for(lambda: declared(_tokens(ros)), timeout_s=10.0), _tokens(ros)
         # closed: the tokens are gone (ros2 topic list forgets the topics)
         assert wait_for(lambda: not _tokens(ros), timeout_s=10.0)
     finally:
@@ -626,11 +629,15 @@ def test_a_vehicle_side_bridge_says_once_why_an_unjoined_session_has_no_path(
     queryable = ours.declare_queryable(keys.status_key(root), answer)
     bridge = Ros2Bridge(ros, fleet="f3", robots=["auv1"], period_s=0.1, node_name="agent")
     try:
+        def notes() -> list[str]:
+            return [r.getMessage() for r in caplog.records if "not joined" in r.getMessage()]
+
         with caplog.at_level("WARNING", logger="mergesvc.ros2.bridge"):
+            # the queryable reaches the bridge's session asynchronously: refresh until it answers
+            assert wait_for(lambda: bridge.refresh() is not None and bool(notes()), timeout_s=10.0)
             for _ in range(3):
                 bridge.refresh()
-        notes = [r.getMessage() for r in caplog.records if "not joined" in r.getMessage()]
-        assert len(notes) == 1 and "auv3/s0" in notes[0]
+        assert len(notes()) == 1 and "auv3/s0" in notes()[0]
         assert set(bridge.publisher.topics) >= {"/mergesvc/paths/auv1/s0"}
         assert "/mergesvc/paths/auv3/s0" not in bridge.publisher.topics
     finally:

@@ -383,16 +383,12 @@ def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> No
     assert_empty_recording(out)
 
 
-def test_demo_view_save_records_the_demo(tmp_path) -> None:
-    """`mergesvc demo --quick --view-save FILE.rrd`: the demo runs as without it, and the
-    recording holds every vehicle's session (objects, odometry, merged trajectory) and the
-    factors the demo reports."""
-    rrd = tmp_path / "demo.rrd"
-    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "demo", "--quick", "--out",
-                        str(tmp_path / "demo"), "--view-save", str(rrd)],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stdout + r.stderr
-    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+def test_demo_view_save_records_the_demo(quick_demo: dict) -> None:
+    """`mergesvc demo --quick --view-save FILE.rrd` (the session's demo, conftest.py): the demo
+    runs as without it (tests/test_cli.py checks its output), and the recording holds every
+    vehicle's session (objects, odometry, merged trajectory) and the factors it reports."""
+    rrd = quick_demo["rrd"]
+    summary = json.loads((quick_demo["out"] / "summary.json").read_text())
     last, _ = read_rrd(rrd)
     for robot in ("auv1", "auv2", "auv3"):
         base = f"/world/robots/{robot}/s0"
