@@ -189,8 +189,9 @@ def test_a_covariance_the_graph_refuses_is_refused_before_any_side_effect(
 def test_a_commit_failing_half_way_leaves_no_half_state(tmp_path: Path, fast_backoff) -> None:
     """b's unit of work fails inside its transaction, after its row's status was updated,
     at the factor's insert (a temporary trigger raises: a real SQLite error). Nothing is
-    final: the row is pending, no factor stored, held, in the graph or published, no result.
-    Once the store writes again the same unit commits: one result, one factor, once."""
+    final: the row is pending, no factor stored, held, in the graph or published; b is told
+    `store` once (retry: not final) however often the worker tries. Once the store writes
+    again the same unit commits: one final result, one factor, once."""
     with Fleet(cfg_at(tmp_path / "h.db")) as fl:
         a = scene()
         fl.put(a)
@@ -207,15 +208,15 @@ def test_a_commit_failing_half_way_leaves_no_half_state(tmp_path: Path, fast_bac
         assert {(r.robot_id, r.status) for r in store.submaps()} == {
             ("a", "no_match"), ("b", "pending")}
         assert not store.factors() and not store.held_factors()
-        assert not fl.factors and not fl.of("b")
+        assert not fl.factors and outcomes(fl.of("b")) == ["refused/store"]
         with store._lock:
             store._conn.execute("DROP TRIGGER fault")
-        assert wait_for(lambda: len(fl.of("b")) == 1, 20.0)
+        assert wait_for(lambda: len(fl.of("b")) == 2, 20.0)
         assert wait_for(lambda: len(fl.factors) == 2, 5.0)
         (fid,) = fl.factor_ids()
         assert [f.factor_id for f in store.factors("accepted")] == [fid]
         assert set(fl.svc.factors) == {fid}
-    assert outcomes(fl.of("b")) == ["processed"]
+    assert outcomes(fl.of("b")) == ["refused/store", "processed"]
 
 
 # -- 6. a flood of conflicting replays ------------------------------------------------------------
@@ -258,9 +259,11 @@ def test_a_conflict_flood_is_rate_limited_bounded_and_leaves_others_alone(
 def test_a_full_disk_gives_a_retryable_answer_and_one_result_once_it_has_room(
         tmp_path: Path, fast_backoff) -> None:
     """a and b stored (b matches a), then the disk fills before they are processed. The
-    worker cannot commit: nothing is answered or marked final. c, sent meanwhile, cannot be
-    stored: `store` (retry). With room again: a and b get exactly one result each (never
-    failed then processed), and c sent again is processed; a restart answers nothing twice."""
+    worker cannot commit: nothing is marked final; a (the oldest row, the one it retries) is
+    told `store` (not final) once.
+    c, sent meanwhile, cannot be stored: `store` (retry). With room again: a and b get exactly
+    one final result each (never failed then processed), and c sent again is processed; a
+    restart answers nothing again."""
     path = tmp_path / "d.db"
     fl = Fleet(cfg_at(path))
     a = scene()
@@ -271,14 +274,17 @@ def test_a_full_disk_gives_a_retryable_answer_and_one_result_once_it_has_room(
         assert wait_for(lambda: fl.svc.stats.errors.get("store", 0) >= 2, 20.0)
         fl.put(moved(a, "c"))
         assert wait_for(lambda: len(fl.of("c")) == 1, 10.0)
-        assert not fl.of("a") and not fl.of("b") and not fl.factors
+        assert wait_for(lambda: fl.svc.stats.errors.get("store", 0) >= 5, 20.0)
+        assert outcomes(fl.of("a")) == ["refused/store"] and not fl.of("b")
+        assert not fl.factors
         assert {r.status for r in fl.svc.store.submaps()} == {"pending"}
         assert len(fl.svc.store.submaps()) == 2
         disk_full(fl.svc.store, False)
-        assert wait_for(lambda: len(fl.of("a")) == 1 and len(fl.of("b")) == 1, 20.0)
+        assert wait_for(lambda: len(fl.of("a")) == 2 and len(fl.of("b")) == 1, 20.0)
         fl.put(moved(a, "c"))  # the robot retries after `store`
         assert wait_for(lambda: len(fl.of("c")) == 2, 20.0)
-    assert outcomes(fl.of("a")) == ["no_match"] and outcomes(fl.of("b")) == ["processed"]
+    assert outcomes(fl.of("a")) == ["refused/store", "no_match"]
+    assert outcomes(fl.of("b")) == ["processed"]
     assert outcomes(fl.of("c")) == ["refused/store", "processed"]
     assert "database or disk is full" in fl.of("c")[0].detail
     with Fleet(cfg_at(path)) as again:

@@ -98,6 +98,7 @@ class MergeService:
         self._last_optimize = time.monotonic()
         self._solve = {"failures": 0, "error": None, "next_s": 0.0, "solved_at_s": None}
         self._store_failures = 0
+        self._told_store: set[int] = set()  # rows whose robot was told `store` (_not_now)
         self._scales_saved: dict[str, np.ndarray] = {}
         self.alive: set[str] = set()
         self.damage: list[str] = []
@@ -164,9 +165,7 @@ class MergeService:
         self.damage = self.acks.lost(self.store.final_seqs())
         for line in self.damage:
             log.error("store %s lost answered submaps: %s", self.store.path, line)
-        # the anchor the first unit of work fixed; a store from before it was kept: the first
-        # processed submap's session, as the live run had it (restore below)
-        anchor = self.store.meta(META_ANCHOR)
+        anchor = self.store.meta(META_ANCHOR)  # else the first processed submap's (below)
         if anchor is not None:
             self.merger.set_anchor(anchor)
         for fr in self.store.frames():
@@ -259,14 +258,29 @@ class MergeService:
                 self._store_failures += 1
                 log.error("submap row %d: the store cannot write, retried later: %s", row_id,
                           one_line(exc))
-                self.stats.error(RefusalCode.STORE.value)
+                self._not_now(row_id, exc)
                 return False
             except Exception as exc:
                 log.exception("processing submap row %d failed", row_id)
                 self.stats.error(RefusalCode.PROCESSING.value)
                 self._fail(row_id, exc)
+            self._told_store.discard(row_id)
             self._store_failures = 0
             return True
+
+    def _not_now(self, row_id: int, exc: StoreError) -> None:
+        """A row whose unit could not be committed: its robot is told `store` (not final; a
+        replay of it is free) once per row, and its result follows once the store writes."""
+        try:
+            row = None if row_id in self._told_store else self.store.submap(row_id)
+        except StoreError:  # (reads mostly work while writes do not)
+            row = None
+        if row is None:
+            self.stats.error(RefusalCode.STORE.value)
+            return
+        self._told_store.add(row_id)
+        self.outbox.refusal(row.robot_id, RefusalCode.STORE, f"stored; its result follows once "
+                            f"the store can write ({one_line(exc)})", row.seq, row.session_id)
 
     def _fail(self, row_id: int, exc: Exception) -> None:
         """A row whose processing raised: `failed` (final) once the store says so."""
