@@ -1,18 +1,10 @@
 """mergesvc: multi-robot object-map merging by semantic, uncertainty-aware graph matching.
 
 The package is layered along the data flow; each layer imports only the ones below it
-(tests/test_layout.py enforces this):
+(tests/test_layout.py enforces this; docs/architecture.md describes each layer):
 
-    errors    the exception hierarchy every layer raises
-    core      the matching method: models, tracking, affinity, candidates, solvers, verify,
-              pipeline, pose graph, fusion. Pure computation: no zenoh, no sockets, no files.
-    wire      bytes <-> models (the codec and its profiles), Zenoh keys and session config
-    link      the acoustic link: modem model, ARQ, event simulator, Zenoh bridge   (wire, core)
-    sim       seeded worlds with ground truth, vehicle runs, fleets, logs          (core)
-    fleet     the processes: merge service, vehicle agent, store, demo      (all of the above)
-    bench     `mergesvc bench ...`                                  (core, wire, link, sim)
-    settings  one settings tree over every layer's config: file, MERGESVC_* environment, flags
-    cli       `mergesvc ...`, on top of everything; nothing imports it
+    errors < core (the method: pure computation, no zenoh, no sockets, no files) < wire, sim
+    < link < fleet, bench < settings < ros2, view < cli (nothing imports it)
 
 The names below are the public API for Python users: `mergesvc.match(map, submap)`, the file
 and message models, and the codec's entry points.

@@ -10,11 +10,8 @@
      ├── LinkError         the (simulated) link failed: a message was lost after all retries
      ├── TransportError    the network refused: a port in use, an endpoint that does not answer
      └── StoreError        persistence failed (database unreadable, disk full)
-
-"No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions.
-Error text meant for one line (a log line, a wrapped error, stderr) goes through `one_line`
-(every layer's one copy).
-"""
+"No match" and "rejected" are results (`MatchResult.accepted=False`), never exceptions; error
+text meant for one line (a log line, stderr) goes through `one_line` (its one copy)."""
 
 from __future__ import annotations
 

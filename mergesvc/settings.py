@@ -1,30 +1,16 @@
 """One settings tree for every command: `Settings`, a section per part of the system, resolved
 from defaults <- a JSON file <- `MERGESVC_*` environment <- command-line flags.
 
-This layer sits between the processes (fleet) and the command line: it nests the config
-models of core, wire, link, sim and fleet, and it is the only place that reads the settings
-file and the environment. Only `mergesvc.cli` imports it; everything below takes its config
-objects as arguments. `load_settings` takes the environment as a parameter (the command line
-passes `os.environ`; tests pass `{}`), so nothing reads `os.environ` behind a caller's back.
+It nests the config models of core, wire, link, sim and fleet and is the only place that reads
+the settings file and the environment; only `mergesvc.cli` imports it, and everything below
+takes its config objects as arguments. `load_settings` takes the environment as a parameter (the
+command line passes `os.environ`, tests `{}`): nothing reads `os.environ` behind a caller's back.
 
-The file. JSON, either the tree (`mergesvc config --dump` prints one; any subset of sections and
-fields will do) or, as before the tree, a bare section: a `MatchConfig` object (its keys `mode`,
-`seed`, `candidates`, `affinity`, `solver`, `verify` never name a section) or an
-`UncertaintyConfig` object (`hidden_sizes`, `epochs`, ...). A bare MatchConfig is a whole
-MatchConfig, its own defaults filling what it leaves out, as `--config`/`--settings` always read
-it; it goes to `match`, or for `mergesvc serve` to `service.match`. `MERGESVC_SETTINGS=FILE`
-names the file when no `--settings` is given (`mergesvc demo` uses it to hand its resolved
-settings to the processes it starts).
-
-The environment. `MERGESVC_<SECTION>__<FIELD>[__<FIELD>...]=VALUE`, case-insensitive after the
-prefix, e.g. `MERGESVC_SERVICE__MATCH__VERIFY__MIN_MATCHES=5`; the value is read as JSON when it
-parses (numbers, true/false, null, lists, objects) and as a string otherwise (`sm`). A name whose
-first part is a MatchConfig field rather than a section is the short form for `match`:
-`MERGESVC_CANDIDATES__TOP_K=16` is `MERGESVC_MATCH__CANDIDATES__TOP_K=16`. A name whose first
-part is neither (`MERGESVC_HOME`, a variable of some other tool) is not a setting: it is ignored
-with one warning (logged once per process and name). Under a section (or the short form) an
-unknown field is a ConfigError, so a typo is not ignored silently; so are the short and the long
-form of one setting set together.
+The file is JSON: the tree (`mergesvc config --dump`; any subset will do) or a bare MatchConfig
+or UncertaintyConfig section; `MERGESVC_SETTINGS=FILE` names it when no `--settings` is given.
+The environment: `MERGESVC_<SECTION>__<FIELD>[__<FIELD>...]=VALUE`, read as JSON when it parses,
+else as a string. An unknown field under a section is a ConfigError; a name that is not a
+setting is ignored with one warning. The rules in full: docs/architecture.md, "Settings".
 """
 
 from __future__ import annotations

@@ -1,27 +1,13 @@
 """`mergesvc bench cost`: the merge service's cost per submap against the factors it has
-accepted (issue 14's target: flat within 2x from the first factor to 2,000 factors).
+accepted (the target: flat within 2x from the first factor to 2,000 factors).
 
-One seeded stream of submaps, fed in-process to a real MergeService (its store in a temporary
-folder, real GTSAM) twice, in two modes:
-  - `per_submap`: the graph solved after every submap (`ingest(optimize=True)`), as the service
-    did before issue 14: the baseline;
-  - `batched`: solved once per batch of B submaps, as the worker does with a backlog (it solves
-    when the backlog is drained and at most every `optimize_interval_s` while it is not). B is
-    modelled as round(rate_hz x optimize_interval_s): the submaps arriving in one interval.
-    Under light load (rate x solve time < 1) the worker drains after every submap and solves
-    after each one that changed the graph, like `per_submap`, but it is then idle between
-    submaps: the cost that bounds throughput is the one under a backlog, which B models.
-The stream: the pool fleet (sim.fleet_world, as `bench merge` and the demo) whose vehicles go
-back into the water for session after session, each session a new odometry frame over the same
-objects, so most submaps match earlier sessions of other vehicles (or its own) and yield
-inter-robot factors; the vehicles' local maps (fleet/agent.py `build_submaps`) are passed in by
-the caller, as the service factory is (bench may not import fleet).
-
-Each submap's cost is the wall time of its `ingest`: decode, persist, match, factors stored, the
-graph updated, and a solve when one is due. The solve's part is that wall time less the
-service's own processing time (`stats.latency_ms`) and the median store overhead of the
-submaps that did not solve; the amortized cost of a submap is its processing plus its share
-(1/B) of its batch's solves.
+One seeded stream of submaps (the pool fleet, session after session over the same objects, so
+most submaps yield inter-robot factors) is fed in-process to a real MergeService (its store in a
+temporary folder, real GTSAM) twice: `per_submap` solves after every submap (the baseline);
+`batched` solves once per batch of B = round(rate_hz x optimize_interval_s) submaps, as the
+worker does under a backlog. The vehicles' local maps and the service factory are passed in by
+the caller (bench may not import fleet). A submap's cost is the wall time of its `ingest`; its
+amortized cost adds its share (1/B) of its batch's solves. The method: docs/benchmarks/cost.md.
 """
 
 from __future__ import annotations

@@ -1,23 +1,13 @@
-"""`bench fuzz`: seeded mutation fuzzing of every decoder of outside input (issue 14): each input
-is either decoded or refused with one of the errors the command line turns into one line and
-exit 2; anything else (RecursionError, KeyError, OverflowError, a hang, ...) is a finding.
+"""`bench fuzz`: seeded mutation fuzzing of every decoder of outside input: each input is either
+decoded or refused with one of the errors the command line turns into one line and exit 2;
+anything else (RecursionError, KeyError, OverflowError, a hang, ...) is a finding.
 
-Targets and the decoders in them (`DECODERS`):
-    wire   wire.decode_message (every golden vector, the golden projection given),
-           wire.peek_projection_id (what decode_file reads first)
-    link   link.decode_fragment, link.decode_ack, link.join_fragments (the ARQ framing),
-           link.unframe_sample (the bridge's per-sample framing)
-    match  match.map / match.submap: wire.load_model, the loader of `mergesvc match`, then the
-           pipeline on what it accepts (against the golden partner file), as `match` runs them
-    other  other.codec_json (encode_file: `codec encode`'s JSON input), other.tum (read_tum),
-           other.obslog (sim read_observation_log: `agent --log`), other.projection
-           (Projection.load: the .npz of `--projection`)
-
-Why a mutation fuzzer and not hypothesis: measured on this machine (2 shared cores), hypothesis
-drives wire.decode_message at ~2,100 inputs/s with the plainest strategy (`st.binary()`) and
-stops at the first failure to shrink it, while this loop runs ~4,000-4,500 mutated golden messages/s
-(full decodes) and keeps counting: every finding is counted, grouped by where it was raised and
-its first inputs saved. Every draw comes from one seeded `random.Random`: a run is reproducible.
+Targets (`DECODERS`): `wire` (decode_message, peek_projection_id), `link` (the ARQ framing and
+the bridge's per-sample framing), `match` (the loader of `mergesvc match`, then the pipeline on
+what it accepts) and `other` (codec JSON input, TUM, observation logs, projection files). Every
+finding is counted, grouped by where it was raised, and its first inputs saved. Every draw comes
+from one seeded `random.Random`: a run is reproducible. Each decoder, and why a mutation fuzzer
+and not hypothesis: docs/benchmarks/fuzz.md.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Generalization benchmark (issue 9): a matrix of worlds that do not share the generator's
+"""Generalization benchmark: a matrix of worlds that do not share the generator's
 assumptions (axis conventions, embedding dimension, map size, look-alikes, duplicates, range
 noise, declared vertical), with verified mode, paper mode and cosine + Hungarian side by side,
 and the neural solver (NGM) in both modes beside the default solver (RRWM).

@@ -9,10 +9,9 @@
           answering at --connect within --connect-timeout)
 
 Every command runs the code that can fail inside `exit_on_error()`: a known error becomes one
-line `error: ...` on stderr (a TransportError's line also says what to do) and its exit code. A
-command that reads user-typed values through constructors that raise `ValueError`/`OSError` (a
-file path, a name) lists those types too: they are bad input, exit 2. With `-vv` the traceback
-is printed above the line. Anything else is a bug and keeps its traceback.
+line `error: ...` on stderr (a TransportError's also says what to do) and its exit code; so do
+the `ValueError`/`OSError` of constructors a command lists for user-typed values (bad input,
+exit 2). With `-vv` the traceback is printed above the line; anything else is a bug and keeps it.
 """
 
 from __future__ import annotations

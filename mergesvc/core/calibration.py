@@ -1,22 +1,16 @@
 """Noise calibration of a pose graph from its own residuals: variance-component estimation.
 
 Factors fall into groups (a robot's odometry, the inter-robot closures); each group's declared
-covariances are scaled per axis s (GTSAM order: rotation, then translation) in decorrelated
+covariances are scaled per axis (GTSAM order: rotation, then translation) in decorrelated
 coordinates: the rotation error, and the translation error less the part the rotation error
-explains (`scale_covariance`), so that scaling a robot's heading noise also scales the sideways
-drift it causes. After a solve, each group and axis gets the REML fixed point of a per-axis
-variance component (Foerstner's estimator), in those coordinates:
+explains (`scale_covariance`). After a solve, each group and axis gets the REML fixed point of
+a per-axis variance component (Foerstner's estimator), in those coordinates:
 
     s_a^2 <- (s_a^2 * sum_i e_ia (W_i e_i)_a + nu) / (sum_i (W_i Q_i)_aa + nu)
 
-e_i the factor's residual, W_i = Sigma_i^-1, Q_i = Sigma_i - J_i Sigma_x J_i^T its covariance
-under the model (so sum_a (W_i Q_i)_aa is the factor's redundancy number: what the rest of the
-graph can check of it). The redundancies come from a seeded Monte-Carlo trace estimate over the
-linearised, whitened system (noise drawn, solved, the residuals' second moments), so the cost is
-one sparse factorisation and a few solves. nu pseudo-observations at the declared scale (s = 1)
-keep an axis the graph can hardly check near what was declared. Factors whose NEES is beyond
-`gross_quantile` (wrong closures
-GNC will reject) are left out. Nothing here uses the truth. Pure: no I/O.
+with the redundancies from a seeded Monte-Carlo trace estimate (one sparse factorisation and a
+few solves) and nu pseudo-observations at the declared scale. Factors whose NEES is beyond
+`gross_quantile` are left out. Nothing here uses the truth. Pure: no I/O. docs/uncertainty.md.
 """
 
 from __future__ import annotations

@@ -1,22 +1,16 @@
 """Match result -> inter-robot factor: what the service sends for an accepted match.
 
-A match of submap b against the objects of session a (placed in a's session frame) gives the
-result's T_map_submap and its 6x6 covariance, in GTSAM's Pose3 tangent order: rotation (rad),
-then translation (m). The factor carries the relative pose with the covariance inflated by the
-odometry drift (`inflate_covariance`), and the matched object pairs.
+A match of submap b against the objects of session a gives T_map_submap and its 6x6 covariance
+(GTSAM's Pose3 tangent order: rotation (rad), then translation (m)). The factor carries the
+relative pose, its covariance inflated by the odometry drift (`inflate_covariance`), and the
+matched object pairs:
 
-- Frame level (submaps without keyframes, old clients): the submap's positions are in b's
-  session frame, and T_a_b = T_map_submap ties the two session frames.
-- Pose level (keyframes): the submap's positions are in its keyframe Kb's body frame, so
-  T_map_submap = T_{a, Kb}, the pose of Kb in a's session frame. The factor ties keyframe Ka
-  of a (`anchoring_keyframe`: the keyframe most matched map objects hang on) to Kb:
-  T_{Ka,Kb} = inv(T_{a,Ka}) T_{a,Kb}, with T_{a,Ka} the pose of Ka used to place a's map.
-  A constant left factor does not change a right-perturbation covariance, so the match's
-  covariance carries over unchanged (before the drift inflation).
+- frame level (submaps without keyframes): T_a_b = T_map_submap ties the two session frames;
+- pose level (keyframes): it ties keyframe Ka of a (`anchoring_keyframe`: the keyframe most
+  matched map objects hang on) to b's keyframe Kb, T_{Ka,Kb} = inv(T_{a,Ka}) T_{a,Kb}, with the
+  match's covariance unchanged (before the drift inflation). Derivation: docs/pose_graph.md.
 `odometry_edge` turns a keyframe submap's odometry into the known-inlier edge between two
-keyframes of its session.
-
-Pure computation: no Zenoh, no files.
+keyframes of its session. Pure computation: no Zenoh, no files.
 """
 
 from __future__ import annotations

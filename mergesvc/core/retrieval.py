@@ -1,32 +1,17 @@
 """Which frames a submap is worth matching against: one index over the whole fleet's objects.
 
-The service used to match every submap against every other frame (robot session) in turn, so
-its cost per submap grew with the fleet: 2 matches at 3 robots, 19 at 20, 41 when one robot
-opened 40 sessions. `FleetIndex` holds the unit embeddings of every frame's objects in one
-matrix per embedding size; `rank` scores each frame for a submap with one matrix product and
-the service matches only the best few (`ServiceConfig.max_candidate_frames`), so the matching
+`FleetIndex` holds the unit embeddings of every frame's (robot session's) objects, one float32
+matrix per embedding size; `rank` scores each frame for a submap with one matrix product, so
+the service matches only the best few (`ServiceConfig.max_candidate_frames`) and its matching
 cost per submap is bounded whatever the fleet size. Frames of another embedding size are never
-candidates (their objects come from another model; issue 14).
+candidates (their objects come from another model).
 
-Score of frame f for a submap with objects i: sum_i max(0, best_i(f) - typical_i), where
-best_i(f) is the cosine of object i to its most similar object of f and typical_i the median
-over the frames of the fleet of best_i (the level any frame reaches for object i: a generic
-object that resembles everything adds nothing). A frame that saw the submap's objects scores
-about one per object seen; frames of an unrelated place near zero. Ties keep the frames' order
-of arrival. A fleet of at most `keep` candidate frames needs no ranking: `rank` returns them
-all (the scores still computed, for the log).
-
-Pure numpy; no frame is ever dropped from the index (a frame's row block is replaced when its
-objects change). The unit rows are held once, in float32 (a cosine needs no more: scores move
-by about 1e-7, and half the memory of a fleet's objects; the products are float32 too): one
-buffer per embedding size, the frames' row blocks in their order of arrival (the matrix `rank`
-multiplies by is a view of it). A frame whose block changes size moves the blocks after it (the
-service's sessions arrive in time order: the one that changed is among the last, so little
-moves); the buffer grows by half when full. (It held each frame's rows and, per size, a stacked
-copy of them all, made again after every change: twice the memory, and O(N d) copied per
-submap.) Cost per ranking: one (m x N) product over the N objects of the fleet: about 9 ms per
-submap at 20 vehicles x 24 objects, O(N d) as the fleet's object count grows. The matching
-behind it is what the index caps.
+Score of frame f for a submap with objects i: sum_i max(0, best_i(f) - typical_i), best_i(f)
+the cosine of object i to its most similar object of f, typical_i the median of best_i over the
+fleet's frames (a generic object that resembles everything adds nothing). Ties keep the frames'
+order of arrival; a fleet of at most `keep` frames is returned whole (scores still computed).
+Pure numpy; no frame is ever dropped (its row block is replaced when its objects change).
+Memory layout and cost: docs/benchmarks/merge.md, "The fleet index".
 """
 
 from __future__ import annotations

@@ -1,54 +1,13 @@
-"""The merge service's state as files other tools read (issue 11): the global pose graph in g2o
-and every session's keyframe trajectory in TUM, from odometry alone and as merged.
+"""The merge service's state as files other tools read: the global pose graph in g2o and every
+session's keyframe trajectory in TUM, from odometry alone and as merged.
 
-`export_store` copies the service's SQLite store (an SQLite online backup of a read-only
-connection, so a running service may keep writing and the file is never changed), rebuilds
-the service from the copy the way a restart does (`MergeService.restore`: the processed
-submaps, the accepted factors, the graph solved once; submaps still pending are not in it)
-and writes into `out_dir`:
-
-  graph.g2o         every keyframe node of the pose graph (VERTEX_SE3:QUAT) and every factor
-                    in force (EDGE_SE3:QUAT): the odometry edges and the inter-robot factors,
-                    with their covariances (wire.formats.write_g2o: information matrix in
-                    g2o's order). Vertex ids are the nodes' indices in the service's pose graph
-                    (insertion order; its gtsam key is symbol('f', id)); edges are written in
-                    the graph's factor order, i -> j being the factor's node a -> node b with
-                    the measurement T_a_b.
-  graph_nodes.json  vertex id (a string, JSON keys are) -> node "robot/session#k".
-  factors.json      every inter-robot factor the store holds, accepted or retracted (its
-                    `status`), as schemas/factor.schema.json objects, in the order accepted:
-                    what a vehicle received (clients/gtsam_factors.py adds them to a graph).
-  map.json          the fused global map in the anchor frame (schemas/object_map.schema.json;
-                    robot_id/session_id name the anchor session): the anchor session placed
-                    by its odometry, and every session a solve has joined to it.
-  export.json       the manifest: the anchor, each node's frame and stamp, each edge's factor
-                    id and kind, the files written, submaps left out (pending).
-  trajectories/{robot}_{session}_odometry.tum
-                    the session's keyframes composed from its stored odometry alone
-                    (SessionState.propagate from keyframe 0), in the session frame (keyframe
-                    0 at the identity); keyframes not joined to keyframe 0 by odometry (a lost
-                    submap broke the chain) are left out.
-  trajectories/{robot}_{session}_merged.tum
-                    the optimized keyframe poses in the anchor frame (the anchor session's
-                    keyframe 0): what the status query's `keyframe_poses` says. Only sessions
-                    in the anchor's component have one.
-
-Vertex poses: the nodes of the anchor's component carry their optimized pose in the anchor
-frame (the service's solution; solved here when the store holds no factor, so the service
-never solved). The nodes of any other component (a session no factor joins to the anchor's
-yet) are solved on their own, their pose in the frame of the component's first node (its
-first session's keyframe 0): export.json names that frame per node. g2o has no frames, so a
-tool reading graph.g2o sees those components overlap the anchor's; the edges are exact.
-
-TUM stamps (one rule per session, the same in both files; every keyframe is written, keyframe
-0 included): when every keyframe after 0 has a submap cut there with a `stamp` (what mergesvc
-agent sends), the stamps are those submaps' `stamp` in seconds, and keyframe 0's is the stamp
-of a submap cut there or, as mergesvc agent cuts none at the session origin, extrapolated back
-along the first two later keyframes linearly in the keyframe index (exact for mergesvc agent,
-whose keyframes are frame indices at its frame rate; export.json's `stamp_0` says which);
-otherwise (or with too few stamps to extrapolate) every keyframe is written with its index as
-the stamp (export.json says which: "submap" or "keyframe"). File names keep [A-Za-z0-9._-] of
-the robot and session ids, anything else becomes "_".
+`export_store` copies the service's SQLite store (an online backup of a read-only connection: a
+running service may keep writing, and the file is never changed), rebuilds the service from the
+copy as a restart does (`MergeService.restore`; submaps still pending are not in it) and writes
+into `out_dir`: graph.g2o, graph_nodes.json, factors.json, map.json, export.json (the manifest)
+and trajectories/{robot}_{session}_{odometry,merged}.tum. The anchor's component is in the
+anchor frame, any other component in the frame of its first node (export.json names each
+node's frame). The files, vertex ids, edge order, frames and TUM stamps: docs/export.md.
 """
 
 from __future__ import annotations

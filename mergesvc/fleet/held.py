@@ -1,20 +1,16 @@
 """What the merge service keeps in memory of every object and every accepted factor, compactly.
 
 The service holds every session's objects (each from the latest submap holding it) and every
-accepted factor for the whole mission. As pydantic models that was about 70 kB of Python state
-per processed submap: an ObjectNode's embedding is a list of 384 Python floats (12.3 kB, and
-as much again for a per-dimension variance), a Factor about 6.9 kB. Here:
+accepted factor for the whole mission, packed so that what is read back is what came in:
 
   - `PackedVector`: a float64 vector in the fewest bytes that give back the very same values,
-    bit for bit: int8 codes times one scale (what the int8 profile carries: 392 bytes for 384
-    values), a table of at most 256 distinct values with one byte per value (the lossy
-    profiles' log-coded variances), float32 (the full profile's embeddings and variances), else
-    float64. Matching computes on the unpacked float64 values: the same numbers as before;
+    bit for bit: int8 codes times one scale, a table of at most 256 distinct values with one
+    byte per value, float32, else float64. Matching computes on the unpacked float64 values;
   - `HeldObject`: an object as the service holds it (its embedding and variance packed; the
     ObjectNode built again when asked);
   - `HeldFactor`, `FactorTable`: an accepted factor's numbers in one float64 array and its
-    object pairs; the table is the service's `factors` (factor id -> Factor: the Factor is built
-    again, equal to the one accepted, when one is read).
+    object pairs; the table is the service's `factors` (factor id -> Factor, built again equal
+    to the one accepted when read). What it saves: docs/benchmarks/soak.md.
 """
 
 from __future__ import annotations

@@ -1,25 +1,15 @@
 """A drive-scale fleet from the real KITTI-00 trajectory (`drive_fleet`): three cars, each
-driving one overlapping stretch of the ground truth (KITTI-00 revisits its streets many times,
-so the stretches pass each other's places), objects along the road, and odometry that drifts
-with the error structure of the real ORB-SLAM2 estimate of the same drive.
+driving one overlapping stretch of the ground truth (KITTI-00 revisits its streets, so the
+stretches pass each other's places), objects along the road, and odometry that drifts with the
+error structure of the real ORB-SLAM2 estimate of the same drive.
 
-Odometry: per step k-1 -> k (of the subsampled poses) the ground-truth motion D_gt and the
-ORB-SLAM2 motion D_orb (its translation scaled by the Sim(3) scale fitted on the whole drive,
-~1.005) give the step error E_k = inv(D_gt) D_orb; the car's odometry composes D_gt Exp(gain
-Log(E_k)) from the identity at its start. With gain 1 (the default) that is the ORB-SLAM2
-estimate itself re-anchored at the stretch's start: its real drift on that stretch (ORB-SLAM2's
-own loop closures included, so this odometry is better than raw visual odometry).
-
-`drift="vo"` models visual odometry without loop closures instead: each car's step errors are a
-block bootstrap of the real ones (runs of `VO_BLOCK` consecutive E_k drawn, seeded, from the
-whole drive), which keeps their size, their correlation over ~10 s and their dependence on the
-motion, but not the global consistency ORB-SLAM2's loop closures gave them. Its drift grows as
-raw odometry does: 1.3-9.5 m ATE over a 1.6 km stretch (0.08-0.6 %), against ~0.8 m.
-
-Frames are in KITTI's camera axes (x right, y down, z forward), both the world (the first
-camera) and the body: the service must not assume z up. Visibility and noise are simulated in
-gravity-aligned axes (sim/runs.py's `_frames`, as `drive_run` does) and expressed in camera
-axes afterwards.
+Odometry composes D_gt Exp(gain Log(E_k)) per step, E_k = inv(D_gt) D_orb the real step error
+(ORB-SLAM2's translation scaled by the drive's Sim(3) scale); gain 1 (the default) is the
+ORB-SLAM2 estimate re-anchored at the stretch's start. `drift="vo"` draws each car's step errors
+as a seeded block bootstrap (runs of `VO_BLOCK`) of the real ones: visual odometry without loop
+closures. Frames are KITTI's camera axes (x right, y down, z forward), world and body: the
+service must not assume z up. Visibility and noise are simulated in gravity-aligned axes and
+expressed in camera axes afterwards. The model and its drift: docs/benchmarks/merge.md.
 """
 
 from __future__ import annotations

@@ -2,28 +2,11 @@
 .rrd file) as submaps, factors and the service's status come in. Rerun is an optional extra
 (`pip install mergesvc[view]`), imported only here, when a view is opened.
 
-Entity paths (docs/view.md):
-
-    world                                      view coordinates: right-handed, z up (static)
-    world/robots/{robot}/{session}/odometry    LineStrips3D: keyframes by the vehicle's odometry
-    world/robots/{robot}/{session}/merged      LineStrips3D: the service's merged keyframe poses
-    world/robots/{robot}/{session}/keyframes   Points3D: keyframes as placed, labelled k
-    world/robots/{robot}/{session}/objects     Points3D: objects as placed, labelled by id
-    world/fused_objects                        Points3D: the service's fused global map (in
-                                               process only: MergeService.global_map)
-    world/correspondences                      LineStrips3D: object pairs of factors in force
-    world/factors/accepted                     LineStrips3D: keyframe to keyframe, in force
-    world/factors/retracted                    LineStrips3D: keyframe to keyframe, retracted
-    latency/service_ms                         Scalars: the service's time per submap (in
-                                               process: MergeService.stats.latency_ms)
-    latency/submap_to_factor_ms/{robot}        Scalars: seen on the network, from a submap to
-                                               its first factor
-    latency/p50_ms, p90_ms, p99_ms             Scalars: the service's percentiles (status)
-    counts/submaps, factors_accepted, factors_retracted, factors_active    Scalars
-    events                                     TextLog: submaps, factors accepted / retracted
-
+Entities: `world` (right-handed, z up) with each session's odometry, merged poses, keyframes and
+objects under `world/robots/{robot}/{session}/`, the fused map, the correspondences and the
+factors (accepted, retracted); `latency/...` and `counts/...` scalars; an `events` text log.
 Timelines: `submap` (how many submaps the view has seen) and `time` (seconds since the view
-opened, from its clock).
+opened, from its clock). Every entity path: docs/view.md.
 """
 
 from __future__ import annotations

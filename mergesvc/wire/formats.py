@@ -1,21 +1,14 @@
 """File formats other tools read: TUM trajectories (evo, the TUM RGB-D benchmark tools) and g2o
 pose graphs (g2o, GTSAM's readG2o, SE-Sync, ...).
 
-TUM: one pose per line, `timestamp tx ty tz qx qy qz qw` (seconds, metres, unit quaternion
-with the scalar LAST), the pose T_world_body; blank lines and `#` comment lines are skipped on
-read.
-
-g2o (3-D): `VERTEX_SE3:QUAT id x y z qx qy qz qw` (the vertex's pose in the world) and
-`EDGE_SE3:QUAT i j x y z qx qy qz qw I11 I12 ... I66`: the measured T_ij = T_i^-1 T_j (pose of
-j in i's frame, what gtsam.BetweenFactorPose3(i, j, T_ij, ...) holds), then the 21 numbers of
-the upper triangle (row by row) of the 6x6 INFORMATION matrix in g2o's order, translation
-first, then rotation. mergesvc's covariances are in GTSAM's Pose3 tangent order, rotation
-first: write_g2o inverts and permutes, exactly as gtsam.writeG2o does and gtsam.readG2o undoes
-(tests/test_formats.py checks both directions against gtsam).
+TUM: one pose T_world_body per line, `timestamp tx ty tz qx qy qz qw` (the scalar LAST). g2o
+(3-D): VERTEX_SE3:QUAT and EDGE_SE3:QUAT lines, an edge's information matrix in g2o's order
+(translation first): write_g2o inverts and permutes mergesvc's GTSAM-order covariances exactly
+as gtsam.writeG2o does and gtsam.readG2o undoes.
 
 Numbers are written with Python's shortest round-trip repr (a file read back gives the same
-floats); quaternions are written with qw >= 0. Files are written to a temporary file in the
-same folder and renamed over the target, so a reader never sees half a file.
+floats); quaternions with qw >= 0. Files are written to a temporary file in the same folder and
+renamed over the target, so a reader never sees half a file. The lines: docs/export.md.
 """
 
 from __future__ import annotations

@@ -1,37 +1,16 @@
 """Every Zenoh key expression of mergesvc, versioned under one root; built only here.
 
 A fleet has two roots: the topside `fleet_root(fleet)` (the service, and vehicles on Zenoh) and
-the vehicle side of an acoustic link `uw_root(fleet)` (the bridge republishes one on the other).
-Under either root the key space is the same:
+the vehicle side of an acoustic link `uw_root(fleet)`; under either the key space is the same
+(submap, factor, error, result, relocalize, status, alive: docs/wire.md §11). The service sends
+coded messages as MSGPACK_ENCODING and JSON documents as JSON_ENCODING.
 
-    submap/{robot}/{session}    a vehicle's submaps                  submap_key, all_submaps
-    factor/{robot}/{factor_id}  inter-robot factors for a vehicle    factor_key, robot_factors,
-                                                                     all_factors
-    error/{robot}               answers to a vehicle's bad submaps   error_key, all_errors
-    result/{robot}              what became of each of its submaps   result_key, all_results
-    relocalize                  queryable: where is a new session    relocalize_key
-    status                      queryable: the service's status      status_key
-    alive/{robot}               liveliness token of a vehicle        alive_key, all_alive
-
-Payload encodings (the Zenoh `encoding` the service sets on everything it sends):
-MSGPACK_ENCODING on coded messages (submaps, factors, error messages: docs/wire.md),
-JSON_ENCODING on JSON documents (results, the status and relocalize replies, query errors).
-
-Every function takes the root first (as `fleet_root` or `uw_root` return it) and refuses a root
-of another shape, and names that would not be one key chunk (a robot), or that Zenoh refuses
-in a key (`*`, `$`, `?`, `#`, empty chunks): `ConfigError`. Names are otherwise taken as they
-come (robots, sessions and factor ids arrive from the network; the key of a name that worked
-before must not change).
-
-The acoustic bridge (link/bridge.py) moves keys between two prefixes (`uw_root` and
-`fleet_root`; any plain key expression will do) by their part below the prefix, the suffix:
-
-    {prefix}/{suffix}           a suffix below a prefix                  under
-    {prefix}/**                 every key below a prefix                 all_under
-    BRIDGE_DOWNLINK             what goes down to the vehicles, as suffixes: every factor
-
-`under` and `all_under` refuse a prefix with wildcards, `$?#` or empty chunks (ConfigError);
-the suffix is a key's own tail (or one of BRIDGE_DOWNLINK) and is taken as it comes.
+Every function takes the root first and refuses a root of another shape, and a name that would
+not be one key chunk (a robot) or that Zenoh refuses in a key (`*`, `$`, `?`, `#`, empty
+chunks): `ConfigError`. Names are otherwise taken as they come: the key of a name that worked
+before must not change. `under`, `all_under` and BRIDGE_DOWNLINK address keys by their suffix
+below a prefix for the acoustic bridge (link/bridge.py); they refuse a prefix with wildcards,
+`$?#` or empty chunks. Which function builds which key: docs/wire.md §11.4.
 """
 
 from __future__ import annotations

@@ -1,34 +1,13 @@
 """Object map / submap payloads (MAP and SUBMAP messages): encode_objects, decode_objects.
 
-Object map / submap payload, a msgpack array:
-    [robot_id | nil (= sender), session_id, seq (nil: = envelope seq, -1: none), stamp, n, d,
-     ids, labels, nobs_bits, var_mode, positions, variances, embeddings, blob (, up (, pose))]
-(up, optional: the declared vertical as three int8 codes, direction only; absent = undeclared.
-A decoder that predates it refuses a payload of 15 fields; one without `up` reads everywhere.)
-where the small header fields say how to read `blob`, one bit stream (MSB first) holding, in
-order: id deltas, label codes, n_obs - 1, isotropic flags, positions, variances, embeddings.
-What each profile carries per object: see mergesvc.wire.profiles.
-
-pose, optional, submaps only (Submap.keyframe / Submap.odometry): the 16th field, `up` then
-nil if the submap declares none. A submap without a keyframe has no pose field and is
-byte-identical to before it existed; a decoder that predates it refuses 16 fields.
-    pose = [keyframe] | [keyframe, delta, odometry]
-keyframe and delta = keyframe - odometry.from_keyframe (>= 1) are msgpack integers; odometry
-(T_from_to and its 6x6 covariance, GTSAM order rotation then translation) is binary:
-    full         43 float64 little-endian: translation (3), quaternion wxyz (4), covariance
-                 (36, row-major); exact (344 bytes)
-    f16, int8    a bit stream, as a compact factor's pose: per translation axis a 6-bit width
-                 and the zigzag value at the position resolution (CodecSettings.
-                 position_resolution_m, carried in `positions`: 1 cm by default, error <= 5 mm
-                 per axis), the rotation as smallest three quaternion components (2 + 3 x 15
-                 bits, <= 1.5e-4 rad), the covariance as six log2 standard deviations (14 bits,
-                 1/256 octave in [2^-32, 2^32), <= 0.14 %) and its 15 canonical partial
-                 correlations (13 bits each, <= 2e-3); ~50 bytes
-    compact      translation and rotation as in f16; the covariance as its six log2 standard
-                 deviations only (ODOMETRY_SIGMA: 11 bits, 1/32 octave in [2^-32, 2^32),
-                 <= 1.1 % error per standard deviation): compact drops the odometry's
-                 correlations and decodes a diagonal covariance. 16-22 bytes for a move of
-                 metres to tens of metres, about 25-30 bytes per submap in all
+The payload is a msgpack array: a small header (robot and session ids, seq, stamp, n, d, and how
+each field is coded), then `blob`, one bit stream (MSB first) holding the per-object fields in
+order (id deltas, label codes, n_obs - 1, isotropic flags, positions, variances, embeddings),
+then, optionally, the declared vertical `up` and, for a submap with a keyframe, its `pose`
+(keyframe and odometry). A payload without the optional fields is byte-identical to one from
+before they existed; the encoder writes the shortest form that holds what the model has. What
+each profile carries per object: mergesvc.wire.profiles; the layout, the odometry's coding per
+profile and its error bounds: docs/wire.md §4.
 """
 
 from __future__ import annotations

@@ -1,20 +1,17 @@
 """What every codec stage shares: message types, quantisation profiles, encoder settings,
 decoder limits, and the record of a decoded envelope.
 
-`compact` is for acoustic links: every field is bounded as in DCCL (a field in [min, max] at
-`resolution` costs ceil(log2((max - min) / resolution + 1)) bits), and embeddings are
-transform-coded on a fleet-shared PCA `Projection` with bits given to components by greedy
-reverse water-filling. Profiles (what each carries per object; positions in full are float64,
-otherwise fixed point):
+`compact` is for acoustic links: every field is bounded as in DCCL, and embeddings are
+transform-coded on a fleet-shared PCA `Projection` (bits given to components by greedy reverse
+water-filling; `embedding_bits`, 400, per object). What each profile carries per object
+(fixed-point positions: 1 cm by default, the range per axis taken from the data and carried;
+the bit-level layout: docs/wire.md §4-§5):
 
     profile   embedding                        variance                       position
     full      float32                          float32, as given              float64
     f16       float16                          log2, 16 bits, as given        fixed point
     int8      int8 + float32 scale per vector  log2, 8 bits, as given         fixed point
     compact   PCA coefficients, 0-8 bits each  mean only, log2, <= 1.1 %      fixed point
-
-Fixed-point positions: 1 cm by default (CodecSettings), the range per axis taken from the data
-and carried. Compact spends `embedding_bits` (400) per object on the coefficients.
 """
 
 from __future__ import annotations
