@@ -16,6 +16,7 @@ import numpy as np
 from mergesvc.bench.soak import HostileKind, SoakPlan, SoakWorld, hostile_payload
 from mergesvc.core.model import Submap
 from mergesvc.errors import MergeError
+from mergesvc.store import CONFLICTS_KEPT
 from mergesvc.wire import decode_message
 
 
@@ -48,6 +49,12 @@ def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path
     assert set(m["answers"]["m0"]) == {"embedding_dim"} and m["answers"]["m0"]["embedding_dim"] > 0
     assert v["errors_answered"] == {}
     assert rep["store_integrity"] == "ok" and rep["service_log"]["tracebacks"] == 0
+    # the conflict flood: every variant answered conflict or rate_limited, a few hashes kept
+    f = rep["flood"]
+    assert f["sent"] == SoakPlan.quick().flood_variants and f["answered"] == f["sent"]
+    assert set(f["codes"]) <= {"conflict", "rate_limited"} and f["codes"].get("conflict", 0) > 0
+    assert 0 < f["hashes_kept"] <= CONFLICTS_KEPT and f["bytes_kept"] == 0
+    assert "conflict flood: 60 variants" in run.stdout
     targets = dict(rep["targets"])
     targets.pop("rss_growth_under_100mb")  # 10 s measure the service's warm-up, not a leak
     assert all(targets.values()), targets

@@ -30,6 +30,7 @@ import numpy as np
 from mergesvc.bench.soak_report import Ledger, build_report, plot_soak, soak_summary
 from mergesvc.bench.soak_world import (
     CACHE_SAMPLES,
+    FLOOD_ROBOT,
     HEARTBEAT_S,
     HOSTILE_ROBOTS,
     HOSTILE_SEQ0,
@@ -38,11 +39,12 @@ from mergesvc.bench.soak_world import (
     SoakPlan,
     SoakWorld,
     agent_publisher,
+    flood_payloads,
     hostile_payload,
 )
 from mergesvc.errors import MergeError, StoreError
 from mergesvc.store import StoreReader
-from mergesvc.wire import encode_message, keys
+from mergesvc.wire import Profile, encode_message, keys
 from mergesvc.wire.session import make_zenoh_config
 
 log = logging.getLogger(__name__)
@@ -214,6 +216,41 @@ def _attacker_loop(session: Any, plan: SoakPlan, rate_hz: float, world: SoakWorl
             n += 1
 
 
+def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
+                store: Path, stop: threading.Event, gate: _Gate, ledger: Ledger) -> None:
+    """At `plan.flood_at` of the run: FLOOD_ROBOT's one valid submap, and once it is stored,
+    `plan.flood_variants` byte-variants of it as fast as they go (between kills)."""
+    import zenoh
+
+    if stop.wait(max(0.0, t_start + plan.flood_at * plan.duration_s - time.monotonic())):
+        return
+    walk = RobotWalk(world, FLOOD_ROBOT, plan.dim, plan.objects_per_submap, plan.step_m,
+                     np.random.default_rng([plan.seed, 98]))
+    first, *variants = flood_payloads(walk.next_submap(0), plan.flood_variants, Profile.FULL)
+    key = f"{keys.fleet_root(plan.fleet)}/submap/{FLOOD_ROBOT}/{walk.session}"
+    stored = False
+    for _ in range(10):  # sent again while it is not stored (a kill may have lost it)
+        if not gate.wait_open(stop):
+            return
+        session.put(key, first, congestion_control=zenoh.CongestionControl.BLOCK)
+        stored = _wait(lambda: (FLOOD_ROBOT, walk.session, 0) in _stored_keys(store)[0], 3.0)
+        if stored:
+            break
+    if not stored:
+        return
+    if not gate.wait_open(stop):
+        return
+    with gate.busy:
+        t0 = time.monotonic()
+        with ledger.lock:
+            ledger.flood_at = time.time()
+        for data in variants:
+            session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+        with ledger.lock:
+            ledger.flood_sent = len(variants)
+            ledger.flood_s = time.monotonic() - t0
+
+
 def _status(session: Any, fleet: str, timeout_s: float = 2.0) -> tuple[dict | None, int]:
     """The status reply (None without one) and its size in bytes."""
     # the counts only: the merged poses grow with every keyframe (MergeService.status)
@@ -355,6 +392,12 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                     target=_attacker_loop, name="soak-attacker", daemon=True,
                     args=(attacker, plan, hostile_rate, world, att_rng, t_start, stop, gate,
                           ledger)))
+            if plan.flood_variants:
+                flooder = zenoh.open(client)
+                sessions.append(flooder)
+                threads.append(threading.Thread(
+                    target=_flood_loop, name="soak-flood", daemon=True,
+                    args=(flooder, plan, world, t_start, store, stop, gate, ledger)))
             kill_at = sorted(float(x) for x in ctl_rng.uniform(0.15, 0.85, plan.restarts)
                              * plan.duration_s)
             echo(f"soak: {plan.robots} robots ({valid_rate:.1f} submaps/s), "

@@ -22,10 +22,10 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from mergesvc.bench.soak_world import HOSTILE_ROBOTS, SoakPlan
+from mergesvc.bench.soak_world import FLOOD_ROBOT, HOSTILE_ROBOTS, SoakPlan
 from mergesvc.core.model import ErrorMessage
 from mergesvc.errors import MergeError
-from mergesvc.store import StoreReader
+from mergesvc.store import CONFLICTS_KEPT, StoreReader
 from mergesvc.wire import decode_message
 
 RSS_TARGET_MB = 100.0
@@ -49,6 +49,9 @@ class Ledger:
     results: dict[str, Counter] = field(default_factory=lambda: defaultdict(Counter))
     first_result_at: dict[tuple[str, str, int], float] = field(default_factory=dict)
     bytes_valid: int = 0
+    flood_at: float | None = None  # wall time the conflict flood began
+    flood_s: float = 0.0  # how long sending it took
+    flood_sent: int = 0  # variants sent (after the one valid payload)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def hostile_answered(self) -> int:
@@ -99,13 +102,42 @@ def _pct(values: Sequence[float], q: float) -> float | None:
     return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else None
 
 
+def _flood(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], float],
+           row_of: dict[tuple[str, str, int], tuple[Any, ...]], errors: dict[str, dict],
+           kept: int, kept_bytes: int) -> dict[str, Any]:
+    """The conflict flood: every variant answered (conflict, or rate_limited once its robot's
+    burst is spent), at most CONFLICTS_KEPT hashes kept and no payload, and the other robots'
+    p99 latency (sent -> processed) in the window after it at most 2x the window before."""
+    if ledger.flood_at is None:
+        return {"sent": 0, "ok": not plan.flood_variants}
+    t, w = ledger.flood_at, plan.flood_window_s
+
+    def p99(lo: float, hi: float) -> float | None:
+        ms = [(row_of[k][2] - sent) * 1e3 for k, sent in valid.items()
+              if lo <= sent < hi and k in row_of and row_of[k][2] is not None]
+        return _pct(ms, 99) if len(ms) >= 3 else None
+
+    before, during = p99(t - w, t), p99(t, t + w)
+    codes = errors.get(FLOOD_ROBOT, {})
+    answered = sum(codes.values())
+    ratio = during / before if before and during is not None else None
+    return {"sent": ledger.flood_sent, "send_s": ledger.flood_s, "answered": answered,
+            "codes": dict(codes), "hashes_kept": kept, "bytes_kept": kept_bytes,
+            "others_p99_before_ms": before, "others_p99_during_ms": during,
+            "others_p99_ratio": ratio, "window_s": w,
+            "ok": (answered == ledger.flood_sent and kept <= CONFLICTS_KEPT and kept_bytes == 0
+                   and set(codes) <= {"conflict", "rate_limited"}
+                   and (ratio is None or ratio <= 2.0))}
+
+
 def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict[str, Any]],
             rss: list[tuple[float, float, int, float]], restarts: list[dict[str, float]],
             rates: list[float], *, drained: bool, drain_s: float, exit_code: int | None,
             log_text: str) -> dict[str, Any]:
     with StoreReader(store) as db:
         rows = db.submap_rows()
-        conflicts = db.conflicts()
+        conflicts_of = db.conflicts_by_robot()
+        conflict_bytes = db.conflict_bytes()
         factor_rows = db.factor_counts()
         integrity = db.integrity()
     t0 = ledger.t0
@@ -114,7 +146,8 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     valid = ledger.valid
     stored_valid = [k for k in valid if k in row_of]
     status_counts = Counter(row_of[k][0] for k in stored_valid)
-    foreign = [k for k in row_of if k not in valid]
+    foreign = [k for k in row_of if k not in valid and k[0] != FLOOD_ROBOT]
+    conflicts = sum(n for r, n in conflicts_of.items() if r != FLOOD_ROBOT)
     # end-to-end latency (sent -> processed) and the store's delay (stored -> processed)
     e2e = [(row_of[k][2] - t0, (row_of[k][2] - valid[k]) * 1e3) for k in stored_valid
            if row_of[k][2] is not None and row_of[k][0] != "pending"]
@@ -171,6 +204,8 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     pending = status_counts.get("pending", 0)
     mismatch_refused = all(errors.get(r, {}).get("embedding_dim", 0) >= 1
                            for r in mismatch_robots)
+    flood = _flood(plan, ledger, valid, row_of, errors, conflicts_of.get(FLOOD_ROBOT, 0),
+                   conflict_bytes)
     report: dict[str, Any] = {
         "plan": {k: (v.value if isinstance(v, Enum) else v) for k, v in asdict(plan).items()},
         "robot_rates_hz": rates,
@@ -191,6 +226,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                                       Counter())),
                     "stored": sum(1 for k in row_of if k[0] in HOSTILE_ROBOTS)},
         "foreign_rows": len(foreign),
+        "flood": flood,
         "factors": {"stored": {str(k): int(v) for k, v in factor_rows.items()},
                     "messages_per_robot": factors,
                     "answered_submaps": len(answer_ms),
@@ -227,8 +263,26 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
         "rss_growth_under_100mb": growth is not None and growth < RSS_TARGET_MB,
         "store_integrity_ok": integrity == "ok",
     }
+    if plan.flood_variants:
+        report["targets"]["flood_answered_bounded_others_p99_le_2x"] = flood["ok"]
     report["ok"] = all(report["targets"].values())
     return report
+
+
+def _flood_line(f: dict[str, Any]) -> str:
+    if not f.get("sent"):
+        return "conflict flood: none"
+    ratio = f["others_p99_ratio"]
+
+    def ms(x: float | None) -> str:
+        return "-" if x is None else f"{x:.0f}"
+
+    tail = f"x{ratio:.2f}" if ratio is not None else "too few submaps to compare"
+    return (f"conflict flood: {f['sent']} variants in {f['send_s']:.1f} s, {f['answered']} "
+            f"answered {json.dumps(f['codes'], sort_keys=True)}, {f['hashes_kept']} hashes kept "
+            f"({f['bytes_kept']} payload bytes); others' p99 {f['window_s']:.0f} s before / "
+            f"after it: {ms(f['others_p99_before_ms'])} / {ms(f['others_p99_during_ms'])} ms "
+            f"({tail})")
 
 
 def soak_summary(report: dict[str, Any]) -> str:
@@ -258,6 +312,7 @@ def soak_summary(report: dict[str, Any]) -> str:
         f"another model: {m['sent']} sent, {m['stored']} stored, answers "
         f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
         f"{json.dumps(v['errors_answered'], sort_keys=True)}",
+        _flood_line(report["flood"]),
         f"RSS: first {ms(r['first_mb'])} MB, at {r['baseline_at_s']:.0f} s "
         f"{ms(r['baseline_mb'])} MB, max {ms(r['max_mb'])} MB (without shared memory: at "
         f"{r['baseline_at_s']:.0f} s {ms(r['own_baseline_mb'])} MB, max {ms(r['max_own_mb'])} "

@@ -27,6 +27,7 @@ HEARTBEAT_S = 0.5
 DEFAULT_MAX_PAYLOAD = 4 * 2**20
 HOSTILE_ROBOTS = ("h0", "h1", "h2", "h3")
 HOSTILE_SEQ0 = 10**9  # hostile submaps' seqs: never one a valid robot uses
+FLOOD_ROBOT = "f0"  # the conflict flood's robot (its one submap is valid; its variants are not)
 
 
 class HostileKind(str, Enum):
@@ -70,19 +71,28 @@ class SoakPlan:
     start_timeout_s: float = 60.0
     restart_pause_s: tuple[float, float] = (0.0, 2.0)  # down time after a kill, uniform
     bin_s: float | None = None  # time bins of the series; None: about 40 bins
+    # a conflict flood: this many byte-variants of one stored (robot, session, seq), sent as
+    # fast as they go at `flood_at` of the run (0: none); the others' latency is compared
+    # in a window of `flood_window_s` after it and the same window before it
+    flood_variants: int = 700
+    flood_at: float = 0.5
+    flood_window_s: float = 20.0
 
     @classmethod
     def quick(cls, seed: int = 0) -> SoakPlan:
         return cls(robots=3, duration_s=10.0, hostile_fraction=0.2, mismatch_robots=1,
                    restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=1.0,
                    drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
-                   area_m=80.0)
+                   area_m=80.0, flood_variants=60, flood_window_s=3.0)
 
     def check(self) -> None:
         """InputError on a plan that cannot run or would break the service's limits."""
         check_count("robots", self.robots)
         check_count("mismatch robots", self.mismatch_robots, 0)
         check_count("restarts", self.restarts, 0)
+        check_count("flood variants", self.flood_variants, 0)
+        if not 0.0 < self.flood_at < 1.0:
+            raise InputError(f"flood_at must be in (0, 1), got {self.flood_at}")
         if not self.duration_s > 0:
             raise InputError(f"duration must be > 0 s, got {self.duration_s}")
         if not 0.0 <= self.hostile_fraction < 1.0:
@@ -201,6 +211,21 @@ def _refused_by_decoder(data: bytes) -> bool:
     return False
 
 
+def flood_payloads(good: Submap, n: int, profile: Profile) -> list[bytes]:
+    """The valid payload of `good` (its robot's seq 0) and `n` byte-variants of it: each the
+    same submap with one embedding value nudged, so each decodes and conflicts with the first."""
+    seq = good.seq if good.seq is not None else 0
+    out = [encode_message(good, profile, good.robot_id, seq)]
+    for i in range(n):
+        objs = list(good.objects)
+        e = list(objs[0].embedding)
+        e[i % len(e)] += 1e-3 * (1 + i // len(e))
+        objs[0] = objs[0].model_copy(update={"embedding": e})
+        out.append(encode_message(good.model_copy(update={"objects": objs}), profile,
+                                  good.robot_id, seq))
+    return out
+
+
 def hostile_payload(kind: HostileKind, robot: str, seq: int, good: Submap,
                     other: Submap, max_payload_bytes: int, rng: np.random.Generator
                     ) -> tuple[str, bytes]:
@@ -260,6 +285,6 @@ def agent_publisher(session: Any, key: str, cache_samples: int = CACHE_SAMPLES) 
     )
 
 
-__all__ = ["CACHE_SAMPLES", "DEFAULT_MAX_PAYLOAD", "HEARTBEAT_S", "HOSTILE_ROBOTS", "HOSTILE_SEQ0",
-           "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld", "agent_publisher",
-           "hostile_payload"]
+__all__ = ["CACHE_SAMPLES", "DEFAULT_MAX_PAYLOAD", "FLOOD_ROBOT", "HEARTBEAT_S", "HOSTILE_ROBOTS",
+           "HOSTILE_SEQ0", "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld", "agent_publisher",
+           "flood_payloads", "hostile_payload"]

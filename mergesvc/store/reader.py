@@ -47,6 +47,11 @@ class StoreReader:
     def conflicts(self) -> int:
         return int(self._rows("SELECT COUNT(*) FROM submap_conflicts")[0][0])
 
+    def conflicts_by_robot(self) -> Counter[str]:
+        """Conflict rows per robot."""
+        return Counter({str(r): int(n) for r, n in self._rows(
+            "SELECT robot_id, COUNT(*) FROM submap_conflicts GROUP BY robot_id")})
+
     def conflict_bytes(self) -> int:
         """Bytes the conflict rows keep (their payloads: none, hashes only)."""
         return int(self._rows("SELECT COALESCE(SUM(LENGTH(payload)), 0) FROM "
