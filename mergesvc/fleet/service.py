@@ -1,20 +1,16 @@
 """The merge service: submaps in (fleet/ingress.py: checked, persisted first), each merged as one
 unit of work (fleet/merger.py) committed in one store transaction and only then published,
 inter-robot factors and a result per submap out, one GNC pose graph over every session's
-keyframes, and the queries (fleet/queries.py). The network is a Transport (fleet/transport.py).
+keyframes, and the queries (fleet/queries.py), over a Transport (fleet/transport.py). One
+worker merges pending rows in batches and solves after a batch that changed the graph; the state
+lock is held only to apply a unit or a solution, so queries never wait on a solve.
 
-Threads: the transport's callback only enqueues; the ingress thread persists; one worker takes
-the pending rows from the store in batches, merges them, and solves the graph after a batch that
-changed it (at the latest every `optimize_interval_s` during a backlog), with the state lock
-held only to apply each unit of work and each solution: queries never wait on a solve.
-
-Guarantees: at most one final result per submap (a result is published after its row's final
-status is committed; after a crash the same result may be published again). A store that
-cannot write (disk full, I/O) leaves the row pending, the work rolled back and retried with
-backoff; the robot is told `store` (not final). A submap whose processing raises is `failed`
-(final). Retractions found by a solve, a restart or `settle` are published. A failed solve is
-retried with backoff and flagged in status. Damage found at start (answers the store no longer
-holds: fleet/acks) is logged loudly and reported in status.
+Guarantees: at most one final result per submap (published after its row's final status is
+committed; after a crash the same result may be published again). A store that cannot write
+leaves the row pending and retried with backoff, its robot told `store` (not final); a submap
+whose processing raises is `failed`. Retractions found by a solve, a restart or `settle` are
+published; a failed solve is retried with backoff and flagged in status; damage found at start
+is logged loudly and reported in status (docs/store.md).
 """
 
 from __future__ import annotations
