@@ -351,10 +351,12 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                         rss.append((t, b / 2**20, svc.starts, (shm or 0) / 2**20))
                     if time.monotonic() >= next_status:
                         next_status = time.monotonic() + plan.status_period_s
+                        t_q = time.monotonic()
                         st, size = _status(monitor, plan.fleet)
                         if st is not None:
                             samples.append({
                                 "t_s": t, "bytes": size, "incarnation": svc.starts,
+                                "status_ms": (time.monotonic() - t_q) * 1e3,
                                 "latency_ms": st.get("latency_ms"),
                                 "delay_ms": st.get("delay_ms"),
                                 "queued": st["submaps"]["queued"],

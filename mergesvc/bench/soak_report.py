@@ -130,6 +130,17 @@ def _flood(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], flo
                    and (ratio is None or ratio <= 2.0))}
 
 
+def _status_latency(samples: list[dict[str, Any]], restarts: list[dict[str, float]]
+                    ) -> dict[str, Any]:
+    """Status round trips (query -> reply at the monitor): p50/p99 over the run, and p99 in
+    the minute after each restart came back (its first, cold solve of the restored graph)."""
+    ms = [x["status_ms"] for x in samples if "status_ms" in x]
+    cold = [x["status_ms"] for x in samples if "status_ms" in x and any(
+        0.0 <= x["t_s"] - (r["killed_at_s"] + r["down_s"]) < 60.0 for r in restarts)]
+    return {"p50": _pct(ms, 50), "p99": _pct(ms, 99), "n": len(ms),
+            "after_restart_p99": _pct(cold, 99), "after_restart_n": len(cold)}
+
+
 def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict[str, Any]],
             rss: list[tuple[float, float, int, float]], restarts: list[dict[str, float]],
             rates: list[float], *, drained: bool, drain_s: float, exit_code: int | None,
@@ -242,6 +253,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                     "per_robot": results},
         "series": series,
         "status_samples": samples,
+        "status_ms": _status_latency(samples, restarts),
         "rss": {"t_s": [r[0] for r in rss], "mb": rss_mb, "incarnation": [r[2] for r in rss],
                 "shmem_mb": [r[3] for r in rss], "first_mb": first, "baseline_mb": baseline,
                 "baseline_at_s": warm_s, "max_mb": max(rss_mb) if rss_mb else None,
@@ -262,6 +274,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                                         and not valid_errors),
         "rss_growth_under_100mb": growth is not None and growth < RSS_TARGET_MB,
         "store_integrity_ok": integrity == "ok",
+        "status_p99_le_100ms": (report["status_ms"]["p99"] or 0.0) <= 100.0,
     }
     if plan.flood_variants:
         report["targets"]["flood_answered_bounded_others_p99_le_2x"] = flood["ok"]
@@ -313,6 +326,9 @@ def soak_summary(report: dict[str, Any]) -> str:
         f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
         f"{json.dumps(v['errors_answered'], sort_keys=True)}",
         _flood_line(report["flood"]),
+        f"status round trip: p50 {ms(report['status_ms']['p50'])} ms, p99 "
+        f"{ms(report['status_ms']['p99'])} ms ({report['status_ms']['n']} queries); in the minute "
+        f"after each restart p99 {ms(report['status_ms']['after_restart_p99'])} ms",
         f"RSS: first {ms(r['first_mb'])} MB, at {r['baseline_at_s']:.0f} s "
         f"{ms(r['baseline_mb'])} MB, max {ms(r['max_mb'])} MB (without shared memory: at "
         f"{r['baseline_at_s']:.0f} s {ms(r['own_baseline_mb'])} MB, max {ms(r['max_own_mb'])} "
