@@ -264,6 +264,12 @@ def test_demo_quick_runs_to_completion(quick_demo: dict) -> None:
     assert exports and all(p.is_file() and (tmp_path / "export") in p.parents for p in exports)
     g2o = tmp_path / "export" / "graph.g2o"
     assert g2o in exports
+    assert {tmp_path / "export" / n for n in ("factors.json", "map.json", "export.json",
+                                              "graph_nodes.json")} <= set(exports)
+    printed = next(x for x in r.stdout.splitlines() if x.startswith("exported "))
+    assert printed.startswith(f"exported {len(exports)} files") and "factors.json" in printed
+    lat = next(x for x in r.stdout.splitlines() if x.startswith("service latency"))
+    assert "." not in lat.split(";")[0], lat  # whole milliseconds
     graph, initial = gtsam.readG2o(str(g2o), True)
     nodes = json.loads((tmp_path / "export" / "graph_nodes.json").read_text())
     assert initial.size() == len(nodes) > 0 and graph.size() >= len(nodes) - len(traj)

@@ -336,11 +336,15 @@ def demo(
                      f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
             typer.echo(f"  {r} frame in {s['anchor']}: before {a['before_m']:.2f} m / "
                        f"{a['before_deg']:.1f} deg, after {after}")
-        typer.echo(f"service latency per submap ms: {s['latency_ms']}; figure {s['figure']}; "
-                   f"{s['elapsed_s']} s")
+        lat = ", ".join(f"{k} {v:.0f}" for k, v in (s["latency_ms"] or {}).items()
+                        if isinstance(v, (int, float)))
+        typer.echo(f"service latency per submap (ms): {lat or '-'}; figure {s['figure']}; "
+                   f"{s['elapsed_s']:.0f} s")
     if s.get("exports"):
-        typer.echo(f"exported {len(s['exports'])} files (g2o graph, TUM trajectories): "
-                   f"{Path(s['exports'][0]).parent}")
+        files = [Path(p) for p in s["exports"]]
+        top = files[0].parent
+        names = sorted(str(p.relative_to(top)) if top in p.parents else str(p) for p in files)
+        typer.echo(f"exported {len(files)} files into {top}: {', '.join(names)}")
     for f in res.failures:
         typer.echo(f"FAILED: {f}", err=True)
     if not res.ok:

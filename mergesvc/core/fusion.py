@@ -187,9 +187,11 @@ def fuse_objects(
         for r in member_refs:
             member_of[r] = gid
     if conflicts:
-        log.warning(
-            "fuse_objects: %d global objects join two objects of one frame", len(conflicts)
-        )
+        # chained correspondences (a-b in one factor, b-c in another) can put two objects of one
+        # session in one global object: kept, and listed in `conflicts`; nothing is wrong with
+        # the factors, so this is information, not a warning
+        log.info("fused map: %d global objects each hold two objects of one session (joined "
+                 "through chained correspondences; listed as conflicts)", len(conflicts))
     return FusedObjects(objects=objects, members=members, member_of=member_of, conflicts=conflicts)
 
 

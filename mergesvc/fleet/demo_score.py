@@ -239,7 +239,7 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
                 factors: list[Factor], path: Path) -> Path:
     """Each robot's trajectory and objects in the anchor frame (as the service aligned them),
-    inter-robot correspondences drawn."""
+    inter-robot correspondences drawn; every kind of mark in the legend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -263,7 +263,8 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
         ax.scatter(*xy[:, :2].T, s=12, color=colors.get(r, "k"), label=f"{r} objects")
         traj = np.array(lm.path_xyz_m)
         traj = traj @ T[:3, :3].T + T[:3, 3]
-        ax.plot(*traj[:, :2].T, lw=0.7, color=colors.get(r, "k"), alpha=0.6)
+        ax.plot(*traj[:, :2].T, lw=0.7, color=colors.get(r, "k"), alpha=0.6,
+                label=f"{r} trajectory (its odometry, placed by the merge)")
     for f in factors:
         for c in f.correspondences:
             a, b = placed.get((f.robot_a, c.object_a)), placed.get((f.robot_b, c.object_b))

@@ -59,13 +59,16 @@ class ExportResult:
     edges: int
     trajectories: dict[str, dict[str, Path]] = field(default_factory=dict)
     stamps: dict[str, str] = field(default_factory=dict)
+    factors: Path | None = None
+    global_map: Path | None = None
 
     @property
     def files(self) -> list[Path]:
-        """Every file written: the graph, its node names, each trajectory, the manifest."""
+        """Every file written: the graph, its node names, each trajectory, the factors, the
+        global map (when there is one), the manifest."""
         return [self.graph, self.nodes,
                 *(p for kinds in self.trajectories.values() for p in kinds.values()),
-                self.manifest]
+                *(p for p in (self.factors, self.global_map) if p is not None), self.manifest]
 
 
 def snapshot_store(store_path: str | Path, copy_path: str | Path) -> Path:
@@ -302,7 +305,8 @@ def _write(svc: MergeService, out: Path, store_path: Path,
     })
     return ExportResult(out_dir=out, anchor=anchor, graph=g2o, nodes=node_file,
                         manifest=manifest, vertices=len(ids), edges=len(edges),
-                        trajectories=trajectories, stamps=stamp_kind)
+                        trajectories=trajectories, stamps=stamp_kind, factors=factors_file,
+                        global_map=map_file)
 
 
 __all__ = [
