@@ -135,10 +135,39 @@ def test_retractions_found_by_the_restart_solve_are_published(tmp_path: Path) ->
         retracted = again.factor_ids(FactorStatus.RETRACTED)  # restore() ran in start()
         stored = {f.factor_id: f.status for f in again.svc.store.factors()}
     assert retracted == {wrong}
-    assert sorted(k for k, f in again.factors) == sorted(keys.factor_key(ROOT, r, wrong)
-                                                         for r in ("a", "b"))
+    assert sorted(k for k, f in again.factors if f.status == FactorStatus.RETRACTED) == sorted(
+        keys.factor_key(ROOT, r, wrong) for r in ("a", "b"))
     assert stored[wrong] == FactorStatus.RETRACTED
     assert [s for fid, s in stored.items() if fid != wrong] == [FactorStatus.ACCEPTED] * 2
+
+
+def test_answers_a_crash_left_unsent_are_published_by_the_restart(tmp_path: Path,
+                                                                  monkeypatch) -> None:
+    """Killed between a unit's commit and its publishing: the row is final and its factor
+    stored, nothing went out. The restart publishes that submap's result and factor (once;
+    a later restart publishes nothing again); the units that went out are not repeated."""
+    cfg = cfg_at(tmp_path / "u.db")
+    a = scene()
+    first = Fleet(cfg)
+    first.svc.ingest(a)  # published and marked answered
+    assert outcomes(first.of("a")) == ["no_match"]
+    monkeypatch.setattr(first.svc, "_answer", lambda uow: None)  # the kill, right after commit
+    first.svc.ingest(moved(a, "b"))
+    assert first.of("b") == [] and first.factors == []
+    stored = [f.factor_id for f in first.svc.store.factors()]
+    first.svc.store.close()
+    assert len(stored) == 1
+
+    with Fleet(cfg) as again:
+        assert wait_for(lambda: len(again.of("b")) == 1)
+        assert again.of("a") == []  # answered before the kill: not repeated
+        (res,) = again.of("b")
+        assert res.outcome.value == "processed" and res.factors == stored
+        assert again.factor_ids() == set(stored)
+        assert sorted(k for k, _ in again.factors) == sorted(
+            keys.factor_key(ROOT, r, stored[0]) for r in ("a", "b"))
+    with Fleet(cfg) as third:
+        assert third.results == [] and third.factors == []
 
 
 # -- 3. one unit of work per submap --------------------------------------------------------------

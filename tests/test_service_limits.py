@@ -498,7 +498,10 @@ def test_a_backlog_is_solved_once_per_batch(tmp_path: Path) -> None:
     with Store(store) as db:
         for sub in chain + loops:
             db.put_submap("auv1", "s0", sub.seq, payload(sub), 1.0)
-    with Net(ServiceConfig(fleet=FLEET, store=str(store))) as net:
+    # the interval that forces a solve during a long backlog set beyond this test's reach:
+    # a loaded machine must not turn one batch into two
+    cfg = ServiceConfig(fleet=FLEET, store=str(store), optimize_interval_s=600.0)
+    with Net(cfg) as net:
         assert wait_for(lambda: net.svc.stats.submaps_processed == 12)
         assert wait_for(lambda: not net.svc._dirty and net.svc.stats.optimizations >= 1)
         assert net.svc.stats.optimizations == 1

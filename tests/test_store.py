@@ -202,6 +202,7 @@ def test_stats(tmp_path: Path) -> None:
             "frames": 1,
             "meta": 0,
             "held_factors": 0,
+            "unanswered": 0,
         }
         assert st["journal_mode"] == "wal"
         assert st["synchronous"] == "FULL"

@@ -22,7 +22,7 @@ from collections import defaultdict
 from collections.abc import Callable
 
 from mergesvc.core.model import Submap
-from mergesvc.errors import MergeError, SchemaError
+from mergesvc.errors import MergeError, SchemaError, StoreError
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.merger import check_odometry
 from mergesvc.fleet.queries import ServiceStats
@@ -166,6 +166,9 @@ class Ingress:
             replay = self.admit(sub, hashlib.sha256(data).hexdigest())
         except RefusedError as exc:
             self._answer(robot, key, exc, sub)
+            return None
+        except StoreError as exc:  # the store could not be read: not now, nothing final
+            self._answer(robot, key, RefusedError(RefusalCode.STORE, str(exc)), sub)
             return None
         except MergeError as exc:
             self._answer(robot, key, RefusedError(RefusalCode.BAD_SUBMAP, str(exc)), sub)

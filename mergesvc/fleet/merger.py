@@ -33,7 +33,7 @@ from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.pipeline import match
 from mergesvc.core.poses import check_covariance
-from mergesvc.errors import InputError, SchemaError
+from mergesvc.errors import InputError, MergeError, SchemaError
 from mergesvc.fleet.closures import ClosureSets
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, odometry_group
 from mergesvc.fleet.held import FactorTable
@@ -126,7 +126,11 @@ class Merger:
         uow = UnitOfWork(row_id, sub, result, factors, matches_tried=len(others))
         with lock if lock is not None else contextlib.nullcontext():
             uow.new_session = self._take(sub)
-            self._weigh(uow)
+            try:
+                self._weigh(uow)
+            except BaseException:  # the consistency sets as they were: no phantom factor
+                self.rollback(uow)
+                raise
         return uow
 
     def _take(self, sub: Submap) -> bool:
@@ -163,6 +167,11 @@ class Merger:
         f = self.held.get(fid)
         return f if f is not None else self.factors[fid]
 
+    def factor(self, factor_id: str) -> Factor | None:
+        """A factor as the service holds it: in force or held."""
+        return self.factors[factor_id] if factor_id in self.factors else \
+            self.held.get(factor_id)
+
     def rollback(self, uow: UnitOfWork) -> None:
         """The consistency sets as they were before `plan` (the commit failed)."""
         for key, state in uow._undo.items():
@@ -192,10 +201,17 @@ class Merger:
         self._add_to_graph(sub)
 
     def restore_factor(self, factor: Factor, trusted: bool) -> None:
-        """A stored factor with the verdict it had (a restart, in the order they were made)."""
+        """A stored factor with the verdict it had (a restart, in the order they were made).
+        One the graph refuses (its nodes or covariance) is held, logged: the restart goes on."""
         self.closures.offer(factor, trusted=trusted)
         if trusted:
-            self.graph.add_factor_model(factor, keyframe_nodes=True, group=CLOSURE_GROUP)
+            try:
+                self.graph.add_factor_model(factor, keyframe_nodes=True, group=CLOSURE_GROUP)
+            except (MergeError, ValueError) as exc:
+                log.error("stored factor %s refused by the graph, held: %s", factor.factor_id,
+                          exc)
+                self.held[factor.factor_id] = factor
+                return
             self.factors[factor.factor_id] = factor
         else:
             self.held[factor.factor_id] = factor

@@ -30,16 +30,18 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import ErrorMessage, Factor, FactorStatus, Submap
 from mergesvc.errors import MergeError, SchemaError, StoreError, one_line
+from mergesvc.fleet.answers import Answered, answer_of
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig
 from mergesvc.fleet.ingress import Ingress
 from mergesvc.fleet.merger import Merger, UnitOfWork, check_odometry
 from mergesvc.fleet.mixed import ProfileViews
+from mergesvc.fleet.noise_scales import NoiseScaleMemory
 from mergesvc.fleet.outbox import Outbox
 from mergesvc.fleet.queries import Queries, ServiceStats
 from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.fleet.sessions import Sessions
 from mergesvc.fleet.transport import Query, Reply, Transport
-from mergesvc.store import META_ANCHOR, META_NOISE_SCALES, AckLedger, Store
+from mergesvc.store import META_ANCHOR, AckLedger, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
@@ -48,8 +50,7 @@ STORE_BACKOFF_MAX_S = 30.0  # likewise a store that cannot write
 
 
 def as_transport(session: Any) -> Transport | None:
-    """A Transport from what the caller gave: None (offline), a Transport, or a
-    zenoh.Session (wrapped in fleet/zenoh_transport.py)."""
+    """A Transport from None (offline), a Transport, or a zenoh.Session (wrapped)."""
     if session is None or hasattr(session, "queryable"):  # (a Zenoh session has none)
         return session  # type: ignore[no-any-return]
     from mergesvc.fleet.zenoh_transport import ZenohTransport
@@ -84,6 +85,8 @@ class MergeService:
         self.queries = Queries(config, self.merger, self._lock)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
         self.outbox = Outbox(config, self.transport, self.stats)
+        self.answered = Answered(self.store)  # units whose messages went out (fleet/answers)
+        self.scales = NoiseScaleMemory(self.store, self.graph)
         self.ingress = Ingress(config, self.store, self.stats, self.projections,
                                self.outbox.refusal, self._wake.set, clock)
         self._stop = threading.Event()
@@ -95,7 +98,7 @@ class MergeService:
         self._solve = {"failures": 0, "error": None, "next_s": 0.0, "solved_at_s": None}
         self._store_failures = 0
         self._told_store: set[int] = set()  # rows whose robot was told `store` (_not_now)
-        self._scales_saved: dict[str, np.ndarray] = {}
+        self._unstored_retractions: list[Factor] = []  # GNC retracted, not in the store yet
         self.alive: set[str] = set()
         self.damage: list[str] = []
 
@@ -146,6 +149,7 @@ class MergeService:
         if self._worker is not None:
             self._worker.join(timeout=10.0)
             self._worker = None
+        self.answered.flush()
         self.store.close()
 
     def __enter__(self) -> MergeService:
@@ -178,7 +182,7 @@ class MergeService:
                  enumerate(self.store.held_factors())]
         for *_, f, trusted in sorted(rows, key=lambda r: r[:3]):
             self.merger.restore_factor(Factor.model_validate_json(f.payload), trusted)
-        self._restore_scales()
+        self.scales.restore()
         if len(self.factors):
             # solved as it grew, with the noise scales the last solve had
             self.graph.calibrating = False
@@ -188,27 +192,8 @@ class MergeService:
                 log.warning("pose graph optimisation failed: %s", exc)
             self._optimize()
             self.graph.calibrating = True
+        self.answered.republish(self.outbox, self.merger.factor)
         self._wake.set()  # the worker takes the pending rows from the store
-
-    def _restore_scales(self) -> None:
-        stored = self.store.meta(META_NOISE_SCALES)
-        try:
-            for group, s in (json.loads(stored) if stored else {}).items():
-                self.graph.set_noise_scale(group, s)
-        except (ValueError, TypeError, AttributeError, MergeError) as exc:
-            log.warning("stored noise scales unreadable, calibrating afresh: %s", one_line(exc))
-        self._scales_saved = self.graph.noise_scales
-
-    def _save_scales(self) -> None:
-        now = self.graph.solved_noise_scales
-        if now.keys() == self._scales_saved.keys() and all(
-                np.array_equal(now[g], self._scales_saved[g]) for g in now):
-            return
-        self._scales_saved = now
-        with contextlib.suppress(MergeError):  # a read-only copy (export) keeps none
-            if not self.store.closed:
-                self.store.set_meta(META_NOISE_SCALES, json.dumps(
-                    {g: [float(x) for x in v] for g, v in now.items()}))
 
     # -- the worker --------------------------------------------------------------------------
 
@@ -232,6 +217,10 @@ class MergeService:
                     if self._dirty and (not ids or stalled
                                         or waited >= self.config.optimize_interval_s):
                         self._flush()
+                    self.answered.flush()
+                    if self._unstored_retractions:
+                        with self._process_lock:
+                            self._publish_retractions()
                     if not ids or stalled:
                         break
                 if stalled:
@@ -282,6 +271,9 @@ class MergeService:
         """A row whose processing raised: `failed` (final) once the store says so."""
         row = self.store.submap(row_id)
         detail = f"{type(exc).__name__}: {exc}"[:1000]
+        if row.status != "pending":  # committed already: its answer stands
+            log.error("submap row %d failed after its commit: %s", row_id, detail)
+            return
         try:
             self.store.mark_processed(row_id, "failed", detail[:500])
         except StoreError as store_exc:  # not final yet: retried like any unwritten row
@@ -309,7 +301,7 @@ class MergeService:
         self.stats.count("matches_tried", uow.matches_tried)
         try:
             self._commit(uow)
-        except StoreError:
+        except BaseException:  # nothing of an uncommitted unit stays in memory
             with self._lock:
                 self.merger.rollback(uow)
             raise
@@ -337,7 +329,8 @@ class MergeService:
             frame=(sub.robot_id, sub.session_id, self.clock()), sent=rows(uow.sent),
             withdrawn=[f.factor_id for f in uow.withdrawn],
             held=rows([*uow.held, *uow.withdrawn]),
-            anchor=self.merger.anchor or str(FrameId(sub.robot_id, sub.session_id)))  # apply's
+            anchor=self.merger.anchor or str(FrameId(sub.robot_id, sub.session_id)),  # apply's
+            answer=answer_of(uow.result, uow.sent, uow.withdrawn))
 
     def _answer(self, uow: UnitOfWork) -> None:
         """A committed unit's messages: its factors, retractions, its result (the answer is
@@ -356,6 +349,7 @@ class MergeService:
         self.stats.count("factors_retracted", len(uow.withdrawn))
         self.stats.count("submaps_processed")
         self.outbox.result(uow.result)
+        self.answered.add(uow.row_id)
 
     def ingest(self, sub: Submap, profile: Profile = Profile.FULL, optimize: bool = True) -> int:
         """Persist and process one submap now, in the calling thread, as if it had arrived
@@ -375,6 +369,7 @@ class MergeService:
                 self._process(row_id)
             if optimize:
                 self._flush()
+                self.answered.flush()
         else:
             self.stats.count("submaps_duplicate")
         return row_id
@@ -397,7 +392,7 @@ class MergeService:
     def _solve_graph(self) -> None:
         try:
             sol = self.graph.optimize(marginals=False)
-        except MergeError as exc:
+        except Exception as exc:
             s = self._solve
             s["failures"] += 1
             s["error"] = one_line(exc)
@@ -410,7 +405,7 @@ class MergeService:
         self.stats.count("optimizations")
         if sol is self.sessions.solution:
             return  # nothing changed since the last solve
-        self._save_scales()
+        self.scales.save()
         retracted = []
         with self._lock:
             self.sessions.solved(sol)
@@ -420,12 +415,24 @@ class MergeService:
                 if f is not None:
                     retracted.append(f)
                     log.warning("factor %s rejected by GNC: retracted", fid)
-        for f in retracted:
-            with contextlib.suppress(StoreError):  # found again by the next solve
-                self.store.set_factor_status(f.factor_id, "retracted")
-            self.outbox.factor(f.model_copy(update={"status": FactorStatus.RETRACTED}))
-        self.stats.count("factors_retracted", len(retracted))
+        self._unstored_retractions.extend(retracted)
+        self._publish_retractions()
         _trim_heap()
+
+    def _publish_retractions(self) -> None:
+        """Retractions stored, then published; one the store cannot write yet is kept and
+        tried again each worker round (never published before the store has it)."""
+        left = []
+        for f in self._unstored_retractions:
+            try:
+                self.store.set_factor_status(f.factor_id, "retracted")
+            except StoreError as exc:
+                log.warning("retraction of %s not stored yet: %s", f.factor_id, one_line(exc))
+                left.append(f)
+                continue
+            self.outbox.factor(f.model_copy(update={"status": FactorStatus.RETRACTED}))
+            self.stats.count("factors_retracted")
+        self._unstored_retractions = left
 
     # -- queries -----------------------------------------------------------------------------
 

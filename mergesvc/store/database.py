@@ -37,6 +37,7 @@ from mergesvc.store.records import (
     _META,
     _SCHEMA,
     _TABLES,
+    _UNANSWERED,
     APPLICATION_ID,
     PENDING,
     STORE_SCHEMA_VERSION,
@@ -135,7 +136,8 @@ class Store(FactorRecords):
             )
         if version < STORE_SCHEMA_VERSION:  # no older versions exist yet: nothing to migrate
             raise StoreError(f"store {self.path} has unknown old schema version {version}")
-        for table, create in (("meta", _META), ("held_factors", _HELD)):
+        for table, create in (("meta", _META), ("held_factors", _HELD),
+                              ("unanswered", _UNANSWERED)):
             if table not in tables:
                 try:
                     with self._transaction() as c:

@@ -146,6 +146,22 @@ class FactorRecords:
 
     # -- frames ----------------------------------------------------------------------------------
 
+    def answered(self, row_ids: Sequence[int]) -> None:
+        """The messages of these committed rows were published."""
+        if row_ids:
+            with self._transaction() as c:
+                c.executemany("DELETE FROM unanswered WHERE row_id = ?",
+                              [(int(r),) for r in row_ids])
+
+    def unanswered(self) -> list[tuple[int, bytes]]:
+        """(row id, answer) of committed units whose messages may not have gone out (a crash
+        between the commit and the publishing), oldest first; none in a read-only old file."""
+        with self._transaction(write=False) as c:
+            present = c.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = "
+                                "'unanswered'").fetchone()
+            return [(int(r), bytes(a)) for r, a in c.execute(
+                "SELECT row_id, answer FROM unanswered ORDER BY row_id")] if present else []
+
     def commit_unit(
         self,
         row_id: int,
@@ -157,6 +173,7 @@ class FactorRecords:
         withdrawn: Sequence[str] = (),
         held: Sequence[tuple[str, str, str, bytes]] = (),
         anchor: str | None = None,
+        answer: bytes | None = None,
     ) -> None:
         """One submap's unit of work in one transaction: its row's final status, its frame
         (robot, session, seen at), the factors it sent (id, frame a, frame b, payload: stored
@@ -172,6 +189,9 @@ class FactorRecords:
             if frame is not None:
                 self._touch_frame(c, frame_name(frame[0], frame[1]), frame[0], frame[1],
                                   frame[2])
+            if answer is not None:  # its messages, until `answered` says they went out
+                c.execute("INSERT OR REPLACE INTO unanswered (row_id, answer) VALUES (?, ?)",
+                          (int(row_id), _check_bytes(answer, "answer")))
             for fid, fa, fb, payload in sent:
                 c.execute("INSERT OR IGNORE INTO factors (factor_id, frame_a, frame_b, payload, "
                           "status, created_at_s, updated_at_s) VALUES (?, ?, ?, ?, ?, ?, ?)",

@@ -79,6 +79,10 @@ CREATE TABLE IF NOT EXISTS held_factors (
     payload BLOB NOT NULL,
     created_at_s REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS unanswered (
+    row_id INTEGER PRIMARY KEY,
+    answer BLOB NOT NULL
+);
 """
 # `meta` (fleet-wide facts fixed once, e.g. the embedding dimension) came after version 1 was
 # out: a version-1 file without it gets it when opened writable (an added table, nothing else
@@ -88,8 +92,12 @@ _META = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT N
 # came later still, added the same way.
 _HELD = ("CREATE TABLE IF NOT EXISTS held_factors (factor_id TEXT PRIMARY KEY, frame_a TEXT "
          "NOT NULL, frame_b TEXT NOT NULL, payload BLOB NOT NULL, created_at_s REAL NOT NULL)")
+# `unanswered` (a committed unit's messages until they were published: a restart publishes
+# what a crash between the commit and the publishing left unsent) likewise.
+_UNANSWERED = ("CREATE TABLE IF NOT EXISTS unanswered (row_id INTEGER PRIMARY KEY, answer BLOB "
+               "NOT NULL)")
 _TABLES = ("schema_version", "submaps", "submap_conflicts", "factors", "frames", "meta",
-           "held_factors")
+           "held_factors", "unanswered")
 #: Meta key of the fleet's embedding dimension (fixed by the first accepted submap or the
 #: service's setting).
 META_EMBEDDING_DIM = "embedding_dim"
