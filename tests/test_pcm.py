@@ -161,6 +161,21 @@ def test_only_the_window_is_weighed_again() -> None:
     assert chains.calls <= 2 * 30  # two walks a factor
 
 
+def test_forgetting_a_factor_inside_the_window_brings_back_no_stale_one() -> None:
+    """GNC retracts (forgets) factors inside the window: the next offers weigh the last ones
+    that still hold their data (once a KeyError here failed every later submap of the pair)."""
+    sets = ClosureSets(ConsistencyConfig(window=5), _Chains())
+    for i in range(12):
+        sets.offer(_factor(f"f{i}", i, i, _truth(i, i)))
+    for i in (9, 10, 11):
+        sets.forget(f"f{i}")
+    for i in range(12, 20):
+        v = sets.offer(_factor(f"f{i}", i, i, _truth(i, i)))
+        assert v.trusted == [f"f{i}"] and not v.withdrawn
+    pair = next(iter(sets._pairs.values()))
+    assert len(pair.meas) == len(pair.keys) <= 5
+
+
 def test_a_replay_changes_nothing_and_the_switch_turns_it_off() -> None:
     sets = ClosureSets(ConsistencyConfig(), _Chains())
     f = _factor("f1", 0, 0, _truth(0, 0))

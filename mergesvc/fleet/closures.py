@@ -123,15 +123,14 @@ class ClosureSets:
             if trusted is not False:
                 p.trusted.add(fid)
             return Verdict([fid] if trusted is not False else [], [])
-        window = p.ids[-self.config.window:]
+        window = _recent(p, self.config.window)
         self._test(key, p, fid, [g for g in window if g != fid])
-        if len(p.ids) > self.config.window:  # the oldest keeps its verdict: its test data goes
-            old = p.ids[-self.config.window - 1]
-            if old in p.meas:
-                del p.meas[old], p.keys[old]
-                for g in window:
-                    p.ok.pop((old, g), None)
-                    p.ok.pop((g, old), None)
+        inside = set(window)
+        for old in [g for g in p.keys if g not in inside]:  # keeps its verdict, not its data
+            del p.meas[old], p.keys[old]
+            for g in window:
+                p.ok.pop((old, g), None)
+                p.ok.pop((g, old), None)
         adj = np.array([[g == h or p.ok.get((g, h), True) for h in window] for g in window])
         keep = {window[i] for i in max_clique(adj, [g in p.trusted for g in window])}
         before = {g for g in window if g in p.trusted}
@@ -153,6 +152,18 @@ class ClosureSets:
             if ca is not None and cb is not None:
                 ok = loop_nees(p.meas[fid], p.meas[g], ca, cb) < self._threshold
             p.ok[(fid, g)] = p.ok[(g, fid)] = ok
+
+
+def _recent(p: _Pair, n: int) -> list[str]:
+    """The pair's last `n` factors that still hold their test data, oldest first (a factor
+    forgotten in between does not bring one whose data went back into the window)."""
+    out: list[str] = []
+    for g in reversed(p.ids):
+        if g in p.keys:
+            out.append(g)
+            if len(out) == n:
+                break
+    return out[::-1]
 
 
 __all__ = ["Chains", "ClosureSets", "Verdict"]
