@@ -201,3 +201,41 @@ def test_the_pose_graph_calibrates_its_groups() -> None:
     np.testing.assert_allclose(pg.scaled_covariance("o0-3"),
                                np.diag((DECLARED * scales["odometry:0"]) ** 2), rtol=1e-9)
     np.testing.assert_allclose(pg.scaled_covariance("c0"), np.diag(CLOSURE_SIGMA**2))
+
+
+def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> None:
+    """A calibration is a pass over the whole graph: solving the same graph again does not
+    repeat it; a quarter more factors (`every_growth`) does."""
+    import mergesvc.core.graph as graph_module
+
+    calls: list[int] = []
+    real = graph_module.variance_components
+
+    def counting(graph, values, groups, cal):
+        calls.append(graph.size())
+        return real(graph, values, groups, cal)
+
+    monkeypatch.setattr(graph_module, "variance_components", counting)
+    _, odo, pairs = _world(6, 60, 60, np.ones(6), 1.0)
+    pg = PoseGraph(anchor="a#0", config=GraphConfig(calibration=dict(
+        enabled=True, groups=("odometry",), resolves=0, every_growth=0.25)))
+    for r in (0, 1):
+        for i, D in enumerate(odo[r]):
+            pg.add_factor(f"o{r}-{i}", f"{'ab'[r]}#{i}", f"{'ab'[r]}#{i + 1}", D,
+                          np.diag(DECLARED**2), known_inlier=True, group=f"odometry:{r}")
+
+    def close(lo: int, hi: int) -> None:
+        for n in range(lo, hi):
+            i, j, Z = pairs[n]
+            pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
+                          group="closures")
+
+    close(0, 20)
+    pg.optimize(marginals=False)
+    assert len(calls) == 1
+    close(20, 25)  # 145 -> 150 factors: under a quarter more
+    pg.optimize(marginals=False)
+    assert len(calls) == 1
+    close(25, 60)  # 185: more than a quarter over the 145 of the last calibration
+    pg.optimize(marginals=False)
+    assert len(calls) == 2 and calls[1] >= 1.25 * calls[0]

@@ -52,6 +52,11 @@ class CalibrationConfig(BaseModel):
         "(odometry:auv1 is odometry); the others keep their declared scale. Inter-robot "
         "factors ('closures') are left out by default: successive ones share objects, and "
         "their residuals understate their errors (docs/uncertainty.md)")
+    every_growth: float = Field(
+        0.25, ge=0.0, description="calibrate again once the solved graph holds this fraction "
+        "more factors than at the last calibration (0: at every solve); each calibration is "
+        "a pass over the whole graph and moves every noise model, so a large graph would pay "
+        "it at every solve")
     resolves: int = Field(2, ge=0, le=10, description="solves again at most this many times "
                           "after one that moved a scale by more than resolve_change")
     resolve_change: float = Field(0.1, gt=0.0, description="relative change of a sigma "

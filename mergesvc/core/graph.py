@@ -109,6 +109,7 @@ class PoseGraph:
         self._scales: dict[str, np.ndarray] = {}
         self._components: dict[str, Any] = {}  # the last estimate's sums, per group
         self._recalibrated = False  # the last solve moved a scale: solve again
+        self._calibrated_at = 0  # factors in the graph at the last calibration
         self._solved_scales: dict[str, np.ndarray] = {}
         # False: solve with the scales as they are (a restart solving what it restored)
         self.calibrating = True
@@ -416,6 +417,7 @@ class PoseGraph:
         sol = self._solve_once(anchor, marginals, limit)
         for _ in range(self.config.calibration.resolves if self._recalibrated else 0):
             self._remember(None, sol)
+            self._calibrated_at = 0  # a re-solve calibrates again
             sol = self._solve_once(anchor, marginals, limit)
             if not self._recalibrated:
                 break
@@ -588,7 +590,10 @@ class PoseGraph:
         if not (gnc_skipped and not rejected):  # else: `final` is `graph`, solved already
             estimate = _levenberg_marquardt(final, estimate, "pose-graph")
         self._recalibrated = False
-        if cfg.calibration.enabled and self.calibrating:
+        n_solved = final.size()
+        if cfg.calibration.enabled and self.calibrating and (
+                n_solved >= (1.0 + cfg.calibration.every_growth) * self._calibrated_at):
+            self._calibrated_at = n_solved
             self._calibrate(final, estimate, [None] * m + [
                 facs[i].group for i in range(len(facs)) if i not in rejected])
 
