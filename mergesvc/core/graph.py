@@ -29,11 +29,11 @@ from mergesvc.core.connectivity import bridges as find_bridges
 from mergesvc.core.folding import Folding, Measurement
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name
 from mergesvc.core.freezing import Freezing
-from mergesvc.core.graph_factor import GraphFactor, check_covariance
+from mergesvc.core.graph_factor import GraphFactor
 from mergesvc.core.graph_factor import levenberg_marquardt as _levenberg_marquardt
 from mergesvc.core.graph_start import initial_poses
 from mergesvc.core.model import Factor, FactorStatus
-from mergesvc.core.poses import as_pose3, pose3_from_model
+from mergesvc.core.poses import as_pose3, check_covariance, pose3_from_model
 from mergesvc.errors import InputError, SolverError, one_line
 
 log = logging.getLogger(__name__)
