@@ -16,6 +16,14 @@ from scipy.spatial.distance import cdist
 log = logging.getLogger(__name__)
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis, (..., 3) each: the same products and differences as np.cross
+    (bit for bit) without its axis handling, which costs tens of microseconds per call."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def pairwise_lengths(position_xyz_m: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, n) Euclidean distances between object centres."""
     return cdist(position_xyz_m, position_xyz_m)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from mergesvc.core.geometry import pairwise_lengths
+from mergesvc.core.geometry import cross, pairwise_lengths
 from mergesvc.core.model import RejectReason
 from mergesvc.core.vertical import rotation_between
 
@@ -66,7 +66,8 @@ def align_weighted(sub_xyz: np.ndarray, map_xyz: np.ndarray, weights: np.ndarray
 
 def transform_points(T: gtsam.Pose3, xyz: np.ndarray) -> np.ndarray:
     """(k, 3) -> (k, 3): T * p for every row."""
-    return xyz @ T.rotation().matrix().T + T.translation()
+    M = T.matrix()  # one call into gtsam (rotation() and translation() are one each)
+    return xyz @ np.ascontiguousarray(M[:3, :3]).T + M[:3, 3]
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -86,18 +87,18 @@ def pose_covariance_info(
     information is prior_info + sum_k J_k^T J_k / sigma_k^2.
     """
     p = np.asarray(sub_xyz, dtype=float).reshape(-1, 3)
-    w = 1.0 / np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(p),)) ** 2
+    w = np.asarray(sigma_m, dtype=float)
+    w = np.full(len(p), 1.0 / w**2) if w.ndim == 0 else 1.0 / w**2
     info = np.zeros((6, 6)) if prior_info is None else np.array(prior_info, dtype=float)
     # sum_k J_k^T J_k / s_k^2 with J_k = [-R [p_k]x, R]: R^T R = I, so the blocks are
-    # [p]x^T [p]x (rotation), -[p]x^T = [p]x and its transpose (cross), I (translation)
-    px = np.zeros((len(p), 3, 3))
-    px[:, 0, 1], px[:, 0, 2], px[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    px -= px.transpose(0, 2, 1)
-    info[:3, :3] += np.einsum("k,kij,kjl->il", w, px.transpose(0, 2, 1), px)
-    cross = np.einsum("k,kij->ij", w, px)  # sum_k w_k [p_k]x
-    info[:3, 3:] += cross
-    info[3:, :3] += cross.T
-    info[3:, 3:] += np.eye(3) * w.sum()
+    # [p]x^T [p]x = |p|^2 I - p p^T (rotation), -[p]x^T = [p]x and its transpose (cross),
+    # I (translation); sums of [p_k]x are [sum p_k]x
+    pw = p * w[:, None]
+    info[:3, :3] += np.diag(np.full(3, float((pw * p).sum()))) - pw.T @ p
+    cross_sum = skew(pw.sum(axis=0))  # sum_k w_k [p_k]x
+    info[:3, 3:] += cross_sum
+    info[3:, :3] += cross_sum.T
+    info[3:, 3:] += np.diag(np.full(3, float(w.sum())))
     return info
 
 
@@ -191,7 +192,7 @@ def align_about_vertical(
     q = map_xyz - mq
     ph = (p - np.outer(p @ up_map, up_map)) * w[:, None]
     qh = q - np.outer(q @ up_map, up_map)
-    theta = float(np.arctan2(np.cross(ph, qh).sum(axis=0) @ up_map, float((ph * qh).sum())))
+    theta = float(np.arctan2(cross(ph, qh).sum(axis=0) @ up_map, float((ph * qh).sum())))
     Ry = gtsam.Rot3.AxisAngle(np.asarray(up_map, dtype=float), theta).matrix()
     R = Ry @ R0
     t = mq - R @ mp

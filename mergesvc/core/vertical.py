@@ -15,6 +15,7 @@ from enum import Enum
 
 import numpy as np
 
+from mergesvc.core.geometry import cross
 from mergesvc.core.model import ObjectArrays
 
 
@@ -140,11 +141,11 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if c < -1.0 + 1e-8:
         # (nearly) opposite, where the cross product loses its direction: half a turn about
         # the axis perpendicular to a closest to bisecting a and b, then the small rest
-        perp = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+        perp = cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
         perp /= np.linalg.norm(perp)
         half = 2.0 * np.outer(perp, perp) - np.eye(3)
         return rotation_between(half @ a, b) @ half
-    v = np.cross(a, b)
+    v = cross(a, b)
     s = float(np.linalg.norm(v))
     if s < 1e-15:
         return np.eye(3)
