@@ -144,19 +144,3 @@ def test_dense_solvers_leave_pygmtools_global_backend_alone(monkeypatch) -> None
     assert harden_dense(X).tolist() == [0, 1, 2, 3]
     assert pygm.BACKEND == "pytorch"
 
-
-@pytest.mark.parametrize("seed", range(6))
-@pytest.mark.parametrize("slack", [True, False])
-def test_scaled_sinkhorn_is_the_candidate_loop(seed: int, slack: bool, monkeypatch) -> None:
-    """sinkhorn on the (n1, n2) matrix with scaling vectors gives the candidate-list loop's
-    answer (rows without candidates and map nodes shared by many rows included)."""
-    rng = np.random.default_rng(seed)
-    n1, n2 = int(rng.integers(2, 25)), int(rng.integers(3, 200))
-    pairs = np.unique(rng.integers(0, n1 * n2, size=int(rng.integers(1, 12)) * n1))
-    rows, cols = np.divmod(pairs, n2)
-    problem = AssignmentProblem(n1, n2, rows, cols, np.zeros((len(pairs), len(pairs))))
-    x = np.exp(30.0 * rng.random(len(pairs)))
-    scaled = heuristic.sinkhorn(x, problem, slack=slack)
-    monkeypatch.setattr(heuristic, "_DENSE_MAX_CELLS", 0)
-    loop = heuristic.sinkhorn(x, problem, slack=slack)
-    np.testing.assert_allclose(scaled, loop, rtol=1e-9, atol=1e-300)

@@ -464,8 +464,12 @@ def _verify(
     sigma_m: float,
     timer: StageTimer,
     rel: VerticalRelation | None,
+    probed: tuple[np.ndarray, RigidFit] | None = None,
 ) -> _Pass:
-    """Exact search over the candidates -> margin test -> rigid fit -> accept or reject."""
+    """Exact search over the candidates -> margin test -> rigid fit -> accept or reject.
+
+    probed: (n1,) map indices already fitted (the guided step's probe) and that fit, reused
+    when the proposal to fit is the same (the fit depends on nothing else)."""
     assignment = prop.assignment
     exact = near = None
     if config.verify.exact or config.solver.name is SolverName.EXACT:
@@ -496,7 +500,10 @@ def _verify(
         ambiguous = margins < config.verify.margin  # nan (unmatched) compares False
         proposed = np.where(ambiguous, UNMATCHED, proposed)
         timer.lap("margin")
-    fit = _fit(sub, map_, proposed, sigma_m, config, rel)
+    if probed is not None and np.array_equal(probed[0], proposed):
+        fit = probed[1]
+    else:
+        fit = _fit(sub, map_, proposed, sigma_m, config, rel)
     reason = fit.reason
     needed = config.verify.min_matches
     if rel is not None:
@@ -552,12 +559,15 @@ def _verified_pass(
 ) -> _Pass:
     """Solve, guided step, exact search and fit of one submap (or one window of one)."""
     prop = _propose(sub, map_, cands, config, sigma_m, timer)
+    probed = None
     if config.candidates.guided:
         # Guided matching: when the solver's answer fits a rigid transform, add the map objects
         # lying where it puts each submap object (look-alike instances whose true match ranked
         # below the top-k by appearance alone) and solve again from that answer; the exact
         # search then verifies once, over the enlarged candidate set.
-        probe = _fit(sub, map_, prop.to_map(prop.assignment), sigma_m, config, rel)
+        first = prop.to_map(prop.assignment)
+        probe = _fit(sub, map_, first, sigma_m, config, rel)
+        probed = (first, probe)
         timer.lap("verify")
         if probe.accepted:
             predicted = transform_points(probe.T_map_submap, sub.position_xyz_m)
@@ -570,7 +580,7 @@ def _verified_pass(
                 start[rows[~probe.inliers]] = UNMATCHED
                 prop = _propose(sub, map_, more, config, sigma_m, timer, start=start,
                                 prev=prop)
-    return _verify(sub, map_, prop, config, sigma_m, timer, rel)
+    return _verify(sub, map_, prop, config, sigma_m, timer, rel, probed)
 
 
 def _match_windowed(

@@ -28,8 +28,6 @@ def sinkhorn(
     normalised to 1 (every submap node has one unit of mass).
     """
     x = np.maximum(x_m, 1e-300)
-    if problem.n1 * problem.n2 <= _DENSE_MAX_CELLS:
-        return _sinkhorn_scaled(x, problem, iters, slack)
     for _ in range(iters):
         rs = _group_sum(x, problem.rows, problem.n1)
         x = x / np.maximum(rs[problem.rows], 1e-300)
@@ -40,30 +38,6 @@ def sinkhorn(
         cs = np.maximum(cs, 1.0) if slack else np.maximum(cs, 1e-300)
         x = x / cs[problem.cols]
     return x
-
-
-# n1 x n2 cells up to which sinkhorn keeps the (n1, n2) matrix and two scaling vectors
-_DENSE_MAX_CELLS = 1 << 16
-
-
-def _sinkhorn_scaled(x: np.ndarray, problem: AssignmentProblem, iters: int, slack: bool
-                     ) -> np.ndarray:
-    """`sinkhorn` as X = diag(r) Y diag(c): the same steps on the scaling vectors, two small
-    matrix-vector products per step instead of scatters and gathers over the m candidates
-    (equal up to rounding: tests/test_solvers.py)."""
-    Y = np.zeros((problem.n1, problem.n2))
-    Y[problem.rows, problem.cols] = x
-    r, c = np.ones(problem.n1), np.ones(problem.n2)
-    # a map node with no candidate keeps its scale (the loop never touches it)
-    floor = 1.0 if slack else np.where(np.bincount(problem.cols, minlength=problem.n2) > 0,
-                                       1e-300, 1.0)
-    for _ in range(iters):
-        r = 1.0 / np.maximum(Y @ c, 1e-300)
-        cs = c * (r @ Y)
-        if slack and cs.max() <= 1.0:
-            break
-        c /= np.maximum(cs, floor)
-    return x * r[problem.rows] * c[problem.cols]
 
 
 def _conflict_mask(problem: AssignmentProblem) -> np.ndarray:

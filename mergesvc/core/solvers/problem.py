@@ -19,6 +19,8 @@ import numpy as np
 from mergesvc.errors import SolverError
 
 UNMATCHED = -1
+# rows x cols up to which a problem keeps an (n1, n2) table of candidate indices
+_CELL_TABLE_MAX = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,13 @@ class AssignmentProblem:
         rows = np.flatnonzero(a != UNMATCHED)
         if len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
+        table = self._cell_index
+        if table is not None and a.shape == (self.n1,) and a.dtype.kind in "iu":
+            cols = a[rows]
+            if int(cols.min()) >= 0 and int(cols.max()) < self.n2:
+                idx = table[rows, cols]
+                if int(idx.min()) >= 0:
+                    return idx
         keys = rows * max(self.n2, 1) + a[rows].astype(np.int64)
         sorted_keys, order = self._key_index
         at = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
@@ -129,6 +138,16 @@ class AssignmentProblem:
             k = int(np.flatnonzero(~hit)[0])
             raise SolverError(f"pair ({int(rows[k])}, {int(a[rows[k]])}) is not a candidate")
         return order[at].astype(np.int64)
+
+    @functools.cached_property
+    def _cell_index(self) -> np.ndarray | None:
+        """(n1, n2) candidate index of each (row, col), -1 where none; None when that table
+        would be large (the sorted keys serve then)."""
+        if self.n1 * self.n2 > _CELL_TABLE_MAX:
+            return None
+        table = np.full((self.n1, self.n2), -1, dtype=np.int64)
+        table[self.rows, self.cols] = np.arange(self.m)
+        return table
 
     @functools.cached_property
     def _key_index(self) -> tuple[np.ndarray, np.ndarray]:
