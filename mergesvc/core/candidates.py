@@ -47,6 +47,32 @@ def _sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray | None:
     return None if n <= size else np.sort(rng.choice(n, size=size, replace=False))
 
 
+_SAMPLES_KEPT = 8  # per map: the sample rows of this many generator states
+
+
+def _map_sample(map_: ObjectArrays, size: int, rng: np.random.Generator
+                ) -> tuple[np.ndarray | None, dict[str, np.ndarray] | None]:
+    """`_sample` of the map's rows and what the ucos floor reads of them (their embeddings,
+    norms and uncertainties), kept with the map per generator state: every match with the
+    same seed draws the same rows. The generator ends where drawing would leave it."""
+    if map_.n <= size:
+        return None, None
+    before = repr(rng.bit_generator.state)
+    kept = map_.cache.setdefault(("floor_sample", size), {})
+    if before in kept:
+        idx, rows, after = kept[before]
+        rng.bit_generator.state = after
+        return idx, rows
+    idx = _sample(map_.n, size, rng)
+    n_idx = map_.norms_n[idx]
+    rows = {"embeddings": map_.embeddings_nd[idx], "norms": np.where(n_idx > 0, n_idx, 1.0),
+            "uncertainty": map_.uncertainty_s[idx]}
+    if len(kept) >= _SAMPLES_KEPT:
+        kept.clear()
+    kept[before] = (idx, rows, rng.bit_generator.state)
+    return idx, rows
+
+
 @dataclass(frozen=True)
 class Calibration:
     """How raw node affinities of one submap become scores: 0 at a typical unrelated map object
@@ -102,7 +128,7 @@ def retrieve(
     else:
         search = map_search(map_, cand_cfg, n1)
         shortlist, cos = search.search(sub.unit_rows().astype(np.float32), cand_cfg.prefilter)
-    sample = _sample(n2, cand_cfg.sample, rng)
+    sample, sample_rows = _map_sample(map_, cand_cfg.sample, rng)
     D_ref = None
     same = None
     if kind is NodeAffinity.LIKELIHOOD_RATIO:
@@ -135,11 +161,17 @@ def retrieve(
         floor = np.median(A, axis=1)
     elif kind is NodeAffinity.UCOS:
         # the median of a sample needs no float64: one float32 product
-        idx = np.arange(n2) if sample is None else sample
         q = sub.unit_rows().astype(np.float32)
-        n_idx = map_.norms_n[idx]
-        cos_s = (q @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
-        floor = np.median(_ucos_pairs(sub, map_, cos_s, idx[None, :]), axis=1)
+        if sample_rows is None:
+            idx = np.arange(n2)
+            n_idx = map_.norms_n[idx]
+            cos_s = (q @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
+            floor = np.median(_ucos_pairs(sub, map_, cos_s, idx[None, :]), axis=1)
+        else:  # the same arithmetic on the rows kept with the map
+            cos_s = (q @ sample_rows["embeddings"].T) / sample_rows["norms"][None, :]
+            s2 = sample_rows["uncertainty"][None, :]
+            floor = np.median(cos_s.astype(np.float64)
+                              / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0), axis=1)
     else:
         idx = np.arange(n2) if sample is None else sample
         floor = np.median(
@@ -164,13 +196,25 @@ def retrieve(
     # scale: a typical submap object's best candidate scores 1; an object whose best candidate
     # is unusually weak (a false detection, a never-seen object) scores below 1 throughout
     lift = A_top.max(axis=1) - floor
-    ceil = max(float(np.quantile(lift, cand_cfg.ceiling_quantile)), 1e-12)
+    ceil = max(quantile(lift, cand_cfg.ceiling_quantile), 1e-12)
     calib = Calibration(kind, aff_cfg.normalize_embeddings, D_ref, floor, ceil, same)
     score = (A_top - floor[:, None]) / ceil
     keep = score > 0
     rows = np.broadcast_to(np.arange(n1)[:, None], top.shape)[keep]
     map_nodes = np.take_along_axis(shortlist, top, axis=1)[keep]
     return _sorted(rows, map_nodes, A_top[keep], np.minimum(score[keep], 1.0)), calib
+
+
+def quantile(values: np.ndarray, q: float) -> float:
+    """np.quantile(values, q) (its default linear method, the same arithmetic, so the same
+    float) of a 1-d array without NaN, without its general-case overhead."""
+    s = np.sort(values)
+    v = (len(s) - 1) * q
+    lo = min(max(int(np.floor(v)), 0), len(s) - 1)
+    hi = min(lo + 1, len(s) - 1)
+    t = v - lo
+    a, b = float(s[lo]), float(s[hi])
+    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _sorted(rows, map_nodes, affinity, score) -> Candidates:
