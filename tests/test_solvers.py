@@ -144,3 +144,38 @@ def test_dense_solvers_leave_pygmtools_global_backend_alone(monkeypatch) -> None
     assert harden_dense(X).tolist() == [0, 1, 2, 3]
     assert pygm.BACKEND == "pytorch"
 
+
+
+def _candidate_problem(rng: np.random.Generator) -> AssignmentProblem:
+    """A pipeline-like problem: n1 submap points among n2 map points, k candidates per row
+    (the true one and random others), node scores in (0, 1], edge affinities as in K."""
+    n1 = int(rng.integers(2, 16))
+    n2 = n1 + int(rng.integers(5, 60))
+    pts2 = rng.uniform(0, 30, size=(n2, 3))
+    truth = rng.permutation(n2)[:n1]
+    pts1 = pts2[truth] + rng.normal(size=(n1, 3)) * 0.2
+    k = min(int(rng.integers(3, 13)), n2)
+    rows, cols = [], []
+    for i in range(n1):
+        others = rng.choice(np.setdiff1d(np.arange(n2), [truth[i]]), size=k - 1, replace=False)
+        rows += [i] * k
+        cols += [truth[i], *others]
+    rows, cols = np.array(rows), np.array(cols)
+    L1 = np.linalg.norm(pts1[:, None] - pts1[None], axis=2)
+    L2 = np.linalg.norm(pts2[:, None] - pts2[None], axis=2)
+    K = np.exp(-((L1[np.ix_(rows, rows)] - L2[np.ix_(cols, cols)]) ** 2) / 0.5) / n1
+    K[(rows[:, None] == rows[None]) | (cols[:, None] == cols[None])] = 0.0
+    np.fill_diagonal(K, rng.uniform(0.05, 1.0, len(rows)))
+    return AssignmentProblem(n1, n2, rows, cols, K)
+
+
+def test_rrwm_cap_tolerance_keeps_the_hard_answer() -> None:
+    """RRWM's Sinkhorn stopping at RRWM_CAP_TOL gives the hard answer of the full 20 steps
+    (pygmtools' count) on pipeline-like problems."""
+    rng = np.random.default_rng(26)
+    for _ in range(60):
+        problem = _candidate_problem(rng)
+        full = heuristic.rrwm(problem, cap_tol=0.0)
+        fast = heuristic.rrwm(problem)
+        np.testing.assert_array_equal(harden(problem, fast, 0.0), harden(problem, full, 0.0))
+        np.testing.assert_allclose(fast, full, atol=1e-3)
