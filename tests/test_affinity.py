@@ -14,6 +14,7 @@ from mergesvc.core.affinity import (
     edge_affinity,
     edge_pair_weight,
     edge_scales,
+    exp_edges,
     fit_same_object_model,
     log_likelihood_ratio,
     log_likelihood_ratio_pairs,
@@ -487,3 +488,18 @@ def test_extend_K_equals_candidate_K_over_the_enlarged_set(kitti_scenario) -> No
         np.testing.assert_array_equal(a.cols, b.cols)
     np.testing.assert_array_equal(full.signed.conflict, ext.signed.conflict)
     np.testing.assert_array_equal(full.local, ext.local)
+
+
+def test_exp_edges_is_numpy_exp_bit_for_bit() -> None:
+    """exp_edges skips only the arguments whose exp is 0: the subnormal band and the
+    arguments just above and below the underflow point come out as np.exp gives them."""
+    rng = np.random.default_rng(3)
+    X = -np.concatenate([rng.random(3000) * 5, rng.random(3000) * 1e5,
+                         rng.uniform(700, 760, 2400)])
+    rng.shuffle(X)
+    X[:4] = [-745.13, -745.14, -746.0, 0.0]
+    got = exp_edges(X.reshape(1200, 7))
+    want = np.exp(X.reshape(1200, 7))
+    assert np.array_equal(got, want)
+    assert np.array_equal(np.signbit(got), np.signbit(want))
+    assert (got > 0).sum() > 0 and (got == 0).sum() > 0

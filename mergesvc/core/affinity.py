@@ -416,6 +416,23 @@ def edge_pair_weight(n1: int, aff: AffinityConfig) -> float:
     return aff.edge_weight / max(n1 - 1, 1) / 2.0
 
 
+# exp of anything below this is 0 in float64 (the smallest subnormal is exp(-745.13))
+_EXP_ZERO_BELOW = -746.0
+
+
+def exp_edges(X: np.ndarray) -> np.ndarray:
+    """np.exp(X), the same floats, computed only where the result is not 0: numpy's exp takes
+    a slow path for arguments whose result underflows, and most pairs of candidates
+    disagree so much (X of -1e3 and below) that this is most of K's cost."""
+    if X.size < 4096:
+        return np.exp(X)
+    flat = X.ravel()
+    live = np.flatnonzero(flat > _EXP_ZERO_BELOW)
+    out = np.zeros(X.shape)
+    out.ravel()[live] = np.exp(flat[live])
+    return out
+
+
 class CandidateK(NamedTuple):
     """K over one candidate set, as the two problems the solvers take (see candidate_K)."""
 
@@ -467,7 +484,7 @@ def candidate_K(
     np.square(D, out=D)
     X *= D  # -(e_ij - e_ab)^2 / (2 tol_ij^2)
     w = edge_pair_weight(sub.n, aff)
-    K_pos = np.exp(X)
+    K_pos = exp_edges(X)
     K_pos *= w
     invalid = cols[:, None] == cols[None, :]
     if grouped:
@@ -522,7 +539,7 @@ def extend_K(
     X = neg_inv[np.ix_(R, R[new])] * D
     invalid = (R[:, None] == R[new][None, :]) | (cols[:, None] == cols[new][None, :])
     w = edge_pair_weight(sub.n, aff)
-    pos = np.exp(X)
+    pos = exp_edges(X)
     pos *= w
     pos[invalid] = 0.0
     signed = pos - w * aff.edge_threshold
