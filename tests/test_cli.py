@@ -138,6 +138,10 @@ def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     kitti = report["results"]["kitti/verified/ucos"]
     assert kitti["runs"] == 2 and kitti["scenarios"] == 1
     assert report["results"]["kitti/verified (1 thread)/ucos"]["runs"] == 2
+    # CPU time per match in both thread modes, p99 beside the median
+    lat = kitti["latency_ms"]
+    assert kitti["cpu_ms"]["median"] > 0 and lat["min"] <= lat["p99"] <= lat["max"]
+    assert report["results"]["kitti/verified (1 thread)/ucos"]["cpu_ms"]["median"] > 0
     assert kitti["node_accuracy"] >= 0.9  # seed 0 is an easy, fully recoverable scenario
     assert "| kitti/verified/ucos |" in r.stdout
 

@@ -21,17 +21,21 @@ from mergesvc.sim import Family, Scenario, make_scenario
 
 
 def run_case(
-    sc: Scenario, config: MatchConfig, repeats: int, one_thread: list[float] | None = None
+    sc: Scenario, config: MatchConfig, repeats: int, one_thread: list[float] | None = None,
+    one_thread_cpu: list[float] | None = None,
 ) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
     """Run one scenario `repeats` (>= 1, else InputError) times; (scores of the first run,
-    totals ms, stage ms). With `one_thread` (a list), each run is followed by one with the
-    BLAS held to one thread, its total appended there: both under the same machine load."""
+    totals ms, stage ms; stage "cpu": the process CPU time of each match, ms). With
+    `one_thread` (a list), each run is followed by one with the BLAS held to one thread, its
+    total appended there (its CPU time to `one_thread_cpu`): both under the same load."""
     check_count("repeats", repeats)
     totals: list[float] = []
     stages: dict[str, list[float]] = {}
     scores: dict[str, float] = {}
     for run in range(repeats):
+        c = time.process_time()
         outcome = match(sc.map, sc.submap, config)
+        stages.setdefault("cpu", []).append((time.process_time() - c) * 1e3)
         if run == 0:
             scores = score_case(sc, outcome)
         for k, v in outcome.result.timings_ms.items():
@@ -39,7 +43,11 @@ def run_case(
         totals.append(outcome.result.timings_ms["total"])
         if one_thread is not None:
             with threadpool_limits(1):
-                one_thread.append(match(sc.map, sc.submap, config).result.timings_ms["total"])
+                c = time.process_time()
+                one = match(sc.map, sc.submap, config)
+                if one_thread_cpu is not None:
+                    one_thread_cpu.append((time.process_time() - c) * 1e3)
+            one_thread.append(one.result.timings_ms["total"])
     return scores, totals, stages
 
 
@@ -98,13 +106,15 @@ def run_match_bench(
                 report["settings"][f"{name}/{affinity}"] = cfg.model_dump(mode="json")
                 rows, totals, stages = [], [], {}
                 single: list[float] | None = [] if (one_thread and not once) else None
+                single_cpu: list[float] = []
                 for seed in range(seeds):
                     sc = scenarios[family, seed]
                     run_cfg = cfg
                     if name.startswith("paper"):  # the paper's radius for this kind of world
                         run_cfg = cfg.model_copy(deep=True)
                         run_cfg.affinity.edge_radius_m = sc.paper_radius_m
-                    scores, t, st = run_case(sc, run_cfg, 1 if once else repeats, single)
+                    scores, t, st = run_case(sc, run_cfg, 1 if once else repeats, single,
+                                             single_cpu)
                     rows.append(scores)
                     totals += t
                     for k, v in st.items():
@@ -120,7 +130,7 @@ def run_match_bench(
                 )
                 if single:  # the same runs, interleaved, with the BLAS on one thread
                     report["results"][f"{family.value}/{name} (1 thread)/{affinity}"] = \
-                        _summary(rows, single, {})
+                        _summary(rows, single, {"cpu": single_cpu})
     echo("")
     echo(markdown_table(report))
     return report
@@ -139,7 +149,8 @@ def _summary(
         "outliers_unmatched": f"{sum(r['outliers_unmatched'] for r in rows)}/"
         f"{sum(r['outliers'] for r in rows)}",
         "latency_ms": _spread(totals),
-        "stages_ms": {k: _spread(v)["median"] for k, v in stages.items()},
+        "cpu_ms": _spread(stages["cpu"]) if stages.get("cpu") else None,
+        "stages_ms": {k: _spread(v)["median"] for k, v in stages.items() if k != "cpu"},
         "runs": len(totals),
     }
 
@@ -147,17 +158,19 @@ def _summary(
 def markdown_table(report: dict[str, Any]) -> str:
     lines = [
         "| scenario / mode / affinity | node accuracy | wrong matches (in accepted) | accepted "
-        "| outliers left unmatched | latency median ms (IQR) [min-max] | runs |",
-        "|---|---|---|---|---|---|---|",
+        "| outliers left unmatched | latency median ms (IQR) [min-max] | p99 ms "
+        "| CPU ms median | runs |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for key, r in report["results"].items():
-        lat = r["latency_ms"]
+        lat, cpu = r["latency_ms"], r.get("cpu_ms")
+        cpu_ms = f"{cpu['median']:.1f}" if cpu else "-"
         lines.append(
             f"| {key} | {r['node_accuracy']:.3f} | {r['wrong_matches']} "
             f"({r['wrong_in_accepted']}) | {r['accepted']}/{r['scenarios']} | "
             f"{r['outliers_unmatched']} | "
             f"{lat['median']:.1f} ({lat['iqr']:.1f}) [{lat['min']:.1f}-{lat['max']:.1f}] | "
-            f"{r['runs']} |"
+            f"{lat.get('p99', float('nan')):.1f} | {cpu_ms} | {r['runs']} |"
         )
     return "\n".join(lines)
 

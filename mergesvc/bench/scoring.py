@@ -56,9 +56,9 @@ def score_case(sc: Scenario, outcome: MatchOutcome) -> dict[str, float]:
 
 def _spread(values: list[float]) -> dict[str, float]:
     a = np.asarray(values)
-    q1, med, q3 = np.percentile(a, [25, 50, 75])
+    q1, med, q3, p99 = np.percentile(a, [25, 50, 75, 99])
     return {"median": float(med), "iqr": float(q3 - q1), "min": float(a.min()),
-            "max": float(a.max())}
+            "max": float(a.max()), "p99": float(p99)}
 
 
 def median_range(values: list[float | None]) -> dict[str, float]:
