@@ -490,16 +490,18 @@ def test_extend_K_equals_candidate_K_over_the_enlarged_set(kitti_scenario) -> No
     np.testing.assert_array_equal(full.local, ext.local)
 
 
-def test_exp_edges_is_numpy_exp_bit_for_bit() -> None:
-    """exp_edges skips only the arguments whose exp is 0: the subnormal band and the
-    arguments just above and below the underflow point come out as np.exp gives them."""
+def test_exp_edges_is_numpy_exp_without_subnormals() -> None:
+    """exp_edges gives np.exp's floats wherever they are normal, 0 where np.exp underflows
+    (subnormal or 0), on either side of both limits."""
     rng = np.random.default_rng(3)
     X = -np.concatenate([rng.random(3000) * 5, rng.random(3000) * 1e5,
                          rng.uniform(700, 760, 2400)])
     rng.shuffle(X)
-    X[:4] = [-745.13, -745.14, -746.0, 0.0]
-    got = exp_edges(X.reshape(1200, 7))
-    want = np.exp(X.reshape(1200, 7))
-    assert np.array_equal(got, want)
-    assert np.array_equal(np.signbit(got), np.signbit(want))
-    assert (got > 0).sum() > 0 and (got == 0).sum() > 0
+    X[:6] = [-708.39, -708.40, -745.13, -745.14, -746.0, 0.0]
+    for shape in ((1200, 7), (2, 3)):
+        x = X[: shape[0] * shape[1]].reshape(shape)
+        got, want = exp_edges(x), np.exp(x)
+        normal = want >= np.finfo(np.float64).tiny
+        assert np.array_equal(got[normal], want[normal])
+        assert not got[~normal].any()
+    assert exp_edges(X.reshape(1200, 7)).any() and (np.exp(X) > 0).sum() > (exp_edges(X) > 0).sum()

@@ -416,18 +416,20 @@ def edge_pair_weight(n1: int, aff: AffinityConfig) -> float:
     return aff.edge_weight / max(n1 - 1, 1) / 2.0
 
 
-# exp of anything below this is 0 in float64 (the smallest subnormal is exp(-745.13))
-_EXP_ZERO_BELOW = -746.0
+# below this, exp is subnormal (under 2.2e-308) or 0 in float64
+_EXP_NORMAL_FROM = float(np.log(np.finfo(np.float64).tiny))
 
 
 def exp_edges(X: np.ndarray) -> np.ndarray:
-    """np.exp(X), the same floats, computed only where the result is not 0: numpy's exp takes
-    a slow path for arguments whose result underflows, and most pairs of candidates
-    disagree so much (X of -1e3 and below) that this is most of K's cost."""
-    if X.size < 4096:
-        return np.exp(X)
+    """np.exp(X) with every result below the smallest normal float (2.2e-308) set to 0, and
+    computed only where it is not: numpy's exp is several times slower on arguments whose
+    result underflows (most candidate pairs disagree by far: X of -1e3 and below), and
+    arithmetic on subnormal K entries (RRWM's products) is slower again. No sum of K entries
+    moves by that much (tests/test_affinity.py)."""
     flat = X.ravel()
-    live = np.flatnonzero(flat > _EXP_ZERO_BELOW)
+    live = np.flatnonzero(flat > _EXP_NORMAL_FROM)
+    if len(live) == len(flat):
+        return np.exp(X)
     out = np.zeros(X.shape)
     out.ravel()[live] = np.exp(flat[live])
     return out
