@@ -47,15 +47,17 @@ def partners(problem: AssignmentProblem) -> Partners:
     ok &= cols[:, None] != cols[None, :]
     if problem.conflict is not None:
         ok &= ~problem.conflict
-    p, q = np.nonzero(ok)
+    # the q of each p in the order of their rows (stable): np.nonzero then lists the pairs
+    # already grouped by (p, row of q), in the order a stable sort by that key would give
+    by_row = None if bool(np.all(rows[1:] >= rows[:-1])) else np.argsort(rows, kind="stable")
+    p, q = np.nonzero(ok if by_row is None else ok[:, by_row])
+    if by_row is not None:
+        q = by_row[q]
     K = problem.K
     k = K[p, q]
     if not problem.invalid_zero:  # a builder's K is symmetric already
         k = 0.5 * (k + K[q, p])
     key = p * max(problem.n1, 1) + rows[q]
-    if len(key) and not bool(np.all(key[1:] >= key[:-1])):
-        order = np.argsort(key, kind="stable")
-        p, q, k, key = p[order], q[order], k[order], key[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else \
         np.zeros(0, dtype=np.int64)
     out = Partners(p, q, k, starts, p[starts])
