@@ -247,8 +247,7 @@ def expand_near(
     near = map_.kdtree.query_ball_point(predicted_xyz_m, radius_m)
     rows = np.repeat(np.arange(sub.n), [len(v) for v in near])
     nodes = np.fromiter((b for v in near for b in v), dtype=np.int64, count=len(rows))
-    have = set(zip(cands.rows.tolist(), cands.map_nodes.tolist()))
-    new = np.array([(r, b) not in have for r, b in zip(rows.tolist(), nodes.tolist())], bool)
+    new = ~np.isin(rows * map_.n + nodes, cands.rows * map_.n + cands.map_nodes)
     if not new.any():
         return cands
     rows, nodes = rows[new], nodes[new]
