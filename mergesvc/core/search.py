@@ -105,8 +105,9 @@ class ExactSearch:
                         part = np.argpartition(-s, width - 1, axis=1)[:, :width]
                         s = np.take_along_axis(s, part, axis=1)
                         rows = np.take_along_axis(rows, part, axis=1)
-                best_rows, best = _best_first(np.hstack([best_rows, rows]),
-                                              np.hstack([best, s]), k)
+                if best.shape[1]:
+                    rows, s = np.hstack([best_rows, rows]), np.hstack([best, s])
+                best_rows, best = _best_first(rows, s, k)
             offset += len(e)
         return best_rows, best
 
