@@ -59,8 +59,9 @@ def _map_sample(map_: ObjectArrays, size: int, rng: np.random.Generator
         return None, None
     before = repr(rng.bit_generator.state)
     kept = map_.cache.setdefault(("floor_sample", size), {})
-    if before in kept:
-        idx, rows, after = kept[before]
+    hit = kept.get(before)  # one lookup: another thread's match may clear the dict
+    if hit is not None:
+        idx, rows, after = hit
         rng.bit_generator.state = after
         return idx, rows
     idx = _sample(map_.n, size, rng)
