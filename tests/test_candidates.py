@@ -113,3 +113,27 @@ def test_affinity_uncertainty_bench_quick() -> None:
         assert 0.5 < r["candidate_auc"]["right_vs_wrong"] <= 1.0
     table = report["markdown"].splitlines()
     assert len(table) == 2 + len(keys) and table[2].startswith("| underwater | ucos | tracked |")
+
+
+@pytest.mark.parametrize("kind", [NodeAffinity.UCOS, NodeAffinity.LIKELIHOOD_RATIO])
+def test_floor_sample_kept_with_the_map_changes_nothing(
+    kind: NodeAffinity, kitti_scenario: Scenario
+) -> None:
+    """The floor's sample rows kept with the map (per generator state) give the candidates and
+    calibration of a fresh draw, and leave the generator where a fresh draw leaves it."""
+    sc = kitti_scenario
+    cfg = match_config(affinity={"kind": kind.value})
+    m, s = sc.map.arrays(), sc.submap.arrays()
+    assert m.n > cfg.candidates.sample  # the map is sampled, not taken whole
+    fresh = [replace(m) for _ in range(2)]  # new ObjectArrays: empty caches
+    runs = []
+    for arrays in (fresh[0], fresh[1], fresh[1]):  # a fresh map, another, then its cache
+        rng = np.random.default_rng(7)
+        cands, calib = retrieve(s, arrays, cfg.candidates, cfg.affinity, rng)
+        runs.append((cands, calib, rng.random()))
+    assert any(k[0] == "floor_sample" for k in fresh[1].cache)
+    for cands, calib, after in runs[1:]:
+        for name in ("rows", "map_nodes", "affinity", "score"):
+            assert np.array_equal(getattr(cands, name), getattr(runs[0][0], name))
+        assert np.array_equal(calib.floor_n, runs[0][1].floor_n) and calib.ceil == runs[0][1].ceil
+        assert after == runs[0][2]
