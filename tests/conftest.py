@@ -3,11 +3,14 @@ a developer's MERGESVC_* settings for every test."""
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import typer.main
+import typer.testing
 from hypothesis import settings
 
 from mergesvc.sim import Family, Scenario, make_scenario
@@ -17,6 +20,12 @@ from mergesvc.sim import Family, Scenario, make_scenario
 settings.register_profile("ci", derandomize=True, deadline=None)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+# typer's CliRunner builds the click command from the whole app (every command's signature) on
+# each invoke: ~0.1 s of CPU, most of an in-process command's cost. The apps are not changed
+# after import, so the command is built once per app and test process; each invoke still
+# parses its arguments and makes its context afresh.
+typer.testing._get_command = functools.cache(typer.main.get_command)
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
