@@ -35,6 +35,7 @@ bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench merge --out results/bench_merge.json
 	$(BIN)/mergesvc bench cost --baseline-factors 500 --out results/bench_cost.json --figure results/bench_cost.png
 	$(BIN)/mergesvc bench fuzz --out results/fuzz100k.json
+	$(BIN)/mergesvc bench qaplib --out results/qaplib.json
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache
