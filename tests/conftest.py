@@ -62,6 +62,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=rank)  # stable: collection order within a rank
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of xdist's: none without it
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """--dist loadgroup: xdist's scope scheduling over the groups above (other modes: xdist's)."""
     if config.getvalue("dist") != "loadgroup":
