@@ -15,10 +15,11 @@ $(BIN)/.installed: pyproject.toml
 demo: $(BIN)/.installed
 	$(BIN)/mergesvc demo --out results/demo
 
-# The test files spread over the cores (whole files per worker: module and session fixtures
-# are built once per worker); one BLAS thread per worker, since the workers fill the cores.
+# The tests spread over the cores in groups (tests/conftest.py: a file, or the files sharing a
+# session fixture, runs on one worker; the heaviest groups first; a few files test by test, to
+# fill the ends); one BLAS thread per worker, since the workers fill the cores.
 test: $(BIN)/.installed
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadfile
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadgroup --no-loadscope-reorder
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check mergesvc tests
@@ -35,6 +36,7 @@ bench: $(BIN)/.installed
 	$(BIN)/mergesvc bench merge --out results/bench_merge.json
 	$(BIN)/mergesvc bench cost --baseline-factors 500 --out results/bench_cost.json --figure results/bench_cost.png
 	$(BIN)/mergesvc bench fuzz --out results/fuzz100k.json
+	$(BIN)/mergesvc bench qaplib --out results/qaplib.json
 
 clean:
 	rm -rf $(VENV) examples results .pytest_cache

@@ -3,11 +3,15 @@ a developer's MERGESVC_* settings for every test."""
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+import typer.main
+import typer.testing
 from hypothesis import settings
 
 from mergesvc.sim import Family, Scenario, make_scenario
@@ -17,6 +21,60 @@ from mergesvc.sim import Family, Scenario, make_scenario
 settings.register_profile("ci", derandomize=True, deadline=None)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+# typer's CliRunner builds the click command from the whole app (every command's signature) on
+# each invoke: ~0.1 s of CPU, most of an in-process command's cost. The apps are not changed
+# after import, so the command is built once per app and test process; each invoke still
+# parses its arguments and makes its context afresh.
+typer.testing._get_command = functools.cache(typer.main.get_command)
+
+# `make test` runs `--dist loadgroup --no-loadscope-reorder`: each group runs on one worker, in
+# the order below. A file is a group (its module fixtures built once), files that share an
+# expensive session fixture are one group (built once, not once per worker), and the files
+# whose tests share nothing costly go test by test, last, to even out the workers' ends. The
+# heaviest groups start first (longest first, as measured with --durations=0). The groups are
+# made by the scheduler below, not by xdist_group marks (pytest 9 ignores the node id suffix
+# xdist 3.8 gives a marked test, so the marks group nothing).
+SHARED_GROUPS = {
+    "test_cli.py": "quick_demo", "test_view.py": "quick_demo",  # `demo --quick`, ~20 s
+    "test_service_graph.py": "cost_stream", "test_service_memory.py": "cost_stream",
+}
+HEAVY_FIRST = ("quick_demo", "cost_stream", "test_bench_merge.py", "test_generalize.py",
+               "test_cost_bench.py", "test_held.py", "test_service_limits.py", "test_vertical.py",
+               "test_fuzz.py", "test_consistency.py", "test_service.py", "test_ngm.py",
+               "test_burst.py", "test_soak.py")
+TEST_BY_TEST = ("test_settings.py", "test_exact.py", "test_exact_qaplib.py")
+
+
+def xdist_group_of(nodeid: str) -> str | None:
+    """The group of a test (its file's, or the shared one); None: a group of its own."""
+    name = nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+    return None if name in TEST_BY_TEST else SHARED_GROUPS.get(name, name)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        g = xdist_group_of(item.nodeid)
+        if g is None:
+            return len(HEAVY_FIRST) + 1
+        return HEAVY_FIRST.index(g) if g in HEAVY_FIRST else len(HEAVY_FIRST)
+
+    items.sort(key=rank)  # stable: collection order within a rank
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of xdist's: none without it
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """--dist loadgroup: xdist's scope scheduling over the groups above (other modes: xdist's)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_group_of(nodeid) or nodeid
+
+    return GroupScheduling(config, log)
+
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -76,4 +134,5 @@ def quick_demo(tmp_path_factory: pytest.TempPathFactory) -> dict:
                 str(rrd))
     assert r.returncode == 0, r.stdout + r.stderr
     return {"out": out, "stdout": r.stdout, "endpoint": endpoint, "rrd": rrd}
+
 

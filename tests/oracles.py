@@ -111,13 +111,23 @@ def astar_crosscheck(problem: AssignmentProblem) -> np.ndarray:
 
 def brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> float:
     """Objective of the solution minus the best feasible assignment giving row i another
-    candidate (-inf alternatives: the margin is inf). Enumerates every assignment."""
-    best = problem.score(assignment)
-    alt = -np.inf
-    options = [[UNMATCHED, *problem.cols[problem.rows == r].tolist()] for r in range(problem.n1)]
-    for combo in itertools.product(*options):
-        a = np.array(combo)
-        if a[i] in (UNMATCHED, assignment[i]) or not problem.is_feasible(a):
-            continue
-        alt = max(alt, problem.score(a))
-    return best - alt
+    candidate (-inf alternatives: the margin is inf). Enumerates every assignment (all at once
+    in arrays: each one's chosen candidates, feasibility and score)."""
+    n1 = problem.n1
+    options = [[-1, *np.flatnonzero(problem.rows == r).tolist()] for r in range(n1)]
+    P = np.array(list(itertools.product(*options)), dtype=np.int64).reshape(-1, n1)
+    on = P >= 0  # row matched, to candidate P
+    Q = np.maximum(P, 0)
+    cols = np.where(on, problem.cols[Q], -1 - np.arange(n1))  # unmatched rows never collide
+    ok = np.ones(len(P), dtype=bool)
+    for a in range(n1):
+        for b in range(a + 1, n1):
+            ok &= cols[:, a] != cols[:, b]
+    both = on[:, :, None] & on[:, None, :]
+    pairs = (Q[:, :, None], Q[:, None, :])
+    if problem.conflict is not None:
+        ok &= ~(problem.conflict[pairs] & both).any(axis=(1, 2))
+    scores = np.where(both, np.asarray(problem.K, dtype=np.float64)[pairs], 0.0).sum(axis=(1, 2))
+    alternative = ok & on[:, i] & (cols[:, i] != assignment[i])
+    alt = scores[alternative].max() if alternative.any() else -np.inf
+    return problem.score(assignment) - alt

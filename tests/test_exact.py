@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import itertools
 
@@ -52,6 +53,29 @@ def medium_problem(rng: np.random.Generator, n1: int = 9, n2: int = 12) -> Assig
     m = len(rows)
     A = rng.normal(0.2, 1.0, size=(m, m))
     return AssignmentProblem(n1, n2, np.array(rows), np.array(cols), (A + A.T) / 2)
+
+
+@functools.cache
+def medium_solved(seed: int) -> tuple[tuple[bool, AssignmentProblem, ExactResult | None], ...]:
+    """(allow_unmatched, problem, its exact solve or None when it has no full assignment) for
+    the two medium problems drawn from `seed`, with and without unmatched rows: solved once per
+    test process for the tests that start from the optimum (callers must not change them)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for allow in (True, False):
+        problem = medium_problem(rng)
+        try:
+            out.append((allow, problem, solve_exact(problem, allow_unmatched=allow)))
+        except SolverError:
+            out.append((allow, problem, None))
+    return tuple(out)
+
+
+@functools.cache
+def gap_solved(seed: int) -> tuple[AssignmentProblem, ExactResult]:
+    """The gap tests' problem of `seed` and its exact solve, once per test process."""
+    problem = medium_problem(np.random.default_rng(500 + seed), n1=10, n2=12)
+    return problem, solve_exact(problem)
 
 
 def check_optimal(problem: AssignmentProblem, res: ExactResult, expected: float, allow: bool):
@@ -220,12 +244,8 @@ def test_good_incumbent_same_optimum_and_fewer_nodes() -> None:
     """
     without = with_inc = not_worse = count = 0
     for seed in range(30):
-        rng = np.random.default_rng(seed)
-        for allow in (True, False):
-            problem = medium_problem(rng)
-            try:
-                base = solve_exact(problem, allow_unmatched=allow)
-            except SolverError:
+        for allow, problem, base in medium_solved(seed):
+            if base is None:  # no full assignment
                 continue
             res = solve_exact(problem, allow_unmatched=allow, incumbent=base.assignment)
             assert res.optimal
@@ -247,8 +267,7 @@ def test_gap_bounds_the_answer_and_shrinks_the_search(gap: float) -> None:
     these seeds: never larger, strictly smaller on 14 / 20 of them at gap 0.05)."""
     fewer = 0
     for seed in range(20):
-        problem = medium_problem(np.random.default_rng(500 + seed), n1=10, n2=12)
-        exact = solve_exact(problem)
+        problem, exact = gap_solved(seed)
         res = solve_exact(problem, gap=gap)
         assert res.optimal
         assert problem.is_feasible(res.assignment)
@@ -318,12 +337,8 @@ def test_infeasible_incumbent_is_ignored() -> None:
 def test_node_limit_returns_feasible_with_valid_bound() -> None:
     stopped = {}
     for seed in range(15):
-        rng = np.random.default_rng(seed)
-        for allow in (True, False):
-            problem = medium_problem(rng)
-            try:
-                full = solve_exact(problem, allow_unmatched=allow)
-            except SolverError:
+        for allow, problem, full in medium_solved(seed):
+            if full is None:  # no full assignment
                 continue
             for max_nodes in (1, 2, 3, 5, 10, 30):
                 res = solve_exact(problem, allow_unmatched=allow, max_nodes=max_nodes)

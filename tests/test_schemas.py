@@ -6,15 +6,14 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers import run_cli
 from jsonschema import Draft202012Validator
 
 from mergesvc.core.model import Factor, MatchResult, ObjectMap, Submap, json_schemas
@@ -215,12 +214,9 @@ def test_a_map_of_schema_version_2_is_refused_by_the_cli_and_the_schema(
     doc = {**example["map"], "schema_version": 2}
     path = tmp_path / "map.json"
     path.write_text(json.dumps(doc))
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
     sub = tmp_path / "sub.json"
     sub.write_text(json.dumps(example["submap"]))
-    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "match", "--map", str(path),
-                        "--submap", str(sub)], capture_output=True, text=True, timeout=300,
-                       env=clean)
+    r = run_cli("match", "--map", str(path), "--submap", str(sub))  # in-process
     assert r.returncode == 2 and "schema_version" in r.stderr
     assert errors("object_map.schema.json", doc)
 
@@ -268,12 +264,9 @@ def test_match_results_validate_and_their_schema_refuses_a_bad_covariance(
 def test_the_schemas_written_are_the_ones_the_build_makes(tmp_path: Path) -> None:
     """`mergesvc schemas --check` on the repository's schemas/ passes; on a folder missing the
     service's reply schemas it fails."""
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
 
     def check(folder: Path) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "mergesvc.cli", "schemas", str(folder),
-                               "--check"], capture_output=True, text=True, timeout=300,
-                              env=clean)
+        return run_cli("schemas", str(folder), "--check")  # in-process
 
     assert check(SCHEMAS).returncode == 0
     for name in json_schemas():

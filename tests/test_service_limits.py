@@ -505,6 +505,8 @@ def test_a_backlog_is_solved_once_per_batch(tmp_path: Path) -> None:
         assert wait_for(lambda: net.svc.stats.submaps_processed == 12)
         assert wait_for(lambda: not net.svc._dirty and net.svc.stats.optimizations >= 1)
         assert net.svc.stats.optimizations == 1
+        # the worker counts the solve before it takes the solution (fleet/service.py)
+        assert wait_for(lambda: "auv1/s0" in net.svc.keyframe_poses())
         assert len(net.svc.keyframe_poses()["auv1/s0"]) == 6  # the solution holds them all
 
 

@@ -422,11 +422,12 @@ CONSUMERS: dict[str, list[tuple[Consumer, Callable[[Any], Any]]]] = {
     "uncertainty": [(via_uncertainty, lambda got: got)],
 }
 BENCH_COMMANDS = {"match", "paper", "uncertainty", "link", "generalize", "merge", "soak", "cost",
-                  "fuzz", "scale"}
+                  "fuzz", "scale", "qaplib"}
 # fields a command sets itself, whatever the settings say
 SET_BY_THE_COMMAND = {"via_bench_cost": {("service", "store")}}  # a fresh store per run
-# the decoders at their built-in limits (what a service without a settings file refuses)
-SETTINGS_FREE = {"fuzz"}
+# the decoders at their built-in limits (what a service without a settings file refuses); the
+# exact solver on QAPLIB with its own arguments (no setting reaches it)
+SETTINGS_FREE = {"fuzz", "qaplib"}
 
 
 def test_every_section_has_a_consumer_here() -> None:
@@ -434,7 +435,8 @@ def test_every_section_has_a_consumer_here() -> None:
 
 
 def test_every_benchmark_is_a_consumer_here() -> None:
-    """Each `bench` command but the fuzzer reads --settings, so each is checked above."""
+    """Each `bench` command but the fuzzer and QAPLIB's reads --settings, so each is checked
+    above."""
     from mergesvc.cli import bench
 
     commands = {c.name for c in bench.app.registered_commands}

@@ -17,6 +17,7 @@ import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -270,10 +271,12 @@ sys.stdin.readline()  # until the test closes stdin
 """
 
 
-async def _screenshot(url: str, out: Path, timeout_s: float = 90.0) -> dict[str, Any]:
+async def _screenshot(url: str, out: Path, drawn: Callable[[Path], bool],
+                      timeout_s: float = 90.0) -> dict[str, Any]:
     """Open `url` in headless Chromium and drive it over the DevTools protocol (aiohttp, which
-    pygmtools brings): wait until the viewer's canvas replaced the loading screen, let it draw,
-    save a PNG. Returns the page state it saw last."""
+    pygmtools brings): wait until the viewer's canvas replaced the loading screen, then save a
+    PNG every second until `drawn(PNG)` (or the time is up: the last one stays). Returns the
+    page state it saw last."""
     import aiohttp
 
     port = free_port()
@@ -318,10 +321,12 @@ async def _screenshot(url: str, out: Path, timeout_s: float = 90.0) -> dict[str,
                     if state.get("canvas") and not state.get("text"):
                         break
                     await asyncio.sleep(0.5)
-                await asyncio.sleep(8.0)  # the wasm viewer streams and draws the recording
-                shot = await call("Page.captureScreenshot", format="png")
-                out.write_bytes(base64.b64decode(shot["data"]))
-                return state
+                while True:  # the wasm viewer streams and draws the recording: until it shows
+                    await asyncio.sleep(1.0)
+                    shot = await call("Page.captureScreenshot", format="png")
+                    out.write_bytes(base64.b64decode(shot["data"]))
+                    if drawn(out) or time.monotonic() > deadline - 5.0:
+                        return state
     finally:
         chrome.terminate()
         try:
@@ -338,8 +343,6 @@ def test_web_viewer_shows_the_merged_map_in_headless_chromium(submaps, tmp_path)
     """`--serve-web`'s sink: the page loads in headless Chromium (software WebGL), the viewer
     replaces its loading screen with its canvas, and the 3-D view draws every robot's colour.
     VIEW_SCREENSHOT=FILE keeps the screenshot (docs/figures/view.png)."""
-    from matplotlib.image import imread
-
     web, grpc = free_port(), free_port()
     server = subprocess.Popen([sys.executable, "-c", SERVE, str(web), str(grpc)],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -351,7 +354,8 @@ def test_web_viewer_shows_the_merged_map_in_headless_chromium(submaps, tmp_path)
         server.stdin.flush()
         url = server.stdout.readline().strip()  # after every submap was merged and logged
         assert url.startswith(f"http://127.0.0.1:{web}/?url="), url
-        state = asyncio.run(_screenshot(url, shot))
+        state = asyncio.run(_screenshot(url, shot, lambda png: all(
+            n >= 20 for n in _robot_pixels(png).values())))
     finally:
         with contextlib.suppress(OSError):
             server.stdin.close()
@@ -362,11 +366,19 @@ def test_web_viewer_shows_the_merged_map_in_headless_chromium(submaps, tmp_path)
     if os.environ.get("VIEW_SCREENSHOT"):
         shutil.copy(shot, os.environ["VIEW_SCREENSHOT"])
     assert state.get("canvas") and not state.get("text"), state  # loaded, no error page
-    rgb = (imread(shot)[..., :3] * 255).round().astype(int)
+    near = _robot_pixels(shot)
+    assert all(n >= 20 for n in near.values()), near  # each robot's trajectory and objects
+
+
+def _robot_pixels(png: Path) -> dict[tuple[int, int, int], int]:
+    """Per robot's colour, the pixels of the screenshot within 12 levels of it."""
+    from matplotlib.image import imread
+
+    rgb = (imread(png)[..., :3] * 255).round().astype(int)
     near: dict[tuple[int, int, int], int] = defaultdict(int)
     for color in PALETTE[: len(ROBOTS)]:
         near[color] = int((np.abs(rgb - np.asarray(color)).max(axis=-1) <= 12).sum())
-    assert all(n >= 20 for n in near.values()), near  # each robot's trajectory and objects
+    return near
 
 
 def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> None:

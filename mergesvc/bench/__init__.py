@@ -5,7 +5,8 @@ Leaves: scoring (score_case and helpers shared by the benchmarks), match (`bench
 uncertainty, affinity x variances), link (`bench link`), generalize (`bench generalize`),
 merge (`bench merge`: its plan, seeds and tables; the in-process fleet it scores is
 fleet/replay.py, passed in by cli), soak (`bench soak`: a real `mergesvc serve` process under a
-fleet with hostile payloads and kill -9 restarts), figures.
+fleet with hostile payloads and kill -9 restarts), qaplib (`bench qaplib`: the exact solver
+against QAPLIB's optima), figures.
 
 May import: mergesvc.core, mergesvc.wire, mergesvc.link, mergesvc.sim, mergesvc.errors.
 """

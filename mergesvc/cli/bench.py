@@ -1,4 +1,4 @@
-"""`mergesvc bench match|paper|uncertainty|link|generalize|scale|merge|soak|cost|fuzz` (see
+"""`mergesvc bench match|paper|uncertainty|link|generalize|scale|merge|soak|cost|fuzz|qaplib` (see
 docs/benchmarks.md).
 
 Every benchmark takes `--settings FILE`: the `match` section is the matching settings each
@@ -546,4 +546,33 @@ def bench_fuzz(
         _write_report(report, out, tree)
     if report["findings"] or not all(r["ok"] for r in report.get("cli_check", {}).get(
             "results", [])):
+        raise typer.Exit(1)
+
+
+@app.command("qaplib")
+def bench_qaplib(
+    instance: Annotated[list[str] | None, typer.Option(
+        help="only these instances (repeat the option); default: the 19 proven ones")] = None,
+    repeats: Annotated[int, typer.Option(min=1, help="solves per instance")] = 3,
+    time_limit: Annotated[float, typer.Option(min=0.0, help="seconds per solve")] = 120.0,
+    data: Annotated[
+        Path | None, typer.Option(help="the shared data folder (default: ../shared/data)")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="write the report as JSON here (and .md beside it)")] = None,
+) -> None:
+    """The exact solver on QAPLIB instances against their proven optima: score, proof, nodes
+    and CPU seconds per instance. Exit 1 when an instance was not solved to its optimum."""
+    from mergesvc.bench.qaplib import PROVEN_S, QAPLIB_DIR, run_qaplib_bench
+
+    folder = QAPLIB_DIR if data is None else data / "qaplib"
+    with exit_on_error():
+        tree = resolve_settings(None)
+        report = run_qaplib_bench(instance or tuple(PROVEN_S), repeats=repeats,
+                                  time_limit_s=time_limit, folder=folder, echo=typer.echo)
+    typer.echo(report["markdown"])
+    if out is not None:
+        _write_report(report, out, tree)
+    if report["failed"]:
+        typer.echo(f"not solved to the optimum: {', '.join(report['failed'])}", err=True)
         raise typer.Exit(1)

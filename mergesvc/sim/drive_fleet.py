@@ -42,7 +42,7 @@ from mergesvc.sim.scenario import KITTI_CLASSES, Family
 # 2250 and 3250, 500-750 at 3500-3750, 2250 at 3250)
 STRETCHES_FULL = ((0, 1650), (1400, 3050), (2900, 4541))
 # a short version for tests: 0-250 is driven again at 1500-1750 and 4250-4540
-STRETCHES_QUICK = ((0, 600), (1400, 1800), (4200, 4541))
+STRETCHES_QUICK = ((0, 300), (1450, 1800), (4200, 4541))
 A_CAM = np.eye(4)
 A_CAM[:3, :3] = C_CAMERA  # camera coords = C gravity coords
 
