@@ -40,6 +40,7 @@ from mergesvc.fleet.outbox import Outbox
 from mergesvc.fleet.queries import Queries, ServiceStats
 from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.fleet.sessions import Sessions
+from mergesvc.fleet.solve_process import optimizer
 from mergesvc.fleet.transport import Query, Reply, Transport
 from mergesvc.store import META_ANCHOR, AckLedger, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
@@ -74,13 +75,13 @@ class MergeService:
         memory = config.store == ":memory:" or config.store.startswith("file::memory:")
         self.acks = AckLedger(None if memory else config.store + ".acks")
         self.graph = PoseGraph(config=config.graph)
+        self.graph.optimizer = optimizer(config.solve_in_child)
         if config.solve_inflation != 1.0:
             self.graph.set_noise_scale(CLOSURE_GROUP, config.solve_inflation ** 0.5)
         self.sessions = Sessions(config.min_map_objects)
         self.merger = Merger(config, self.graph, self.sessions, ProfileViews(self.projections))
         self._lock = threading.RLock()  # the state: held to apply work and solutions, to query
-        # the graph's writers: one submap or one solve at a time (worker, ingest); queries
-        # never take it
+        # the graph's writers (worker, ingest): one submap or solve at a time; queries never
         self._process_lock = threading.Lock()
         self.queries = Queries(config, self.merger, self._lock)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
@@ -490,8 +491,7 @@ def _malloc_trim() -> Callable[[int], int] | None:
 
 
 def _trim_heap() -> None:
-    """Hand the C heap's free pages back to the system after a solve (glibc `malloc_trim(0)`;
-    a no-op elsewhere): each solve allocates and frees GTSAM's linear systems."""
+    """Hand the C heap's free pages back to the system after a solve (glibc `malloc_trim(0)`)."""
     fn = _malloc_trim()
     if fn is not None:
         fn(0)
