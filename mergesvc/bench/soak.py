@@ -15,6 +15,7 @@ import contextlib
 import json
 import logging
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -100,10 +101,19 @@ class ServiceProcess:
     def pid(self) -> int | None:
         return self.proc.pid if self.proc is not None and self.proc.poll() is None else None
 
-    def start(self) -> None:
-        with self.log_path.open("ab") as out:
+    def start(self, file_limit_bytes: int | None = None, log_path: Path | None = None) -> None:
+        """Start it; with `file_limit_bytes` its files may not grow past that size (the
+        kernel's RLIMIT_FSIZE: a write beyond it fails with EFBIG, SIGXFSZ ignored), as on a
+        full disk, its output then going to `log_path` (the run's log may be larger)."""
+        def limit() -> None:
+            if file_limit_bytes is not None:
+                signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+                resource.setrlimit(resource.RLIMIT_FSIZE, (file_limit_bytes, file_limit_bytes))
+
+        with (log_path or self.log_path).open("ab") as out:
             self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT,
-                                         env=self.env, start_new_session=True)
+                                         env=self.env, start_new_session=True,
+                                         preexec_fn=limit if file_limit_bytes else None)
         self.starts += 1
 
     def kill(self) -> None:
@@ -180,6 +190,9 @@ def _robot_loop(walk: RobotWalk, session: Any, plan: SoakPlan, rate_hz: float,
         with ledger.lock:
             book[(walk.robot, walk.session, seq)] = time.time()
             ledger.bytes_valid += len(data)
+            if plan.disk_full_at and book is ledger.valid:  # kept for a retry
+                ledger.payloads[(walk.robot, walk.session, seq)] = (
+                    keys.submap_key(root, walk.robot, walk.session), data)
         pub.put(data)
         seq += 1
         t_next += float(walk.rng.exponential(1.0 / rate_hz))
@@ -408,10 +421,17 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                  f"s of {plan.duration_s:.0f} s; service on {endpoint}")
             for th in threads:
                 th.start()
-            for at in kill_at:
+            ledger.resend = lambda key, data: monitor.put(key, data)
+            events = sorted([(t, "kill") for t in kill_at]
+                            + ([(plan.disk_full_at * plan.duration_s, "disk_full")]
+                               if plan.disk_full_at else []))
+            for at, what in events:
                 while time.monotonic() - t_start < at:
                     time.sleep(min(0.2, max(0.0, at - (time.monotonic() - t_start))))
-                restarts.append(_restart(svc, monitor, plan, gate, ledger, ctl_rng, echo))
+                if what == "kill":
+                    restarts.append(_restart(svc, monitor, plan, gate, ledger, ctl_rng, echo))
+                else:
+                    _disk_full(svc, store, monitor, plan, gate, ledger, echo)
             while time.monotonic() - t_start < plan.duration_s:
                 time.sleep(0.2)
             stop.set()
@@ -492,6 +512,47 @@ def _restart(svc: ServiceProcess, monitor: Any, plan: SoakPlan, gate: _Gate, led
          f"{t_up - t_kill:.1f} s")
     return {"killed_at_s": t_kill - ledger.t0, "down_s": t_up - t_kill}
 
+
+def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, gate: _Gate,
+               ledger: Ledger, echo: Callable[[str], Any]) -> None:
+    """The service stopped (SIGTERM: its WAL checkpointed and removed) and started again with
+    its files limited to `disk_full_margin_bytes` above the largest of them that it appends
+    to (the WAL starts empty, the acks file; the database takes writes only at a checkpoint),
+    so its writes soon fail with a real EFBIG; held `disk_full_s`, then restarted without it.
+    The robots go on publishing and send again what is answered `store`."""
+    def up() -> bool:
+        return _wait(lambda: _status(monitor, plan.fleet, 1.0)[0] is not None,
+                     plan.start_timeout_s)
+
+    episode_log = svc.log_path.with_name(svc.log_path.name + ".disk_full")
+    with gate.hold():
+        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+        svc.stop()
+        appended = [p for p in (store.with_name(store.name + "-wal"),
+                                store.with_name(store.name + ".acks")) if p.exists()]
+        largest = max([p.stat().st_size for p in appended] + [0])
+        limit = largest + plan.disk_full_margin_bytes
+        svc.start(file_limit_bytes=limit, log_path=episode_log)
+        t_from = time.time()
+        if not up():
+            raise MergeError(f"the service did not start with a full disk (log: {episode_log})")
+    time.sleep(plan.disk_full_s)
+    with gate.hold():
+        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+        svc.stop()
+        t_to = time.time()
+        with svc.log_path.open("ab") as out:
+            out.write(episode_log.read_bytes())
+        svc.start()
+        if not up():
+            raise MergeError(f"the service did not come back after the disk was full (log: "
+                             f"{svc.log_path})")
+    with ledger.lock:
+        ledger.episode = {"from_t": t_from, "to_t": t_to, "limit_bytes": limit,
+                          "largest_bytes": largest}
+        n = sum(len(ts) for ts in ledger.store_answers.values())
+    echo(f"soak: disk full from {t_from - ledger.t0:.1f} to {t_to - ledger.t0:.1f} s (files "
+         f"limited to {limit} bytes): {n} `store` answers")
 
 
 __all__ = [

@@ -22,7 +22,12 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from mergesvc.core.calibration import scale_covariance, updated_scale, variance_components
+from mergesvc.core.calibration import (
+    scale_covariance,
+    scale_covariances,
+    updated_scale,
+    variance_components,
+)
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.connectivity import UnionFind, two_edge_connected
 from mergesvc.core.connectivity import bridges as find_bridges
@@ -513,15 +518,21 @@ class PoseGraph:
         seeds = {n: frozen[n] for n in boundary}
         if anchor not in frozen or not boundary:
             seeds[anchor] = gtsam.Pose3()
-        measured = [self._scaled(f) for f in facs]
+        measured = [self._measurement(f) for f in facs]
+        covs = np.array([C for _, C in measured]).reshape(-1, 6, 6)
+        by_group: dict[str, list[int]] = defaultdict(list)
+        for i, f in enumerate(facs):
+            if f.group is not None and f.group in self._scales:
+                by_group[f.group].append(i)
+        for g, idx in by_group.items():  # each group's scale, on all its factors at once
+            covs[idx] = scale_covariances(covs[idx], self._scales[g])
         initial = self._initial_values(anchor, seeds, live, facs)
         job = SolveJob(
             np.array([self.key(n) for n in seeds], dtype=np.uint64),
             pose_arrays(list(seeds.values())), cfg.anchor_sigma,
             np.array([(self.key(f.frame_a), self.key(f.frame_b)) for f in facs],
                      dtype=np.uint64).reshape(-1, 2),
-            pose_arrays([T for T, _ in measured]),
-            np.array([C for _, C in measured]).reshape(-1, 6, 6),
+            pose_arrays([T for T, _ in measured]), covs,
             np.zeros(0, dtype=np.uint64), np.zeros((0, 4, 4))).with_initial(initial)
         graph, _ = build(job)
         m = len(seeds)  # factor i is graph index m + i
@@ -647,12 +658,6 @@ class PoseGraph:
                 if f.factor_id not in deps:  # never solved again: its ends are enough
                     self._factors[f.factor_id] = f.sealed()
         return sol
-
-    def _scaled(self, f: GraphFactor) -> Measurement:
-        """A factor's measurement as the solve uses it (its group's scale applied)."""
-        T, C = self._measurement(f)
-        s = self._scales.get(f.group) if f.group is not None else None
-        return (T, C) if s is None else (T, scale_covariance(C, s))
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:
