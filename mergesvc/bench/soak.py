@@ -84,6 +84,18 @@ def rss_bytes(pid: int) -> int | None:
     return _proc_status_bytes(pid, "VmRSS")
 
 
+def family_rss_bytes(pid: int) -> int | None:
+    """RSS of process `pid` and of its children (the service's solver process)."""
+    own = rss_bytes(pid)
+    if own is None:
+        return None
+    try:
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        kids = []
+    return own + sum(rss_bytes(int(k)) or 0 for k in kids)
+
+
 class ServiceProcess:
     """`mergesvc serve` as a subprocess on one store and one endpoint, started again after
     each kill; its output appended to `log_path`."""
@@ -358,7 +370,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 while not sampler_stop.wait(plan.rss_period_s):
                     t = time.time() - ledger.t0
                     pid = svc.pid
-                    b = rss_bytes(pid) if pid is not None else None
+                    b = family_rss_bytes(pid) if pid is not None else None
                     if b is not None:
                         shm = shmem_bytes(pid) if pid is not None else None
                         rss.append((t, b / 2**20, svc.starts, (shm or 0) / 2**20))
@@ -567,6 +579,7 @@ __all__ = [
     "SoakPlan",
     "SoakWorld",
     "agent_publisher",
+    "family_rss_bytes",
     "hostile_payload",
     "plot_soak",
     "rss_bytes",

@@ -11,11 +11,13 @@ the answer.
 from __future__ import annotations
 
 import atexit
+import functools
 import os
 import pickle
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from typing import Any, BinaryIO
 
 from mergesvc.core.graph_job import Optimizer, SolveJob, SolveResult, run_job
@@ -86,6 +88,25 @@ def optimizer(in_child: bool) -> Optimizer:
     return shared_optimizer() if in_child else run_job
 
 
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL("libc.so.6").malloc_trim
+        fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+        return fn  # type: ignore[no-any-return]
+    except (OSError, AttributeError):  # not glibc: nothing to trim
+        return None
+
+
+def trim_heap() -> None:
+    """Hand the C heap's free pages back to the system after a solve (glibc `malloc_trim(0)`)."""
+    fn = _malloc_trim()
+    if fn is not None:
+        fn(0)
+
+
 def serve(inp: BinaryIO, out: BinaryIO) -> None:
     """The child's loop: a job in, (True, result) or (False, message) out, until EOF."""
     while True:
@@ -114,4 +135,4 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["ProcessOptimizer", "main", "optimizer", "serve", "shared_optimizer"]
+__all__ = ["ProcessOptimizer", "main", "optimizer", "serve", "shared_optimizer", "trim_heap"]
