@@ -163,6 +163,8 @@ class _Gate:
         self._open = threading.Event()
         self._open.set()
         self.busy = threading.Lock()  # held by the attacker while it sends one payload
+        self.calm = threading.Event()  # cleared while the disk is full: the flood waits
+        self.calm.set()
 
     def wait_open(self, stop: threading.Event) -> bool:
         while not self._open.wait(0.2):
@@ -254,6 +256,9 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
     first, *variants = flood_payloads(walk.next_submap(0), plan.flood_variants, Profile.FULL)
     key = f"{keys.fleet_root(plan.fleet)}/submap/{FLOOD_ROBOT}/{walk.session}"
     stored = False
+    while not gate.calm.wait(0.2):  # not during the disk-full episode
+        if stop.is_set():
+            return
     for _ in range(10):  # sent again while it is not stored (a kill may have lost it)
         if not gate.wait_open(stop):
             return
@@ -263,6 +268,9 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
             break
     if not stored:
         return
+    while not gate.calm.wait(0.2):
+        if stop.is_set():
+            return
     if not gate.wait_open(stop):
         return
     with gate.busy:
@@ -537,6 +545,7 @@ def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, g
                      plan.start_timeout_s)
 
     episode_log = svc.log_path.with_name(svc.log_path.name + ".disk_full")
+    gate.calm.clear()
     with gate.hold():
         _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
         svc.stop()
@@ -559,6 +568,7 @@ def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, g
         if not up():
             raise MergeError(f"the service did not come back after the disk was full (log: "
                              f"{svc.log_path})")
+    gate.calm.set()
     with ledger.lock:
         ledger.episode = {"from_t": t_from, "to_t": t_to, "limit_bytes": limit,
                           "largest_bytes": largest}

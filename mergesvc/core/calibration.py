@@ -191,4 +191,4 @@ def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig)
 
 
 __all__ = ["CalibrationConfig", "Component", "decorrelation", "scale_covariance",
-           "updated_scale", "variance_components"]
+           "scale_covariances", "updated_scale", "variance_components"]
