@@ -354,6 +354,8 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
         publishers: list[list[Any]] = []
         threads: list[threading.Thread] = []
         samples: list[dict[str, Any]] = []
+        probed: list[dict[str, Any]] = []  # the status probe's round trips (soak_probe.py)
+        probes: list[subprocess.Popen] = []
         rss: list[tuple[float, float, int, float]] = []  # (t, MB, incarnation, shmem MB)
         restarts: list[dict[str, float]] = []
         svc.start()
@@ -398,6 +400,20 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
 
             threads.append(threading.Thread(target=sample_loop, name="soak-sampler",
                                             daemon=True))
+            probe = subprocess.Popen(
+                [sys.executable, "-m", "mergesvc.bench.soak_probe", endpoint, plan.fleet,
+                 str(plan.status_period_s)], stdout=subprocess.PIPE, env=env, text=True)
+            probes.append(probe)
+
+            def read_probe() -> None:
+                assert probe.stdout is not None
+                for line in probe.stdout:
+                    with contextlib.suppress(ValueError, KeyError):
+                        doc = json.loads(line)
+                        if doc["ms"] is not None:
+                            probed.append({"t_s": doc["t"] - ledger.t0, "status_ms": doc["ms"]})
+
+            threading.Thread(target=read_probe, name="soak-probe", daemon=True).start()
             # the robots: valid ones, then the mismatching ones
             rates = []
             for i in range(plan.robots + plan.mismatch_robots):
@@ -468,6 +484,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             is_drained = _wait(drained, plan.drain_timeout_s, 0.5)
             _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0)
             drain_s = time.monotonic() - t_drain
+            drain_end = time.time()
             sampler_stop.set()
             threads[0].join(timeout=10.0)
             for sub in subs:
@@ -484,10 +501,14 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 with contextlib.suppress(Exception):
                     s.close()
             svc.stop(timeout_s=10.0)
+            for p in probes:
+                p.kill()
+                p.wait()
         log_text = svc.log_path.read_text(errors="replace")
         report = build_report(plan, store, ledger, samples, rss, restarts, rates,
                          drained=is_drained, drain_s=drain_s, exit_code=exit_code,
-                         log_text=log_text)
+                         log_text=log_text, probed=[p for p in probed
+                                                    if p["t_s"] <= drain_end - ledger.t0])
     return report
 
 
@@ -558,8 +579,8 @@ def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, g
         if not up():
             raise MergeError(f"the service did not start with a full disk (log: {episode_log})")
     time.sleep(plan.disk_full_s)
-    with gate.hold():
-        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+    with gate.hold():  # (failing writes slow the service's ingress: a longer wait)
+        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 60.0, 0.1)
         svc.stop()
         t_to = time.time()
         with svc.log_path.open("ab") as out:
