@@ -2,8 +2,7 @@
 robot of another embedding model, hostile payloads and a kill -9 restart; the report's
 invariants: every valid submap stored and processed exactly once (none lost, failed or
 pending, even those sent while the service was down), every hostile payload refused and
-answered, the mismatching robot refused and the others never, and a full disk answered
-`store` (not now), never a final result, and made up for once it had room."""
+answered, the mismatching robot refused and the others never."""
 
 from __future__ import annotations
 
@@ -56,14 +55,7 @@ def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path
     assert set(f["codes"]) <= {"conflict", "rate_limited"} and f["codes"].get("conflict", 0) > 0
     assert 0 < f["hashes_kept"] <= CONFLICTS_KEPT and f["bytes_kept"] == 0
     assert "conflict flood: 60 variants" in run.stdout
-    # the full disk (a real EFBIG from the file size limit): valid submaps answered `store`
-    # (not now), none given a final result before it, all processed once the disk had room
-    d = rep["disk_full"]
-    assert d["ran"] and d["submaps_answered_store"] > 0 and d["resent"] > 0
-    assert d["final_before_store_answer"] == 0 == d["two_final_results"]
-    assert d["processed_after"] == d["submaps_answered_store"] and d["ok"]
-    assert rep["results_contradictory"] == 0
-    assert "disk full: at" in run.stdout
+    assert rep["results_contradictory"] == 0 and not rep["disk_full"]["ran"]
     # status answered throughout, and after the restart (its cold solve)
     assert rep["status_ms"]["n"] >= 5 and rep["status_ms"]["after_restart_n"] >= 1
     assert "status round trip (probe process): p50" in run.stdout

@@ -406,8 +406,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             probes.append(probe)
 
             def read_probe() -> None:
-                assert probe.stdout is not None
-                for line in probe.stdout:
+                for line in probe.stdout or ():
                     with contextlib.suppress(ValueError, KeyError):
                         doc = json.loads(line)
                         if doc["ms"] is not None:
