@@ -18,6 +18,7 @@ from mergesvc.core.folding import _fuse, _pack, _unpack
 from mergesvc.core.frames import frame_name, split_frame
 from mergesvc.core.fusion import ObjectLink, fuse_objects, links_from_factor
 from mergesvc.core.graph import PoseGraph
+from mergesvc.core.graph_job import SolveJob, SolveResult
 from mergesvc.core.model import (
     Correspondence,
     Factor,
@@ -1131,18 +1132,22 @@ def least_squares_with_fixed(graph: PoseGraph, fixed: dict[str, gtsam.Pose3],
     return {n: est.atPose3(graph.key(n)) for n in graph.nodes}
 
 
-def solve_sizes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """The number of poses each least-squares solve of core.graph holds (recorded)."""
+def solve_sizes(monkeypatch: pytest.MonkeyPatch, *graphs: PoseGraph) -> list[int]:
+    """The number of poses each least-squares solve of core.graph holds (recorded), in the
+    graphs made from now on and in `graphs`."""
     import mergesvc.core.graph as core_graph
 
     sizes: list[int] = []
-    real = core_graph._levenberg_marquardt
+    real = core_graph.run_job
 
-    def recording(g: gtsam.NonlinearFactorGraph, initial: gtsam.Values, what: str):
-        sizes.append(initial.size())
-        return real(g, initial, what)
+    def recording(job: SolveJob) -> SolveResult:
+        if job.gnc_known is None:
+            sizes.append(len(job.initial_keys))
+        return real(job)
 
-    monkeypatch.setattr(core_graph, "_levenberg_marquardt", recording)
+    monkeypatch.setattr(core_graph, "run_job", recording)  # graphs made from now on use it
+    for g in graphs:
+        g.optimizer = recording
     return sizes
 
 
@@ -1230,7 +1235,7 @@ def test_settle_freezes_a_graph_loaded_at_once_as_it_grew(
     for n in grown.nodes:
         loaded.add_frame(n)
     copy_into(loaded, grown, grown.factor_ids)
-    sizes = solve_sizes(monkeypatch)
+    sizes = solve_sizes(monkeypatch, loaded)
     sol = loaded.settle()
     assert loaded.frozen_count == grown.frozen_count == 2 * steps - cap
     assert max(sizes) <= cap + cap // 2 + 3

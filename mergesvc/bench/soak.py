@@ -15,6 +15,7 @@ import contextlib
 import json
 import logging
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -83,6 +84,18 @@ def rss_bytes(pid: int) -> int | None:
     return _proc_status_bytes(pid, "VmRSS")
 
 
+def family_rss_bytes(pid: int) -> int | None:
+    """RSS of process `pid` and of its children (the service's solver process)."""
+    own = rss_bytes(pid)
+    if own is None:
+        return None
+    try:
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        kids = []
+    return own + sum(rss_bytes(int(k)) or 0 for k in kids)
+
+
 class ServiceProcess:
     """`mergesvc serve` as a subprocess on one store and one endpoint, started again after
     each kill; its output appended to `log_path`."""
@@ -100,10 +113,19 @@ class ServiceProcess:
     def pid(self) -> int | None:
         return self.proc.pid if self.proc is not None and self.proc.poll() is None else None
 
-    def start(self) -> None:
-        with self.log_path.open("ab") as out:
+    def start(self, file_limit_bytes: int | None = None, log_path: Path | None = None) -> None:
+        """Start it; with `file_limit_bytes` its files may not grow past that size (the
+        kernel's RLIMIT_FSIZE: a write beyond it fails with EFBIG, SIGXFSZ ignored), as on a
+        full disk, its output then going to `log_path` (the run's log may be larger)."""
+        def limit() -> None:
+            if file_limit_bytes is not None:
+                signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+                resource.setrlimit(resource.RLIMIT_FSIZE, (file_limit_bytes, file_limit_bytes))
+
+        with (log_path or self.log_path).open("ab") as out:
             self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT,
-                                         env=self.env, start_new_session=True)
+                                         env=self.env, start_new_session=True,
+                                         preexec_fn=limit if file_limit_bytes else None)
         self.starts += 1
 
     def kill(self) -> None:
@@ -141,6 +163,8 @@ class _Gate:
         self._open = threading.Event()
         self._open.set()
         self.busy = threading.Lock()  # held by the attacker while it sends one payload
+        self.calm = threading.Event()  # cleared while the disk is full: the flood waits
+        self.calm.set()
 
     def wait_open(self, stop: threading.Event) -> bool:
         while not self._open.wait(0.2):
@@ -180,6 +204,9 @@ def _robot_loop(walk: RobotWalk, session: Any, plan: SoakPlan, rate_hz: float,
         with ledger.lock:
             book[(walk.robot, walk.session, seq)] = time.time()
             ledger.bytes_valid += len(data)
+            if plan.disk_full_at and book is ledger.valid:  # kept for a retry
+                ledger.payloads[(walk.robot, walk.session, seq)] = (
+                    keys.submap_key(root, walk.robot, walk.session), data)
         pub.put(data)
         seq += 1
         t_next += float(walk.rng.exponential(1.0 / rate_hz))
@@ -229,6 +256,9 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
     first, *variants = flood_payloads(walk.next_submap(0), plan.flood_variants, Profile.FULL)
     key = f"{keys.fleet_root(plan.fleet)}/submap/{FLOOD_ROBOT}/{walk.session}"
     stored = False
+    while not gate.calm.wait(0.2):  # not during the disk-full episode
+        if stop.is_set():
+            return
     for _ in range(10):  # sent again while it is not stored (a kill may have lost it)
         if not gate.wait_open(stop):
             return
@@ -238,6 +268,9 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
             break
     if not stored:
         return
+    while not gate.calm.wait(0.2):
+        if stop.is_set():
+            return
     if not gate.wait_open(stop):
         return
     with gate.busy:
@@ -321,6 +354,8 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
         publishers: list[list[Any]] = []
         threads: list[threading.Thread] = []
         samples: list[dict[str, Any]] = []
+        probed: list[dict[str, Any]] = []  # the status probe's round trips (soak_probe.py)
+        probes: list[subprocess.Popen] = []
         rss: list[tuple[float, float, int, float]] = []  # (t, MB, incarnation, shmem MB)
         restarts: list[dict[str, float]] = []
         svc.start()
@@ -345,7 +380,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 while not sampler_stop.wait(plan.rss_period_s):
                     t = time.time() - ledger.t0
                     pid = svc.pid
-                    b = rss_bytes(pid) if pid is not None else None
+                    b = family_rss_bytes(pid) if pid is not None else None
                     if b is not None:
                         shm = shmem_bytes(pid) if pid is not None else None
                         rss.append((t, b / 2**20, svc.starts, (shm or 0) / 2**20))
@@ -365,6 +400,19 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
 
             threads.append(threading.Thread(target=sample_loop, name="soak-sampler",
                                             daemon=True))
+            probe = subprocess.Popen(
+                [sys.executable, "-m", "mergesvc.bench.soak_probe", endpoint, plan.fleet,
+                 str(plan.status_period_s)], stdout=subprocess.PIPE, env=env, text=True)
+            probes.append(probe)
+
+            def read_probe() -> None:
+                for line in probe.stdout or ():
+                    with contextlib.suppress(ValueError, KeyError):
+                        doc = json.loads(line)
+                        if doc["ms"] is not None:
+                            probed.append({"t_s": doc["t"] - ledger.t0, "status_ms": doc["ms"]})
+
+            threading.Thread(target=read_probe, name="soak-probe", daemon=True).start()
             # the robots: valid ones, then the mismatching ones
             rates = []
             for i in range(plan.robots + plan.mismatch_robots):
@@ -408,10 +456,17 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                  f"s of {plan.duration_s:.0f} s; service on {endpoint}")
             for th in threads:
                 th.start()
-            for at in kill_at:
+            ledger.resend = lambda key, data: monitor.put(key, data)
+            events = sorted([(t, "kill") for t in kill_at]
+                            + ([(plan.disk_full_at * plan.duration_s, "disk_full")]
+                               if plan.disk_full_at else []))
+            for at, what in events:
                 while time.monotonic() - t_start < at:
                     time.sleep(min(0.2, max(0.0, at - (time.monotonic() - t_start))))
-                restarts.append(_restart(svc, monitor, plan, gate, ledger, ctl_rng, echo))
+                if what == "kill":
+                    restarts.append(_restart(svc, monitor, plan, gate, ledger, ctl_rng, echo))
+                else:
+                    _disk_full(svc, store, monitor, plan, gate, ledger, echo)
             while time.monotonic() - t_start < plan.duration_s:
                 time.sleep(0.2)
             stop.set()
@@ -428,6 +483,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             is_drained = _wait(drained, plan.drain_timeout_s, 0.5)
             _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0)
             drain_s = time.monotonic() - t_drain
+            drain_end = time.time()
             sampler_stop.set()
             threads[0].join(timeout=10.0)
             for sub in subs:
@@ -444,10 +500,14 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 with contextlib.suppress(Exception):
                     s.close()
             svc.stop(timeout_s=10.0)
+            for p in probes:
+                p.kill()
+                p.wait()
         log_text = svc.log_path.read_text(errors="replace")
         report = build_report(plan, store, ledger, samples, rss, restarts, rates,
                          drained=is_drained, drain_s=drain_s, exit_code=exit_code,
-                         log_text=log_text)
+                         log_text=log_text, probed=[p for p in probed
+                                                    if p["t_s"] <= drain_end - ledger.t0])
     return report
 
 
@@ -493,6 +553,49 @@ def _restart(svc: ServiceProcess, monitor: Any, plan: SoakPlan, gate: _Gate, led
     return {"killed_at_s": t_kill - ledger.t0, "down_s": t_up - t_kill}
 
 
+def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, gate: _Gate,
+               ledger: Ledger, echo: Callable[[str], Any]) -> None:
+    """The service stopped (SIGTERM: its WAL checkpointed and removed) and started again with
+    its files limited to `disk_full_margin_bytes` above the largest of them that it appends
+    to (the WAL starts empty, the acks file; the database takes writes only at a checkpoint),
+    so its writes soon fail with a real EFBIG; held `disk_full_s`, then restarted without it.
+    The robots go on publishing and send again what is answered `store`."""
+    def up() -> bool:
+        return _wait(lambda: _status(monitor, plan.fleet, 1.0)[0] is not None,
+                     plan.start_timeout_s)
+
+    episode_log = svc.log_path.with_name(svc.log_path.name + ".disk_full")
+    gate.calm.clear()
+    with gate.hold():
+        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+        svc.stop()
+        appended = [p for p in (store.with_name(store.name + "-wal"),
+                                store.with_name(store.name + ".acks")) if p.exists()]
+        largest = max([p.stat().st_size for p in appended] + [0])
+        limit = largest + plan.disk_full_margin_bytes
+        svc.start(file_limit_bytes=limit, log_path=episode_log)
+        t_from = time.time()
+        if not up():
+            raise MergeError(f"the service did not start with a full disk (log: {episode_log})")
+    time.sleep(plan.disk_full_s)
+    with gate.hold():  # (failing writes slow the service's ingress: a longer wait)
+        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 60.0, 0.1)
+        svc.stop()
+        t_to = time.time()
+        with svc.log_path.open("ab") as out:
+            out.write(episode_log.read_bytes())
+        svc.start()
+        if not up():
+            raise MergeError(f"the service did not come back after the disk was full (log: "
+                             f"{svc.log_path})")
+    gate.calm.set()
+    with ledger.lock:
+        ledger.episode = {"from_t": t_from, "to_t": t_to, "limit_bytes": limit,
+                          "largest_bytes": largest}
+        n = sum(len(ts) for ts in ledger.store_answers.values())
+    echo(f"soak: disk full from {t_from - ledger.t0:.1f} to {t_to - ledger.t0:.1f} s (files "
+         f"limited to {limit} bytes): {n} `store` answers")
+
 
 __all__ = [
     "CACHE_SAMPLES",
@@ -506,6 +609,7 @@ __all__ = [
     "SoakPlan",
     "SoakWorld",
     "agent_publisher",
+    "family_rss_bytes",
     "hostile_payload",
     "plot_soak",
     "rss_bytes",

@@ -7,13 +7,14 @@ summary for people and its figure.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import re
 import threading
 import time
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -29,6 +30,8 @@ from mergesvc.store import CONFLICTS_KEPT, StoreReader
 from mergesvc.wire import decode_message
 
 RSS_TARGET_MB = 100.0
+FINAL_OUTCOMES = frozenset({"processed", "no_match", "failed"})
+RETRY_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)  # as the agent's
 _FACTOR_ID = re.compile(r"^(?P<ra>[^.]+)\.(?P<sa>[^-]+)-(?P<rb>[^.]+)\.(?P<sb>[^-]+)-(?P<seq>\d+)$")
 
 
@@ -52,6 +55,17 @@ class Ledger:
     flood_at: float | None = None  # wall time the conflict flood began
     flood_s: float = 0.0  # how long sending it took
     flood_sent: int = 0  # variants sent (after the one valid payload)
+    # the disk-full episode: what each valid robot sent (its key and bytes, for a retry),
+    # when a valid submap was answered `store` (not now) and each final result it got
+    payloads: dict[tuple[str, str, int], tuple[str, bytes]] = field(default_factory=dict)
+    resend: Callable[[str, bytes], Any] | None = None  # set by the driver
+    store_answers: dict[tuple[str, str, int], list[float]] = field(
+        default_factory=lambda: defaultdict(list))
+    store_details: Counter = field(default_factory=Counter)
+    finals: dict[tuple[str, str, int], list[tuple[float, str]]] = field(
+        default_factory=lambda: defaultdict(list))
+    resent: int = 0
+    episode: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def hostile_answered(self) -> int:
@@ -74,14 +88,41 @@ class Ledger:
         now = time.time()
         try:
             doc = json.loads(sample.payload.to_bytes())
-            outcome = str(doc["outcome"])
+            outcome, code = str(doc["outcome"]), doc.get("code")
             k = (robot, doc.get("session"), doc.get("seq"))
         except (ValueError, KeyError, TypeError):
-            outcome, k = "unreadable", None
+            outcome, code, k = "unreadable", None, None
+        retry = None
         with self.lock:
             self.results[robot][outcome] += 1
             if k is not None and k[1] is not None and k[2] is not None:
-                self.first_result_at.setdefault((k[0], str(k[1]), int(k[2])), now)
+                key = (k[0], str(k[1]), int(k[2]))
+                self.first_result_at.setdefault(key, now)
+                if outcome in FINAL_OUTCOMES:
+                    self.finals[key].append((now, outcome))
+                elif outcome == "refused" and code == "store" and key in self.payloads:
+                    self.store_answers[key].append(now)
+                    self.store_details[str(doc.get("detail", ""))[:80]] += 1
+                    retry = key, len(self.store_answers[key]) - 1
+        if retry is not None:
+            self._retry(*retry)
+
+    def _retry(self, key: tuple[str, str, int], attempt: int) -> None:
+        """Send a submap answered `store` again after a backoff, as the agent does
+        (fleet/agent.py RETRY_BACKOFF_S)."""
+        if self.resend is None or attempt >= len(RETRY_BACKOFF_S):
+            return
+        zkey, data = self.payloads[key]
+
+        def send() -> None:
+            with self.lock:
+                self.resent += 1
+            with contextlib.suppress(Exception):  # the session may be closing
+                self.resend(zkey, data)
+
+        timer = threading.Timer(RETRY_BACKOFF_S[attempt], send)
+        timer.daemon = True
+        timer.start()
 
     def on_factor(self, sample: Any) -> None:
         parts = str(sample.key_expr).rsplit("/", 2)
@@ -130,6 +171,33 @@ def _flood(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], flo
                    and (ratio is None or ratio <= 2.0))}
 
 
+def _disk_full(plan: SoakPlan, ledger: Ledger,
+               row_of: dict[tuple[str, str, int], tuple[Any, ...]]) -> dict[str, Any]:
+    """The disk-full episode: the valid submaps answered `store` (not now) while it lasted,
+    none of them given a final result before its last such answer or two different ones, and
+    every one processed once the disk had room (the robots sent them again)."""
+    ep = dict(ledger.episode)
+    if not plan.disk_full_at or not ep:
+        return {"ran": False, "ok": not plan.disk_full_at}
+    lo, hi = ep["from_t"], ep["to_t"]
+    with ledger.lock:
+        answered = {k: list(ts) for k, ts in ledger.store_answers.items()}
+        finals = {k: list(v) for k, v in ledger.finals.items()}
+    during = sorted(k for k, ts in answered.items() if any(lo <= t <= hi for t in ts))
+    final_before = [k for k in during if any(t < max(answered[k]) for t, _ in finals.get(k, []))]
+    two_finals = [k for k in during if len({o for _, o in finals.get(k, [])}) > 1]
+    done = [k for k in during if k in row_of and row_of[k][0] in ("processed", "no_match")]
+    out = {"ran": True, "at_s": lo - ledger.t0, "held_s": hi - lo,
+           "limit_bytes": ep.get("limit_bytes"), "largest_file_bytes": ep.get("largest_bytes"),
+           "store_answers": sum(len(ts) for ts in answered.values()),
+           "submaps_answered_store": len(during), "final_before_store_answer": len(final_before),
+           "two_final_results": len(two_finals), "processed_after": len(done),
+           "resent": ledger.resent, "details": dict(ledger.store_details.most_common(4))}
+    out["ok"] = (len(during) > 0 and not final_before and not two_finals
+                 and len(done) == len(during))
+    return out
+
+
 def _status_latency(samples: list[dict[str, Any]], restarts: list[dict[str, float]]
                     ) -> dict[str, Any]:
     """Status round trips (query -> reply at the monitor): p50/p99 over the run, and p99 in
@@ -144,7 +212,7 @@ def _status_latency(samples: list[dict[str, Any]], restarts: list[dict[str, floa
 def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict[str, Any]],
             rss: list[tuple[float, float, int, float]], restarts: list[dict[str, float]],
             rates: list[float], *, drained: bool, drain_s: float, exit_code: int | None,
-            log_text: str) -> dict[str, Any]:
+            log_text: str, probed: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     with StoreReader(store) as db:
         rows = db.submap_rows()
         conflicts_of = db.conflicts_by_robot()
@@ -208,7 +276,10 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     hostile_answers = sum(sum(errors.get(r, {}).values()) for r in HOSTILE_ROBOTS)
     mismatch_robots = sorted({r for r, _, _ in mismatch})
     valid_robots = sorted({r for r, _, _ in valid})
-    valid_errors = {r: errors[r] for r in valid_robots if r in errors}
+    # a valid robot may only be told `store` (not now), and only by a full disk
+    valid_errors = {r: e for r in valid_robots if r in errors
+                    and (e := {c: n for c, n in errors[r].items()
+                               if not (c == "store" and plan.disk_full_at)})}
     lost = len(valid) - len(stored_valid)
     duplicated = sum(1 for k, n in count.items() if n > 1) + conflicts
     failed = status_counts.get("failed", 0)
@@ -253,7 +324,10 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                     "per_robot": results},
         "series": series,
         "status_samples": samples,
-        "status_ms": _status_latency(samples, restarts),
+        # the status probe's (a process of its own: the target's), and the driver's monitor's
+        # (its round trips wait on the driver's own threads too)
+        "status_ms": _status_latency(probed if probed else samples, restarts),
+        "status_ms_monitor": _status_latency(samples, restarts),
         "rss": {"t_s": [r[0] for r in rss], "mb": rss_mb, "incarnation": [r[2] for r in rss],
                 "shmem_mb": [r[3] for r in rss], "first_mb": first, "baseline_mb": baseline,
                 "baseline_at_s": warm_s, "max_mb": max(rss_mb) if rss_mb else None,
@@ -278,6 +352,14 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     }
     if plan.flood_variants:
         report["targets"]["flood_answered_bounded_others_p99_le_2x"] = flood["ok"]
+    report["disk_full"] = _disk_full(plan, ledger, row_of)
+    with ledger.lock:
+        report["results_contradictory"] = sum(
+            len({o for _, o in v}) > 1 for k, v in ledger.finals.items() if k in valid)
+    report["targets"]["no_contradictory_results"] = report["results_contradictory"] == 0
+    if plan.disk_full_at:
+        report["targets"]["disk_full_retryable_none_final_all_processed"] = (
+            report["disk_full"]["ok"])
     report["ok"] = all(report["targets"].values())
     return report
 
@@ -296,6 +378,17 @@ def _flood_line(f: dict[str, Any]) -> str:
             f"({f['bytes_kept']} payload bytes); others' p99 {f['window_s']:.0f} s before / "
             f"after it: {ms(f['others_p99_before_ms'])} / {ms(f['others_p99_during_ms'])} ms "
             f"({tail})")
+
+
+def _disk_full_line(d: dict[str, Any]) -> str:
+    if not d.get("ran"):
+        return "disk full: none"
+    return (f"disk full: at {d['at_s']:.0f} s for {d['held_s']:.0f} s (file size limit "
+            f"{d['limit_bytes']} bytes), {d['store_answers']} `store` answers to "
+            f"{d['submaps_answered_store']} valid submaps ({d['resent']} sent again); final "
+            f"before their `store` answer {d['final_before_store_answer']}, two final results "
+            f"{d['two_final_results']}, processed after {d['processed_after']}; "
+            f"{json.dumps(d['details'])}")
 
 
 def soak_summary(report: dict[str, Any]) -> str:
@@ -326,9 +419,12 @@ def soak_summary(report: dict[str, Any]) -> str:
         f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
         f"{json.dumps(v['errors_answered'], sort_keys=True)}",
         _flood_line(report["flood"]),
-        f"status round trip: p50 {ms(report['status_ms']['p50'])} ms, p99 "
+        _disk_full_line(report["disk_full"]),
+        f"status round trip (probe process): p50 {ms(report['status_ms']['p50'])} ms, p99 "
         f"{ms(report['status_ms']['p99'])} ms ({report['status_ms']['n']} queries); in the minute "
-        f"after each restart p99 {ms(report['status_ms']['after_restart_p99'])} ms",
+        f"after each restart p99 {ms(report['status_ms']['after_restart_p99'])} ms; from the "
+        f"driver's monitor p50 {ms(report['status_ms_monitor']['p50'])} ms, p99 "
+        f"{ms(report['status_ms_monitor']['p99'])} ms",
         f"RSS: first {ms(r['first_mb'])} MB, at {r['baseline_at_s']:.0f} s "
         f"{ms(r['baseline_mb'])} MB, max {ms(r['max_mb'])} MB (without shared memory: at "
         f"{r['baseline_at_s']:.0f} s {ms(r['own_baseline_mb'])} MB, max {ms(r['max_own_mb'])} "

@@ -77,13 +77,19 @@ class SoakPlan:
     flood_variants: int = 700
     flood_at: float = 0.5
     flood_window_s: float = 20.0
+    # a full disk: at `disk_full_at` of the run (0: none) the service is restarted with its
+    # file size limit a little (`disk_full_margin_bytes`) above its largest file's size, held
+    # so for `disk_full_s`, then restarted without it
+    disk_full_at: float = 0.4
+    disk_full_s: float = 45.0
+    disk_full_margin_bytes: int = 512 * 1024
 
     @classmethod
     def quick(cls, seed: int = 0) -> SoakPlan:
         return cls(robots=3, duration_s=10.0, hostile_fraction=0.2, mismatch_robots=1,
                    restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=1.0,
                    drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
-                   area_m=80.0, flood_variants=60, flood_window_s=3.0)
+                   area_m=80.0, flood_variants=60, flood_window_s=3.0, disk_full_at=0.0)
 
     def check(self) -> None:
         """InputError on a plan that cannot run or would break the service's limits."""
@@ -93,6 +99,9 @@ class SoakPlan:
         check_count("flood variants", self.flood_variants, 0)
         if not 0.0 < self.flood_at < 1.0:
             raise InputError(f"flood_at must be in (0, 1), got {self.flood_at}")
+        if not 0.0 <= self.disk_full_at < 1.0 or self.disk_full_s < 0:
+            raise InputError(f"disk_full_at must be in [0, 1) and disk_full_s >= 0, got "
+                             f"{self.disk_full_at}, {self.disk_full_s}")
         if not self.duration_s > 0:
             raise InputError(f"duration must be > 0 s, got {self.duration_s}")
         if not 0.0 <= self.hostile_fraction < 1.0:

@@ -94,6 +94,20 @@ def scale_covariance(C: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
+def scale_covariances(Cs: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
+    """`scale_covariance` of a stack (n, 6, 6) of covariances by one scale, at once."""
+    Cs = np.asarray(Cs, dtype=np.float64).reshape(-1, 6, 6)
+    L = np.broadcast_to(np.eye(6), Cs.shape).copy()
+    cross = np.any(Cs[:, 3:, :3] != 0, axis=(1, 2))
+    if np.any(cross):
+        C = Cs[cross]
+        L[cross, 3:, :3] = -np.swapaxes(np.linalg.solve(C[:, :3, :3],
+                                                        np.swapaxes(C[:, 3:, :3], 1, 2)), 1, 2)
+    M = np.linalg.solve(L, np.asarray(sigma_scale)[None, :, None] * L)
+    out = M @ Cs @ np.swapaxes(M, 1, 2)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
 def variance_components(
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,
@@ -177,4 +191,4 @@ def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig)
 
 
 __all__ = ["CalibrationConfig", "Component", "decorrelation", "scale_covariance",
-           "updated_scale", "variance_components"]
+           "scale_covariances", "updated_scale", "variance_components"]

@@ -15,14 +15,19 @@ from __future__ import annotations
 import logging
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from mergesvc.core.calibration import scale_covariance, updated_scale, variance_components
+from mergesvc.core.calibration import (
+    scale_covariance,
+    scale_covariances,
+    updated_scale,
+    variance_components,
+)
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.connectivity import UnionFind, two_edge_connected
 from mergesvc.core.connectivity import bridges as find_bridges
@@ -30,7 +35,7 @@ from mergesvc.core.folding import Folding, Measurement
 from mergesvc.core.frames import FrameId, KeyframeId, frame_name
 from mergesvc.core.freezing import Freezing
 from mergesvc.core.graph_factor import GraphFactor
-from mergesvc.core.graph_factor import levenberg_marquardt as _levenberg_marquardt
+from mergesvc.core.graph_job import Optimizer, SolveJob, build, pose_arrays, run_job
 from mergesvc.core.graph_start import initial_poses
 from mergesvc.core.model import Factor, FactorStatus
 from mergesvc.core.poses import as_pose3, check_covariance, pose3_from_model
@@ -113,6 +118,8 @@ class PoseGraph:
         self._solved_scales: dict[str, np.ndarray] = {}
         # False: solve with the scales as they are (a restart solving what it restored)
         self.calibrating = True
+        # runs each optimisation (core/graph_job.py): here, or in another process
+        self.optimizer: Optimizer = run_job
         if anchor is not None:
             self.add_frame(anchor)
 
@@ -508,24 +515,34 @@ class PoseGraph:
         bridges = {i for i, j in enumerate(solved) if j in bridges_all}
         known = {i for i, f in enumerate(facs) if i in bridges or f.known_inlier}
 
-        graph = gtsam.NonlinearFactorGraph()
-        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, cfg.anchor_sigma)
         seeds = {n: frozen[n] for n in boundary}
         if anchor not in frozen or not boundary:
             seeds[anchor] = gtsam.Pose3()
-        for n, T in seeds.items():
-            graph.add(gtsam.PriorFactorPose3(self.key(n), T, prior_noise))
-        m = graph.size()  # factor i is graph index m + i
-        for f in facs:
-            graph.add(self._between(f))
+        measured = [self._measurement(f) for f in facs]
+        covs = np.array([C for _, C in measured]).reshape(-1, 6, 6)
+        by_group: dict[str, list[int]] = defaultdict(list)
+        for i, f in enumerate(facs):
+            if f.group is not None and f.group in self._scales:
+                by_group[f.group].append(i)
+        for g, idx in by_group.items():  # each group's scale, on all its factors at once
+            covs[idx] = scale_covariances(covs[idx], self._scales[g])
         initial = self._initial_values(anchor, seeds, live, facs)
+        job = SolveJob(
+            np.array([self.key(n) for n in seeds], dtype=np.uint64),
+            pose_arrays(list(seeds.values())), cfg.anchor_sigma,
+            np.array([(self.key(f.frame_a), self.key(f.frame_b)) for f in facs],
+                     dtype=np.uint64).reshape(-1, 2),
+            pose_arrays([T for T, _ in measured]), covs,
+            np.zeros(0, dtype=np.uint64), np.zeros((0, 4, 4))).with_initial(initial)
+        graph, _ = build(job)
+        m = len(seeds)  # factor i is graph index m + i
 
         # Rule 2: GNC with the TLS loss.
         gnc_ran = len(known) < len(facs)
         least_squares: gtsam.Values | None = None  # converged over every factor, if solved
         gnc_skipped = False
         if gnc_ran and cfg.least_squares_gate:
-            least_squares = _levenberg_marquardt(graph, initial, "least-squares")
+            least_squares = self.optimizer(replace(job, what="least-squares")).values()
             barc = 0.5 * float(chi2.ppf(cfg.inlier_probability, 6))  # GTSAM's cost threshold
             gnc_skipped = all(graph.at(m + i).error(least_squares) < barc
                               for i in range(len(facs)) if i not in known)
@@ -534,16 +551,12 @@ class PoseGraph:
             estimate = least_squares
             w = np.ones(len(facs))
         elif gnc_ran:
-            params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
-            params.setLossType(gtsam.GncLossType.TLS)
-            params.setKnownInliers([*range(m), *(m + i for i in sorted(known))])
-            try:
-                gnc = gtsam.GncLMOptimizer(graph, initial, params)
-                gnc.setInlierCostThresholdsAtProbability(cfg.inlier_probability)
-                estimate = gnc.optimize()
-            except RuntimeError as exc:
-                raise SolverError(f"GNC pose-graph optimisation failed: {exc}") from exc
-            w = np.asarray(gnc.getWeights(), dtype=np.float64).ravel()[m:]
+            res = self.optimizer(replace(
+                job, what="GNC pose-graph", gnc_probability=cfg.inlier_probability,
+                gnc_known=(*range(m), *(m + i for i in sorted(known)))))
+            estimate = res.values()
+            assert res.weights is not None
+            w = res.weights
         else:
             estimate = initial
             w = np.ones(len(facs))
@@ -588,7 +601,8 @@ class PoseGraph:
             if i not in rejected:
                 final.add(graph.at(m + i))
         if not (gnc_skipped and not rejected):  # else: `final` is `graph`, solved already
-            estimate = _levenberg_marquardt(final, estimate, "pose-graph")
+            estimate = self.optimizer(job.without(sorted(rejected), "pose-graph")
+                                      .with_initial(estimate)).values()
         self._recalibrated = False
         n_solved = final.size()
         if cfg.calibration.enabled and self.calibrating and (
@@ -644,14 +658,6 @@ class PoseGraph:
                 if f.factor_id not in deps:  # never solved again: its ends are enough
                     self._factors[f.factor_id] = f.sealed()
         return sol
-
-    def _between(self, f: GraphFactor) -> gtsam.BetweenFactorPose3:
-        T, C = self._measurement(f)
-        s = self._scales.get(f.group) if f.group is not None else None
-        if s is not None:
-            C = scale_covariance(C, s)
-        noise = gtsam.noiseModel.Gaussian.Covariance(np.array(C), False)
-        return gtsam.BetweenFactorPose3(self.key(f.frame_a), self.key(f.frame_b), T, noise)
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:

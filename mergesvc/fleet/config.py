@@ -58,6 +58,15 @@ class ServiceConfig(BaseModel):
         2.0, ge=0.0, description="during a backlog longer than one batch, the pose graph is "
         "solved at most this often (and always when the backlog is drained)",
     )
+    solve_duty: float = Field(
+        0.3, gt=0.0, le=1.0, description="the share of the worker's time pose-graph solves "
+        "may take: after a solve of t seconds the next waits (1 / solve_duty - 1) t, so "
+        "submaps arriving meanwhile are merged at once rather than behind the next solve",
+    )
+    solve_in_child: bool = Field(
+        True, description="run the pose graph's optimisations in a child process (GTSAM "
+        "holds the GIL through a solve: in-process, queries and ingress would wait on it)",
+    )
     embedding_dim: int | None = Field(
         None, ge=1, le=4096, description="the only embedding dimension this fleet takes "
         "(submaps of another are refused, error code embedding_dim); None: see embedding_dims",

@@ -16,7 +16,6 @@ is logged loudly and reported in status (docs/store.md).
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import logging
 import threading
@@ -40,6 +39,7 @@ from mergesvc.fleet.outbox import Outbox
 from mergesvc.fleet.queries import Queries, ServiceStats
 from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.fleet.sessions import Sessions
+from mergesvc.fleet.solve_process import optimizer, trim_heap
 from mergesvc.fleet.transport import Query, Reply, Transport
 from mergesvc.store import META_ANCHOR, AckLedger, Store
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
@@ -74,13 +74,13 @@ class MergeService:
         memory = config.store == ":memory:" or config.store.startswith("file::memory:")
         self.acks = AckLedger(None if memory else config.store + ".acks")
         self.graph = PoseGraph(config=config.graph)
+        self.graph.optimizer = optimizer(config.solve_in_child)
         if config.solve_inflation != 1.0:
             self.graph.set_noise_scale(CLOSURE_GROUP, config.solve_inflation ** 0.5)
         self.sessions = Sessions(config.min_map_objects)
         self.merger = Merger(config, self.graph, self.sessions, ProfileViews(self.projections))
         self._lock = threading.RLock()  # the state: held to apply work and solutions, to query
-        # the graph's writers: one submap or one solve at a time (worker, ingest); queries
-        # never take it
+        # the graph's writers (worker, ingest): one submap or solve at a time; queries never
         self._process_lock = threading.Lock()
         self.queries = Queries(config, self.merger, self._lock)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
@@ -95,6 +95,7 @@ class MergeService:
         self._root = keys.fleet_root(config.fleet)
         self._dirty = False  # a processed submap changed the graph: solve it
         self._last_optimize = time.monotonic()
+        self._solve_s = (0.0, 0.0)  # the last solve: (its duration, when it ended), monotonic
         self._solve = {"failures": 0, "error": None, "next_s": 0.0, "solved_at_s": None}
         self._store_failures = 0
         self._told_store: set[int] = set()  # rows whose robot was told `store` (_not_now)
@@ -201,7 +202,9 @@ class MergeService:
         """Batches of pending rows, oldest first; the graph solved after a batch that changed
         it when the backlog is drained, or every optimize_interval_s while it is not."""
         while not self._stop.is_set():
-            self._wake.wait(timeout=1.0)  # the timeout bounds a lost wake-up and the backoffs
+            # the timeout bounds a lost wake-up, the backoffs and a solve's rest
+            rest = max(self._rest(), self._solve["next_s"] - time.monotonic())
+            self._wake.wait(timeout=min(1.0, max(0.05, rest)) if self._dirty else 1.0)
             self._wake.clear()  # before the store is read: a later commit is seen next round
             try:
                 while not self._stop.is_set():
@@ -214,8 +217,8 @@ class MergeService:
                             stalled = True  # the store cannot write: back off, retry later
                             break
                     waited = time.monotonic() - self._last_optimize
-                    if self._dirty and (not ids or stalled
-                                        or waited >= self.config.optimize_interval_s):
+                    if self._dirty and self._rest() <= 0 and (
+                            not ids or stalled or waited >= self.config.optimize_interval_s):
                         self._flush()
                     self.answered.flush()
                     if self._unstored_retractions:
@@ -381,6 +384,13 @@ class MergeService:
         if self._dirty and time.monotonic() >= self._solve["next_s"]:
             self._last_optimize = time.monotonic()
             self._optimize()
+            self._solve_s = (time.monotonic() - self._last_optimize, time.monotonic())
+
+    def _rest(self) -> float:
+        """Seconds until the worker may solve again: solves take at most `solve_duty` of its
+        time, so submaps arriving meanwhile do not wait behind one solve after another."""
+        took, ended = self._solve_s
+        return took * (1.0 / self.config.solve_duty - 1.0) - (time.monotonic() - ended)
 
     def _optimize(self) -> None:
         """Solve (the state lock not held: queries go on), take the solution, retract what it
@@ -417,7 +427,7 @@ class MergeService:
                     log.warning("factor %s rejected by GNC: retracted", fid)
         self._unstored_retractions.extend(retracted)
         self._publish_retractions()
-        _trim_heap()
+        trim_heap()
 
     def _publish_retractions(self) -> None:
         """Retractions stored, then published; one the store cannot write yet is kept and
@@ -475,26 +485,6 @@ class MergeService:
     def _on_alive(self, key: str, alive: bool) -> None:
         robot = keys.alive_robot(key)
         (self.alive.add if alive else self.alive.discard)(robot)
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    try:
-        import ctypes
-
-        fn = ctypes.CDLL("libc.so.6").malloc_trim
-        fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
-        return fn  # type: ignore[no-any-return]
-    except (OSError, AttributeError):  # not glibc: nothing to trim
-        return None
-
-
-def _trim_heap() -> None:
-    """Hand the C heap's free pages back to the system after a solve (glibc `malloc_trim(0)`;
-    a no-op elsewhere): each solve allocates and frees GTSAM's linear systems."""
-    fn = _malloc_trim()
-    if fn is not None:
-        fn(0)
 
 
 __all__ = ["MergeService", "as_transport"]

@@ -109,8 +109,15 @@ class SessionState:
         """Pose and covariance of each target keyframe in `source`'s frame, composed along
         odometry edges from it (fewest edges first), each edge's covariance scaled per axis by
         `scale` (sigma, GTSAM order); targets not joined to it are absent."""
+        done: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # edges share covariance objects
+
         def scaled(C: np.ndarray) -> np.ndarray:
-            return C if scale is None else scale_covariance(C, scale)
+            if scale is None:
+                return C
+            hit = done.get(id(C))
+            if hit is None or hit[0] is not C:
+                hit = done[id(C)] = (C, scale_covariance(C, scale))
+            return hit[1]
 
         out = {source: (gtsam.Pose3(), np.zeros((6, 6)))}
         todo, left = deque([source]), set(targets) - {source}

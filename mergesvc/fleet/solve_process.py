@@ -1,0 +1,138 @@
+"""Pose-graph optimisations (core/graph_job.py) run in a child process, so that the service's
+threads (queries, ingress, acks) go on while GTSAM, which holds the GIL through an optimise,
+solves. One child per service process, started at the first job (`python -m
+mergesvc.fleet.solve_process`, its stdin and stdout a pipe of pickled jobs and results; its
+stderr the parent's), shared by every graph of the process one job at a time. The caller's
+thread waits on the pipe without the GIL. A child that dies fails its job with SolverError (the
+solve's backoff retries it) and the next job starts a new one; the arrays are the same, so is
+the answer.
+"""
+
+from __future__ import annotations
+
+import atexit
+import functools
+import os
+import pickle
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any, BinaryIO
+
+from mergesvc.core.graph_job import Optimizer, SolveJob, SolveResult, run_job
+from mergesvc.errors import SolverError, one_line
+
+
+class ProcessOptimizer:
+    """Callable as an `Optimizer`: each job run in the child process."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._proc: subprocess.Popen[bytes] | None = None
+        self.jobs = 0  # jobs the child answered
+        self.starts = 0  # children started
+
+    def _child(self) -> subprocess.Popen[bytes]:
+        if self._proc is None or self._proc.poll() is not None:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "mergesvc.fleet.solve_process"],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=os.environ.copy())
+            self.starts += 1
+        return self._proc
+
+    def __call__(self, job: SolveJob) -> SolveResult:
+        with self._lock:
+            proc = self._child()
+            assert proc.stdin is not None and proc.stdout is not None
+            try:
+                pickle.dump(job, proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                proc.stdin.flush()
+                ok, out = pickle.load(proc.stdout)
+            except (OSError, EOFError, pickle.UnpicklingError) as exc:
+                self._stop()
+                raise SolverError(f"{job.what} optimisation: the solver process failed "
+                                  f"({one_line(exc) or type(exc).__name__})") from exc
+            self.jobs += 1
+        if not ok:
+            raise SolverError(out)
+        return out  # type: ignore[no-any-return]
+
+    def _stop(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+    def close(self) -> None:
+        with self._lock:
+            self._stop()
+
+
+_shared: ProcessOptimizer | None = None
+_shared_lock = threading.Lock()
+
+
+def shared_optimizer() -> ProcessOptimizer:
+    """The process's solver child (started at its first job, stopped at exit)."""
+    global _shared
+    with _shared_lock:
+        if _shared is None:
+            _shared = ProcessOptimizer()
+            atexit.register(_shared.close)
+        return _shared
+
+
+def optimizer(in_child: bool) -> Optimizer:
+    """The process's solver child (`in_child`), or GTSAM in the calling thread."""
+    return shared_optimizer() if in_child else run_job
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL("libc.so.6").malloc_trim
+        fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+        return fn  # type: ignore[no-any-return]
+    except (OSError, AttributeError):  # not glibc: nothing to trim
+        return None
+
+
+def trim_heap() -> None:
+    """Hand the C heap's free pages back to the system after a solve (glibc `malloc_trim(0)`)."""
+    fn = _malloc_trim()
+    if fn is not None:
+        fn(0)
+
+
+def serve(inp: BinaryIO, out: BinaryIO) -> None:
+    """The child's loop: a job in, (True, result) or (False, message) out, until EOF."""
+    while True:
+        try:
+            job = pickle.load(inp)
+        except EOFError:
+            return
+        reply: tuple[bool, Any]
+        try:
+            reply = (True, run_job(job))
+        except SolverError as exc:
+            reply = (False, str(exc))
+        pickle.dump(reply, out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+
+def main() -> None:
+    # the pipe is a private copy of fd 1; fd 1 itself goes to stderr, so nothing GTSAM prints
+    # can corrupt it
+    pipe = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    serve(sys.stdin.buffer, pipe)
+
+
+if __name__ == "__main__":
+    main()
+
+
+__all__ = ["ProcessOptimizer", "main", "optimizer", "serve", "shared_optimizer", "trim_heap"]

@@ -1,0 +1,131 @@
+"""The pose graph's optimisations in a child process (fleet/solve_process.py): the same answer
+as in-process, a dead child is a SolverError and the next job starts a new one, and the
+service's status answers while a solve runs (GTSAM holds the GIL through an optimise: in the
+service's own process nothing else would run)."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mergesvc.core.graph import PoseGraph
+from mergesvc.core.graph_job import SolveJob, SolveResult, run_job
+from mergesvc.errors import SolverError
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.service import MergeService
+from mergesvc.fleet.solve_process import ProcessOptimizer, shared_optimizer
+
+
+def hard_graph(n: int, closures: int, g: PoseGraph | None = None) -> PoseGraph:
+    """A chain of n keyframes (known inliers) and `closures` wrong loop closures: GNC works
+    through many iterations before it rejects them."""
+    rng = np.random.default_rng(0)
+    g = g if g is not None else PoseGraph(anchor="a#0")
+    C = np.eye(6) * 1e-2
+    step = np.eye(4)
+    step[0, 3] = 1.0
+    for i in range(1, n):
+        g.add_factor(f"o{i}", f"a#{i - 1}", f"a#{i}", step, C, known_inlier=True)
+    for j in range(closures):
+        a, b = sorted(int(x) for x in rng.choice(n, 2, replace=False))
+        T = np.eye(4)
+        T[:3, 3] = rng.normal(0, 20, 3)
+        g.add_factor(f"c{j}", f"a#{a}", f"a#{b}", T, C)
+    return g
+
+
+def recorded(g: PoseGraph) -> list[SolveJob]:
+    jobs: list[SolveJob] = []
+
+    def rec(job: SolveJob) -> SolveResult:
+        jobs.append(job)
+        return run_job(job)
+
+    g.optimizer = rec
+    return jobs
+
+
+def test_the_child_gives_the_same_answer_as_this_process() -> None:
+    g = hard_graph(12, 4)
+    jobs = recorded(g)
+    here = g.optimize(marginals=False)
+    assert jobs and any(j.gnc_known is not None for j in jobs)  # GNC and LM jobs both ran
+    child = ProcessOptimizer()
+    try:
+        for job in jobs:
+            a, b = run_job(job), child(job)
+            np.testing.assert_array_equal(a.keys, b.keys)
+            np.testing.assert_array_equal(a.poses, b.poses)  # bit for bit
+            if a.weights is None:
+                assert b.weights is None
+            else:
+                np.testing.assert_array_equal(a.weights, b.weights)
+        g2 = hard_graph(12, 4)
+        g2.optimizer = child
+        there = g2.optimize(marginals=False)
+        assert there.outlier_factor_ids == here.outlier_factor_ids
+        for n, T in here.T_anchor_frame.items():
+            np.testing.assert_array_equal(T.matrix(), there.T_anchor_frame[n].matrix())
+    finally:
+        child.close()
+
+
+def test_a_dead_child_is_a_solver_error_and_the_next_job_starts_another() -> None:
+    """A job the child dies of (its arrays malformed: not a SolverError, the child exits)."""
+    g = hard_graph(6, 1)
+    jobs = recorded(g)
+    g.optimize(marginals=False)
+    child = ProcessOptimizer()
+    try:
+        child(jobs[0])
+        broken = replace(jobs[0], prior_poses=np.zeros((1, 3, 3)))  # the child raises, exits
+        with pytest.raises(SolverError, match="solver process failed"):
+            child(broken)
+        assert child(jobs[0]).poses.shape == (len(jobs[0].initial_keys), 4, 4)
+        assert child.starts == 2
+    finally:
+        child.close()
+
+
+def test_status_answers_while_a_large_solve_runs() -> None:
+    """The service solves a graph that takes GNC many iterations while another thread asks
+    status over and over: many answers come while the GNC job is out (with GTSAM in the
+    service's process its optimise holds the GIL, and at most one or two would)."""
+    svc = MergeService(ServiceConfig(store=":memory:"), session=None)
+    try:
+        hard_graph(40, 40, svc.graph)
+        child = shared_optimizer()
+        answers = [0]
+        during: list[int] = []
+
+        def gated(job: SolveJob) -> SolveResult:
+            before = answers[0]
+            try:
+                return child(job)
+            finally:
+                if job.gnc_known is not None:
+                    during.append(answers[0] - before)
+
+        svc.graph.optimizer = gated
+        svc._dirty = True
+        stop = threading.Event()
+
+        def ask() -> None:
+            while not stop.is_set():
+                assert svc.status(poses=False)["solve"]["ok"]
+                answers[0] += 1
+
+        th = threading.Thread(target=ask)
+        th.start()
+        try:
+            svc._optimize()
+        finally:
+            stop.set()
+            th.join(30.0)
+        assert svc.stats.optimizations == 1 and len(during) == 1
+        assert during[0] >= 10, during
+    finally:
+        svc.close()
