@@ -19,7 +19,7 @@ demo: $(BIN)/.installed
 # session fixture, runs on one worker; the heaviest groups first; a few files test by test, to
 # fill the ends); one BLAS thread per worker, since the workers fill the cores.
 test: $(BIN)/.installed
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadgroup --no-loadscope-reorder
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $$(( $$(nproc) + 1 )) --dist loadgroup --no-loadscope-reorder
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check mergesvc tests

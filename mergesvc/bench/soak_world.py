@@ -87,7 +87,7 @@ class SoakPlan:
     @classmethod
     def quick(cls, seed: int = 0) -> SoakPlan:
         return cls(robots=3, duration_s=10.0, hostile_fraction=0.2, mismatch_robots=1,
-                   restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=1.0,
+                   restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=0.5,
                    drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
                    area_m=80.0, flood_variants=60, flood_window_s=3.0, disk_full_at=0.0)
 
