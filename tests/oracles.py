@@ -115,6 +115,9 @@ def brute_margin(problem: AssignmentProblem, assignment: np.ndarray, i: int) -> 
     in arrays: each one's chosen candidates, feasibility and score)."""
     n1 = problem.n1
     options = [[-1, *np.flatnonzero(problem.rows == r).tolist()] for r in range(n1)]
+    total = math.prod(len(o) for o in options)
+    if total > BRUTE_FORCE_LIMIT:
+        raise SolverError(f"brute force over {total} combinations exceeds {BRUTE_FORCE_LIMIT}")
     P = np.array(list(itertools.product(*options)), dtype=np.int64).reshape(-1, n1)
     on = P >= 0  # row matched, to candidate P
     Q = np.maximum(P, 0)

@@ -89,10 +89,10 @@ def family_rss_bytes(pid: int) -> int | None:
     own = rss_bytes(pid)
     if own is None:
         return None
-    try:
-        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
-    except OSError:
-        kids = []
+    kids = []  # Linux files a child under the thread that started it: read every thread's
+    for task in Path(f"/proc/{pid}/task").glob("*/children"):
+        with contextlib.suppress(OSError):
+            kids += task.read_text().split()
     return own + sum(rss_bytes(int(k)) or 0 for k in kids)
 
 

@@ -566,7 +566,7 @@ def bench_qaplib(
     from mergesvc.bench.qaplib import PROVEN_S, QAPLIB_DIR, run_qaplib_bench
 
     folder = QAPLIB_DIR if data is None else data / "qaplib"
-    with exit_on_error():
+    with exit_on_error(OSError, ValueError):  # a missing or malformed instance file
         tree = resolve_settings(None)
         report = run_qaplib_bench(instance or tuple(PROVEN_S), repeats=repeats,
                                   time_limit_s=time_limit, folder=folder, echo=typer.echo)

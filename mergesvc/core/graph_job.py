@@ -46,8 +46,7 @@ class SolveJob:
     def with_initial(self, values: gtsam.Values) -> SolveJob:
         keys = np.asarray(values.keys(), dtype=np.uint64)
         return replace(self, initial_keys=keys,
-                       initial_poses=np.stack([values.atPose3(int(k)).matrix() for k in keys])
-                       if len(keys) else np.zeros((0, 4, 4)))
+                       initial_poses=pose_arrays([values.atPose3(int(k)) for k in keys]))
 
 
 @dataclass(frozen=True)
@@ -108,8 +107,7 @@ def run_job(job: SolveJob) -> SolveResult:
     except RuntimeError as exc:
         raise SolverError(f"{job.what} optimisation failed: {exc}") from exc
     keys = np.asarray(job.initial_keys, dtype=np.uint64)
-    poses = (np.stack([estimate.atPose3(int(k)).matrix() for k in keys]) if len(keys)
-             else np.zeros((0, 4, 4)))
+    poses = pose_arrays([estimate.atPose3(int(k)) for k in keys])
     return SolveResult(keys, poses, weights)
 
 

@@ -115,7 +115,7 @@ class SessionState:
             if scale is None:
                 return C
             hit = done.get(id(C))
-            if hit is None or hit[0] is not C:
+            if hit is None:  # `done` holds C: its id is not reused meanwhile
                 hit = done[id(C)] = (C, scale_covariance(C, scale))
             return hit[1]
 

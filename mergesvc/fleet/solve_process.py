@@ -37,7 +37,7 @@ class ProcessOptimizer:
         if self._proc is None or self._proc.poll() is not None:
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "mergesvc.fleet.solve_process"],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=os.environ.copy())
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE)
             self.starts += 1
         return self._proc
 
@@ -53,6 +53,9 @@ class ProcessOptimizer:
                 self._stop()
                 raise SolverError(f"{job.what} optimisation: the solver process failed "
                                   f"({one_line(exc) or type(exc).__name__})") from exc
+            except BaseException:  # a job or reply half through the pipe: never read it later
+                self._stop()
+                raise
             self.jobs += 1
         if not ok:
             raise SolverError(out)
@@ -128,7 +131,11 @@ def main() -> None:
     # can corrupt it
     pipe = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
-    serve(sys.stdin.buffer, pipe)
+    try:
+        serve(sys.stdin.buffer, pipe)
+    except Exception as exc:  # the parent gets EOF (a SolverError); its log gets one line
+        print(f"solver process: {one_line(exc) or type(exc).__name__}", file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":
