@@ -20,7 +20,14 @@ def main() -> None:
 
     endpoint, fleet, period = sys.argv[1], sys.argv[2], float(sys.argv[3])
     selector = keys.status_key(keys.fleet_root(fleet)) + "?poses=false"
-    with zenoh.open(make_zenoh_config(mode="client", connect=[endpoint], scouting=False)) as s:
+    while True:  # the service may not listen yet (or be restarting): the driver kills us
+        try:
+            session = zenoh.open(make_zenoh_config(mode="client", connect=[endpoint],
+                                                   scouting=False))
+            break
+        except zenoh.ZError:
+            time.sleep(period)
+    with session as s:
         while True:
             t, t0 = time.time(), time.monotonic()
             ms = None
