@@ -19,8 +19,12 @@ from mergesvc.errors import MergeError
 from mergesvc.store import CONFLICTS_KEPT
 from mergesvc.wire import decode_message
 
-# the soak's targets on time (status p99 <= 100 ms, others' p99 within 2x during the flood)
-WALL_CLOCK_TARGETS = {"status_p99_le_100ms", "flood_answered_bounded_others_p99_le_2x"}
+# targets a 10-s soak on a loaded test machine cannot judge: the timings (status p99 <= 100 ms,
+# others' p99 within 2x during the flood), judged in the long soak, and the RSS growth (10 s
+# measure the service's warm-up, not a leak)
+NOT_IN_TESTS = {"status_p99_le_100ms", "flood_answered_bounded_others_p99_le_2x",
+                "rss_growth_under_100mb"}
+
 
 def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path) -> None:
     out = tmp_path / "soak.json"
@@ -30,10 +34,9 @@ def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path
     )
     assert out.exists(), run.stdout[-3000:] + run.stderr[-3000:]
     rep = json.loads(out.read_text())
-    # every target met but the wall-clock ones, which a loaded test machine may miss (the
-    # command's exit code says whether all were met)
+    # every target met but those a test cannot judge (the exit code says whether all were met)
     missed = {k for k, ok in rep["targets"].items() if not ok}
-    assert missed <= WALL_CLOCK_TARGETS, run.stdout[-3000:] + run.stderr[-3000:]
+    assert missed <= NOT_IN_TESTS, run.stdout[-3000:] + run.stderr[-3000:]
     assert run.returncode == (1 if missed else 0), run.stdout[-3000:] + run.stderr[-3000:]
     v = rep["valid"]
     assert v["sent"] > 20
@@ -66,10 +69,7 @@ def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path
     # status answered throughout, and after the restart (its cold solve)
     assert rep["status_ms"]["n"] >= 5 and rep["status_ms"]["after_restart_n"] >= 1
     assert "status round trip (probe process): p50" in run.stdout
-    targets = dict(rep["targets"])
-    targets.pop("rss_growth_under_100mb")  # 10 s measure the service's warm-up, not a leak
-    targets.pop("status_p99_le_100ms")  # a timing: judged in the long soak, never in a test
-    assert all(targets.values()), targets
+    assert set(rep["targets"]) > NOT_IN_TESTS, rep["targets"]
     assert out.with_suffix(".png").stat().st_size > 0
 
 

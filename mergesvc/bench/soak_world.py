@@ -89,7 +89,8 @@ class SoakPlan:
         return cls(robots=3, duration_s=10.0, hostile_fraction=0.2, mismatch_robots=1,
                    restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=0.5,
                    drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
-                   area_m=80.0, flood_variants=60, flood_window_s=3.0, disk_full_at=0.0)
+                   area_m=80.0, flood_variants=60, flood_at=0.1, flood_window_s=3.0,
+                   disk_full_at=0.0)
 
     def check(self) -> None:
         """InputError on a plan that cannot run or would break the service's limits."""
