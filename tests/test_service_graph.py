@@ -9,13 +9,15 @@ from helpers import cost_stream, free_port, zenoh_config
 from mergesvc.core.calibration import CalibrationConfig
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.poses import pose_error
-from mergesvc.fleet.config import LIVE_KEYFRAMES, ServiceConfig
+from mergesvc.fleet.config import LIVE_KEYFRAMES, ServiceConfig, odometry_group
 from mergesvc.fleet.service import MergeService
 
 
 def test_default_graph_settings() -> None:
     assert ServiceConfig().graph == GraphConfig(max_live_nodes=LIVE_KEYFRAMES,
-                                                calibration=CalibrationConfig())
+                                                calibration=CalibrationConfig(),
+                                                rigid_chains=odometry_group(""))
+    assert GraphConfig().rigid_chains is None  # rule 7 opt-in in PoseGraph
     assert ServiceConfig().graph.calibration.enabled  # odometry calibrated from residuals
     assert not GraphConfig().calibration.enabled  # opt-in in PoseGraph
     assert LIVE_KEYFRAMES >= 500  # the merge benchmarks never freeze (under 250 keyframes)
@@ -93,7 +95,7 @@ def test_a_bounded_service_freezes_old_keyframes_and_restarts_the_same(
             sizes.append(len(job.initial_keys))
         return run_job(job)
 
-    monkeypatch.setattr(service_module, "optimizer", lambda in_child: recording)
+    monkeypatch.setattr(service_module, "optimizer", lambda in_child, timeout_s: recording)
     cap = 30
     subs = cost_stream(150, seed=0, robots=4)
 

@@ -129,3 +129,92 @@ def test_status_answers_while_a_large_solve_runs() -> None:
         assert during[0] >= 10, during
     finally:
         svc.close()
+
+
+class _StopError(Exception):
+    pass
+
+
+def gnc_job(n: int) -> SolveJob:
+    """The GNC job of hard_graph(n, n), not solved here (n = 100: ~4 s of GNC at no load)."""
+    g = hard_graph(n, n)
+    got: list[SolveJob] = []
+
+    def rec(job: SolveJob) -> SolveResult:
+        if job.gnc_known is not None:
+            got.append(job)
+            raise _StopError
+        return run_job(job)
+
+    g.optimizer = rec
+    with pytest.raises(_StopError):
+        g.optimize(marginals=False)
+    return got[0]
+
+
+def test_a_child_that_does_not_answer_in_time_is_stopped_and_the_next_job_starts_another(
+) -> None:
+    """A GNC job that takes seconds, given a timeout far below that: SolverError that says
+    so, the child killed (not left solving); the next job, with time enough, answers."""
+    slow = gnc_job(100)
+    small = hard_graph(6, 1)
+    small_jobs = recorded(small)
+    small.optimize(marginals=False)
+    child = ProcessOptimizer()
+    try:
+        child(small_jobs[0])  # the child started and warm
+        first = child._proc
+        assert first is not None
+        with pytest.raises(SolverError, match="no answer from the solver process within"):
+            child(slow, timeout_s=0.05)
+        assert first.poll() is not None  # killed, not solving on
+        assert child(small_jobs[0], timeout_s=60.0).poses.shape[1:] == (4, 4)
+        assert child.starts == 2
+    finally:
+        child.close()
+
+
+def test_the_child_dies_with_its_parent(tmp_path) -> None:
+    """A parent process whose solver child is in the middle of a seconds-long GNC job is killed
+    with SIGKILL (as `bench soak` kills the service): the child is gone within 2 s, not
+    solving on to the end of the job (Linux: PR_SET_PDEATHSIG)."""
+    import os
+    import pickle
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    job_file = tmp_path / "job.pickle"
+    job_file.write_bytes(pickle.dumps(gnc_job(100)))
+    code = (
+        "import pickle, sys\n"
+        "from mergesvc.fleet.solve_process import ProcessOptimizer\n"
+        "p = ProcessOptimizer()\n"
+        "p._child()\n"
+        "print(p._proc.pid, flush=True)\n"
+        f"p(pickle.loads(open({str(job_file)!r}, 'rb').read()))\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        child_pid = int(parent.stdout.readline())
+        time.sleep(0.5)  # the job is in the child, solving
+        os.kill(child_pid, 0)  # alive
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        gone = time.monotonic() + 2.0
+        while time.monotonic() < gone:
+            try:
+                with open(f"/proc/{child_pid}/stat") as fh:
+                    if fh.read().split(") ")[1].startswith("Z"):  # dead, not yet reaped
+                        break
+            except (FileNotFoundError, ProcessLookupError):
+                break
+            time.sleep(0.05)
+        else:
+            os.kill(child_pid, signal.SIGKILL)
+            pytest.fail("the solver child outlived its parent by 2 s")
+    finally:
+        if parent.poll() is None:
+            parent.kill()

@@ -263,6 +263,17 @@ class GraphConfig(BaseModel):
         "show (core/calibration.py: variance-component estimation after each solve); off by "
         "default in PoseGraph",
     )
+    rigid_chains: str | None = Field(
+        None, description="the group prefix of chain factors (a robot's odometry): a chain "
+        "whose odometry's shape its other factors do not contradict is solved held to that "
+        "shape (core/rigid.py: a likelihood-ratio test); None: never")
+    rigid_probability: float = Field(
+        0.99, gt=0, lt=1, description="a chain is bent only where that lowers its factors' "
+        "summed squared whitened residuals by more than this chi-square quantile of the "
+        "freedom bending adds")
+    rigid_shrink: float = Field(
+        1e-4, gt=0.0, le=1.0, description="a rigid chain's factors' covariances are "
+        "multiplied by this in its final solve")
     fold_drift: float = Field(
         0.5, gt=0,
         description="fold only where the odometry between the two factors' ends is known this "

@@ -39,6 +39,7 @@ from mergesvc.core.graph_job import Optimizer, SolveJob, build, pose_arrays, run
 from mergesvc.core.graph_start import initial_poses
 from mergesvc.core.model import Factor, FactorStatus
 from mergesvc.core.poses import as_pose3, check_covariance, pose3_from_model
+from mergesvc.core.rigid import RigidTest, chain_shape, chains, rigid_test
 from mergesvc.errors import InputError, SolverError, one_line
 
 log = logging.getLogger(__name__)
@@ -60,6 +61,7 @@ class GraphSolution:
     errors: 0.5 * squared Mahalanobis residual of each factor solved at the final estimate
     (not the settled factors between two frozen nodes, rule 6, which are not solved).
     frozen_nodes: how many nodes are fixed at the poses of an earlier solve (rule 6).
+    rigid_tests: each odometry chain's rigid-before-bent test (core/rigid.py), when on.
     folded: folded factor -> its representative (rule 5), in the anchor's component.
     gnc_ran: some factor was judged (not all known inliers); gnc_skipped: judged by the
     least-squares gate alone (every factor within the TLS threshold: GNC not iterated).
@@ -79,6 +81,7 @@ class GraphSolution:
     gnc_skipped: bool = False
     marginals_error: str | None = None
     frozen_nodes: int = 0
+    rigid_tests: tuple[RigidTest, ...] = ()
 
     @property
     def disconnected_frames(self) -> list[str]:
@@ -611,6 +614,12 @@ class PoseGraph:
             self._calibrate(final, estimate, [None] * m + [
                 facs[i].group for i in range(len(facs)) if i not in rejected])
 
+        tests: list[RigidTest] = []
+        if cfg.rigid_chains is not None:
+            estimate, rigid_graph, tests = self._keep_rigid(job, estimate, facs, rejected,
+                                                            frozen)
+            final = rigid_graph or final
+
         def with_folded(fid: str) -> list[str]:  # a factor, then those folded into it
             return [fid, *deps.get(fid, ())]
 
@@ -647,6 +656,7 @@ class PoseGraph:
             folded={d: fid for fid in every_v for d in deps.get(fid, ())},
             marginals_error=marg_err,
             frozen_nodes=len(comp) - len(live),
+            rigid_tests=tuple(tests),
         )
         if cfg.max_live_nodes > 0:  # rule 6
             sealed_now = self._freezing.update(
@@ -658,6 +668,59 @@ class PoseGraph:
                 if f.factor_id not in deps:  # never solved again: its ends are enough
                     self._factors[f.factor_id] = f.sealed()
         return sol
+
+    def _keep_rigid(self, job: SolveJob, estimate: gtsam.Values, facs: list[GraphFactor],
+                    rejected: set[int], frozen: dict[str, gtsam.Pose3]
+                    ) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph | None,
+                               list[RigidTest]]:
+        """Rigid before bent (core/rigid.py, rule 7): each chain without frozen nodes tested
+        against the solution; those kept rigid solved again, together, held to their odometry's
+        shape (their chain factors' covariances shrunk). Returns the estimate, the graph solved
+        (None: nothing was kept rigid) and each chain's test."""
+        cfg = self.config
+        prefix = cfg.rigid_chains or ""
+
+        def is_chain(g: str | None) -> bool:
+            return g is not None and g.startswith(prefix)
+
+        kept = [f for i, f in enumerate(facs) if i not in rejected]
+        solved = {f.factor_id: (gtsam.Pose3(job.between_poses[i]), job.between_covs[i])
+                  for i, f in enumerate(facs) if i not in rejected}
+
+        def measured(f: GraphFactor) -> tuple[gtsam.Pose3, np.ndarray]:
+            return solved[f.factor_id]
+
+        placed = {n: frozen[n] if n in frozen else estimate.atPose3(self.key(n))
+                  for f in kept for n in (f.frame_a, f.frame_b)}
+        rigid: set[str] = set()
+        tests = []
+        for chain in chains(kept, is_chain):
+            if any(n in frozen for n in chain):
+                continue
+            t = rigid_test(chain_shape(chain, kept, measured, is_chain), kept, measured,
+                           placed, cfg.rigid_probability)
+            log.debug("chain of %s (%d nodes, %d factors out): rigid %.1f, bent %.1f: %s",
+                      chain[0], t.nodes, t.factors, t.rigid_cost, t.bent_cost,
+                      "rigid" if t.rigid else "bent")
+            tests.append(t)
+            if t.rigid:
+                rigid.update(chain)
+        if not rigid:
+            return estimate, None, tests
+        inside = self._chain_keys(kept, rigid, is_chain)
+        covs = job.between_covs.copy()
+        for i, (a, b) in enumerate(job.between_keys):
+            if i not in rejected and (int(a), int(b)) in inside:
+                covs[i] = covs[i] * cfg.rigid_shrink
+        held = replace(job, between_covs=covs).without(
+            sorted(rejected), "pose-graph (rigid chains)").with_initial(estimate)
+        return self.optimizer(held).values(), build(held)[0], tests
+
+    def _chain_keys(self, facs: list[GraphFactor], nodes: set[str],
+                    is_chain: Callable[[str | None], bool]) -> set[tuple[int, int]]:
+        """The (key a, key b) of the chain factors with both ends in `nodes`."""
+        return {(self.key(f.frame_a), self.key(f.frame_b)) for f in facs
+                if is_chain(f.group) and f.frame_a in nodes and f.frame_b in nodes}
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:

@@ -67,6 +67,11 @@ class ServiceConfig(BaseModel):
         True, description="run the pose graph's optimisations in a child process (GTSAM "
         "holds the GIL through a solve: in-process, queries and ingress would wait on it)",
     )
+    solve_timeout_s: float | None = Field(
+        900.0, gt=0.0, description="a solve in the child process that has not answered after "
+        "this long is stopped and fails (retried after the solve backoff; the status says "
+        "so); None: no limit. In-process solves (solve_in_child false) cannot be stopped",
+    )
     embedding_dim: int | None = Field(
         None, ge=1, le=4096, description="the only embedding dimension this fleet takes "
         "(submaps of another are refused, error code embedding_dim); None: see embedding_dims",
@@ -144,7 +149,8 @@ class ServiceConfig(BaseModel):
         "small pool, and a wrong factor costs more than a late one)",
     )
     graph: GraphConfig = Field(
-        GraphConfig(max_live_nodes=LIVE_KEYFRAMES, calibration=CalibrationConfig()),
+        GraphConfig(max_live_nodes=LIVE_KEYFRAMES, calibration=CalibrationConfig(),
+                    rigid_chains=odometry_group("")),
         description="the GNC pose graph over the sessions' keyframes (outlier thresholds; "
         f"max_live_nodes, {LIVE_KEYFRAMES} here: past that many keyframes the oldest freeze at "
         "their solved poses, core/graph.py rule 6, so a long mission's solve stays the same "

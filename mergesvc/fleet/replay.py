@@ -56,25 +56,42 @@ class FactorTolerance:
 
 def _deliver_in_order(subs: list[Submap]) -> tuple[list[Submap], dict[str, Any]]:
     order = sorted(subs, key=lambda s: (s.stamp or 0.0, s.robot_id))
-    return order, {"offered": len(subs), "delivered": len(subs), "lost": 0,
+    return order, {"offered": len(subs), "delivered": len(subs), "lost": 0, "odometry_rebased": 0,
                    "out_of_order": 0, "latency_p50_s": 0.0, "latency_max_s": 0.0}
 
 
 def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projection,
-                      profile: Profile, seed: int) -> tuple[list[Submap], dict[str, Any]]:
+                      profile: Profile, seed: int,
+                      rebase: Callable[[Submap, int], Submap] | None = None
+                      ) -> tuple[list[Submap], dict[str, Any]]:
     """Each submap offered at its stamp from its vehicle to the topside; delivered ones come
-    back decoded, in arrival order."""
+    back decoded, in arrival order. With `rebase`, a vehicle sends each submap's odometry from
+    its last keyframe it knows arrived (a delivery is known one TDMA cycle later, when the
+    topside's slot has acked it; keyframe 0, the session origin, before any): a lost submap then
+    leaves no gap in its odometry chain (`rebase(submap, from_keyframe)` re-cuts the odometry)."""
     robots = sorted({s.robot_id for s in subs})
     cfg = link.model_copy(deep=True)
     cfg.tdma.slot_order = [TOPSIDE, *robots]
     got: list[Delivery] = []
     sim = LinkSimulator(cfg, rng=np.random.default_rng([seed, 17]), on_deliver=got.append)
+    step_s = cfg.tdma.slot_s * len(cfg.tdma.slot_order)
+    keyframe_of: dict[int, tuple[str, int]] = {}  # handle -> (robot, keyframe)
+    rebased = 0
     for s in sorted(subs, key=lambda s: s.stamp or 0.0):
+        at = float(s.stamp or 0.0)
+        sim.run_until(at)
+        if rebase is not None and s.odometry is not None:
+            known = [keyframe_of[d.handle][1] for d in got
+                     if keyframe_of[d.handle][0] == s.robot_id and d.delivered_s + step_s <= at]
+            base = max(known, default=0)
+            if base < s.odometry.from_keyframe:
+                s = rebase(s, base)
+                rebased += 1
         payload = encode_message(s, profile, s.robot_id, s.seq or 0, projection=projection)
-        sim.offer(s.robot_id, TOPSIDE, payload, at_s=float(s.stamp or 0.0))
+        keyframe_of[sim.offer(s.robot_id, TOPSIDE, payload, at_s=at)] = (
+            s.robot_id, s.keyframe if s.keyframe is not None else -1)
     end = max((s.stamp or 0.0) for s in subs) if subs else 0.0
     sim.run_until(end)
-    step_s = cfg.tdma.slot_s * len(cfg.tdma.slot_order)
     while sim.pending() and sim.now_s < end + cfg.arq.message_timeout_s + step_s:
         sim.run_until(sim.now_s + step_s)
     out: list[Submap] = []
@@ -91,7 +108,7 @@ def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projecti
         out.append(sub)
     lat = [d.latency_s for d in got]
     return out, {"offered": len(subs), "delivered": len(out), "lost": len(subs) - len(out),
-                 "out_of_order": out_of_order,
+                 "out_of_order": out_of_order, "odometry_rebased": rebased,
                  "latency_p50_s": float(np.median(lat)) if lat else float("nan"),
                  "latency_max_s": float(max(lat)) if lat else float("nan")}
 
@@ -124,7 +141,10 @@ def replay_world(
     else:
         if projection is None:
             raise MergeError("the acoustic link needs the fleet projection")
-        order, delivery = _deliver_acoustic(subs, link, projection, profile, seed)
+        order, delivery = _deliver_acoustic(
+            subs, link, projection, profile, seed,
+            lambda sub, k: sub.model_copy(update={
+                "odometry": local[sub.robot_id].odometry(k, sub.keyframe)}))
     svc = MergeService(service.model_copy(update={"store": ":memory:"}), session=None)
     try:
         for s in order:

@@ -74,7 +74,7 @@ class MergeService:
         memory = config.store == ":memory:" or config.store.startswith("file::memory:")
         self.acks = AckLedger(None if memory else config.store + ".acks")
         self.graph = PoseGraph(config=config.graph)
-        self.graph.optimizer = optimizer(config.solve_in_child)
+        self.graph.optimizer = optimizer(config.solve_in_child, config.solve_timeout_s)
         if config.solve_inflation != 1.0:
             self.graph.set_noise_scale(CLOSURE_GROUP, config.solve_inflation ** 0.5)
         self.sessions = Sessions(config.min_map_objects)

@@ -3,9 +3,11 @@ threads (queries, ingress, acks) go on while GTSAM, which holds the GIL through 
 solves. One child per service process, started at the first job (`python -m
 mergesvc.fleet.solve_process`, its stdin and stdout a pipe of pickled jobs and results; its
 stderr the parent's), shared by every graph of the process one job at a time. The caller's
-thread waits on the pipe without the GIL. A child that dies fails its job with SolverError (the
-solve's backoff retries it) and the next job starts a new one; the arrays are the same, so is
-the answer.
+thread waits on the pipe without the GIL. A child that dies, or does not answer within the
+job's timeout (then it is killed), fails its job with SolverError (the solve's backoff retries
+it) and the next job starts a new one; the arrays are the same, so is the answer. On Linux the
+child dies with its parent (a parent killed with SIGKILL leaves no solver running), and it
+hands its heap's free pages back after each job.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import atexit
 import functools
 import os
 import pickle
+import select
+import signal
 import subprocess
 import sys
 import threading
@@ -41,13 +45,20 @@ class ProcessOptimizer:
             self.starts += 1
         return self._proc
 
-    def __call__(self, job: SolveJob) -> SolveResult:
+    def __call__(self, job: SolveJob, timeout_s: float | None = None) -> SolveResult:
+        """The job's result from the child; SolverError when it fails, dies, or has not
+        answered after `timeout_s` (None: waits as long as it takes)."""
         with self._lock:
             proc = self._child()
             assert proc.stdin is not None and proc.stdout is not None
             try:
                 pickle.dump(job, proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
                 proc.stdin.flush()
+                if timeout_s is not None and not select.select([proc.stdout], [], [],
+                                                               timeout_s)[0]:
+                    self._stop()
+                    raise SolverError(f"{job.what} optimisation: no answer from the solver "
+                                      f"process within {timeout_s:g} s (stopped)")
                 ok, out = pickle.load(proc.stdout)
             except (OSError, EOFError, pickle.UnpicklingError) as exc:
                 self._stop()
@@ -86,9 +97,25 @@ def shared_optimizer() -> ProcessOptimizer:
         return _shared
 
 
-def optimizer(in_child: bool) -> Optimizer:
-    """The process's solver child (`in_child`), or GTSAM in the calling thread."""
-    return shared_optimizer() if in_child else run_job
+def optimizer(in_child: bool, timeout_s: float | None = None) -> Optimizer:
+    """The process's solver child (`in_child`, each job given `timeout_s`), or GTSAM in the
+    calling thread (no timeout: a thread cannot be stopped)."""
+    if not in_child:
+        return run_job
+    return functools.partial(shared_optimizer().__call__, timeout_s=timeout_s)
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this process when its parent dies (prctl PR_SET_PDEATHSIG); elsewhere
+    nothing (the child still ends at its next read, on the closed pipe)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() == 1:  # the parent died before the call: nobody will read the answers
+        sys.exit(0)
 
 
 @functools.cache
@@ -124,11 +151,14 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             reply = (False, str(exc))
         pickle.dump(reply, out, protocol=pickle.HIGHEST_PROTOCOL)
         out.flush()
+        del job, reply
+        trim_heap()
 
 
 def main() -> None:
     # the pipe is a private copy of fd 1; fd 1 itself goes to stderr, so nothing GTSAM prints
     # can corrupt it
+    _die_with_parent()
     pipe = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     try:
