@@ -180,3 +180,28 @@ def test_off_by_default_and_the_bend_stands() -> None:
     sol = pg.optimize()
     assert sol.rigid_tests == ()
     assert _shape_error(sol, "b", _odometry_poses(pg, "b")) > 1e-3
+
+
+def test_the_marginals_are_those_of_the_bendable_graph() -> None:
+    """A rigid chain's nodes keep the covariance the odometry and closures give them (not the
+    shrunk odometry's, which would claim millimetres after 29 steps of 2 cm)."""
+    pg, _ = _world(0, 0.0)
+    sol = pg.optimize()
+    assert all(t.rigid for t in sol.rigid_tests)
+    off, _ = _world(0, 0.0)
+    off.config = off.config.model_copy(update={"rigid_chains": None})
+    ref = off.optimize()
+    for n in ("a#29", "b#15", "c#29"):
+        ratio = np.trace(sol.covariance_66[n][3:, 3:]) / np.trace(ref.covariance_66[n][3:, 3:])
+        assert 0.9 < ratio < 1.1, (n, ratio)
+
+
+def test_only_chain_factors_are_held() -> None:
+    """A closure parallel to a rigid chain's odometry edge (same ends, same direction, 4 cm
+    off, the odometry's covariance) is not held with the chain: the chain keeps its shape."""
+    pg, _ = _world(0, 0.0)
+    T = pg._factors["a3"].T_a_b.compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.04, 0, 0])))
+    pg.add_factor("extra", "a#3", "a#4", T, pg._factors["a3"].covariance_66)
+    sol = pg.optimize()
+    assert all(t.rigid for t in sol.rigid_tests)
+    assert _shape_error(sol, "a", _odometry_poses(pg, "a")) < 1e-3

@@ -185,15 +185,19 @@ def test_the_child_dies_with_its_parent(tmp_path) -> None:
     import sys
     import time
 
+    small = hard_graph(6, 1)
+    small_jobs = recorded(small)
+    small.optimize(marginals=False)
     job_file = tmp_path / "job.pickle"
-    job_file.write_bytes(pickle.dumps(gnc_job(100)))
+    job_file.write_bytes(pickle.dumps((small_jobs[0], gnc_job(100))))
     code = (
         "import pickle, sys\n"
         "from mergesvc.fleet.solve_process import ProcessOptimizer\n"
+        f"small, slow = pickle.loads(open({str(job_file)!r}, 'rb').read())\n"
         "p = ProcessOptimizer()\n"
-        "p._child()\n"
+        "p(small)\n"  # the child is up (and has asked to die with its parent)
         "print(p._proc.pid, flush=True)\n"
-        f"p(pickle.loads(open({str(job_file)!r}, 'rb').read()))\n"
+        "p(slow)\n"
     )
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
@@ -218,3 +222,27 @@ def test_the_child_dies_with_its_parent(tmp_path) -> None:
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_the_child_outlives_the_thread_that_started_it() -> None:
+    """The parent-death signal follows the thread that started the child: children are
+    started from one thread that lives as long as the process, so a service's worker thread
+    that ends (a closed service) does not take the process's solver child with it."""
+    import time
+
+    small = hard_graph(6, 1)
+    small_jobs = recorded(small)
+    small.optimize(marginals=False)
+    child = ProcessOptimizer()
+    try:
+        th = threading.Thread(target=child, args=(small_jobs[0],))
+        th.start()
+        th.join(60.0)
+        proc = child._proc
+        assert proc is not None and child.jobs == 1
+        time.sleep(0.5)
+        assert proc.poll() is None  # alive after its first job's thread ended
+        child(small_jobs[0])
+        assert child.starts == 1
+    finally:
+        child.close()

@@ -615,10 +615,8 @@ class PoseGraph:
                 facs[i].group for i in range(len(facs)) if i not in rejected])
 
         tests: list[RigidTest] = []
-        if cfg.rigid_chains is not None:
-            estimate, rigid_graph, tests = self._keep_rigid(job, estimate, facs, rejected,
-                                                            frozen)
-            final = rigid_graph or final
+        if cfg.rigid_chains is not None:  # (the marginals stay those of the bendable graph)
+            estimate, tests = self._keep_rigid(job, estimate, facs, rejected, frozen)
 
         def with_folded(fid: str) -> list[str]:  # a factor, then those folded into it
             return [fid, *deps.get(fid, ())]
@@ -671,12 +669,11 @@ class PoseGraph:
 
     def _keep_rigid(self, job: SolveJob, estimate: gtsam.Values, facs: list[GraphFactor],
                     rejected: set[int], frozen: dict[str, gtsam.Pose3]
-                    ) -> tuple[gtsam.Values, gtsam.NonlinearFactorGraph | None,
-                               list[RigidTest]]:
+                    ) -> tuple[gtsam.Values, list[RigidTest]]:
         """Rigid before bent (core/rigid.py, rule 7): each chain without frozen nodes tested
         against the solution; those kept rigid solved again, together, held to their odometry's
-        shape (their chain factors' covariances shrunk). Returns the estimate, the graph solved
-        (None: nothing was kept rigid) and each chain's test."""
+        shape (their chain factors' covariances shrunk). Returns the estimate and each chain's
+        test."""
         cfg = self.config
         prefix = cfg.rigid_chains or ""
 
@@ -706,21 +703,14 @@ class PoseGraph:
             if t.rigid:
                 rigid.update(chain)
         if not rigid:
-            return estimate, None, tests
-        inside = self._chain_keys(kept, rigid, is_chain)
+            return estimate, tests
         covs = job.between_covs.copy()
-        for i, (a, b) in enumerate(job.between_keys):
-            if i not in rejected and (int(a), int(b)) in inside:
+        for i, f in enumerate(facs):
+            if is_chain(f.group) and f.frame_a in rigid and f.frame_b in rigid:
                 covs[i] = covs[i] * cfg.rigid_shrink
         held = replace(job, between_covs=covs).without(
             sorted(rejected), "pose-graph (rigid chains)").with_initial(estimate)
-        return self.optimizer(held).values(), build(held)[0], tests
-
-    def _chain_keys(self, facs: list[GraphFactor], nodes: set[str],
-                    is_chain: Callable[[str | None], bool]) -> set[tuple[int, int]]:
-        """The (key a, key b) of the chain factors with both ends in `nodes`."""
-        return {(self.key(f.frame_a), self.key(f.frame_b)) for f in facs
-                if is_chain(f.group) and f.frame_a in nodes and f.frame_b in nodes}
+        return self.optimizer(held).values(), tests
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:

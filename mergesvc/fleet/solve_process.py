@@ -13,9 +13,11 @@ hands its heap's free pages back after each job.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import functools
 import os
 import pickle
+import queue
 import select
 import signal
 import subprocess
@@ -39,9 +41,9 @@ class ProcessOptimizer:
 
     def _child(self) -> subprocess.Popen[bytes]:
         if self._proc is None or self._proc.poll() is not None:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "mergesvc.fleet.solve_process"],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+            self._stop()
+            self._proc = _spawn([sys.executable, "-m", "mergesvc.fleet.solve_process",
+                                 str(os.getpid())])
             self.starts += 1
         return self._proc
 
@@ -74,13 +76,56 @@ class ProcessOptimizer:
 
     def _stop(self) -> None:
         proc, self._proc = self._proc, None
-        if proc is not None and proc.poll() is None:
+        if proc is None:
+            return
+        if proc.poll() is None:
             proc.kill()
             proc.wait()
+        for pipe in (proc.stdin, proc.stdout):
+            if pipe is not None:
+                with contextlib.suppress(OSError):
+                    pipe.close()
 
     def close(self) -> None:
         with self._lock:
             self._stop()
+
+
+class _Spawner:
+    """One thread that lives as long as the process and starts every solver child: Linux's
+    parent-death signal fires when the thread that started a child ends, not its process, and
+    the threads that solve (a service's worker) come and go."""
+
+    def __init__(self) -> None:
+        self._jobs: queue.Queue[tuple[list[str], list[Any], threading.Event]] = queue.Queue()
+        threading.Thread(target=self._run, name="mergesvc-solver-spawner", daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            argv, box, done = self._jobs.get()
+            try:
+                box.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE))
+            except BaseException as exc:  # handed to the caller's thread, raised there
+                box.append(exc)
+            done.set()
+
+    def popen(self, argv: list[str]) -> subprocess.Popen[bytes]:
+        box: list[Any] = []
+        done = threading.Event()
+        self._jobs.put((argv, box, done))
+        done.wait()
+        if isinstance(box[0], BaseException):
+            raise box[0]
+        return box[0]  # type: ignore[no-any-return]
+
+
+@functools.cache
+def _spawner() -> _Spawner:
+    return _Spawner()
+
+
+def _spawn(argv: list[str]) -> subprocess.Popen[bytes]:
+    return _spawner().popen(argv)
 
 
 _shared: ProcessOptimizer | None = None
@@ -105,16 +150,17 @@ def optimizer(in_child: bool, timeout_s: float | None = None) -> Optimizer:
     return functools.partial(shared_optimizer().__call__, timeout_s=timeout_s)
 
 
-def _die_with_parent() -> None:
-    """Linux: SIGKILL this process when its parent dies (prctl PR_SET_PDEATHSIG); elsewhere
-    nothing (the child still ends at its next read, on the closed pipe)."""
+def _die_with_parent(parent: int | None) -> None:
+    """Linux: SIGKILL this process when the thread that started it ends (prctl
+    PR_SET_PDEATHSIG; the parent starts it from a thread that lives as long as the process);
+    elsewhere nothing (the child still ends at its next read, on the closed pipe)."""
     try:
         import ctypes
 
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
     except (OSError, AttributeError):
         return
-    if os.getppid() == 1:  # the parent died before the call: nobody will read the answers
+    if parent is not None and os.getppid() != parent:  # it died before the call
         sys.exit(0)
 
 
@@ -158,7 +204,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
 def main() -> None:
     # the pipe is a private copy of fd 1; fd 1 itself goes to stderr, so nothing GTSAM prints
     # can corrupt it
-    _die_with_parent()
+    _die_with_parent(int(sys.argv[1]) if len(sys.argv) > 1 else None)
     pipe = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     try:
