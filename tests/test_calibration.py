@@ -239,3 +239,27 @@ def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> No
     close(25, 60)  # 185: more than a quarter over the 145 of the last calibration
     pg.optimize(marginals=False)
     assert len(calls) == 2 and calls[1] >= 1.25 * calls[0]
+
+
+def test_scaling_a_covariance_against_its_definition() -> None:
+    """scale_covariance(s) against M C M^T with M = L^-1 diag(s) L (L from `decorrelation`),
+    for covariances with and without rotation-translation cross terms, one by one and
+    stacked; a scale of ones changes nothing."""
+    from mergesvc.core.calibration import decorrelation, scale_covariance, scale_covariances
+
+    rng = np.random.default_rng(5)
+    Cs = []
+    for k in range(6):
+        A = rng.normal(size=(6, 6))
+        C = A @ A.T + 0.1 * np.eye(6)
+        if k % 2:
+            C[3:, :3] = C[:3, 3:] = 0.0
+        Cs.append(C)
+    s = np.array([0.5, 2.0, 1.3, 0.7, 1.0, 3.0])
+    for C in Cs:
+        L = decorrelation(C)
+        M = np.linalg.inv(L) @ np.diag(s) @ L
+        np.testing.assert_allclose(scale_covariance(C, s), M @ C @ M.T, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(scale_covariance(C, np.ones(6)), C, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(scale_covariances(np.stack(Cs), s),
+                               np.stack([scale_covariance(C, s) for C in Cs]), rtol=1e-12)

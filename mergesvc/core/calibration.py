@@ -88,14 +88,12 @@ def scale_covariance(C: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
     """C scaled per axis in the decorrelated coordinates (`decorrelation`): rotation errors by
     s[:3], and with them the position error they cause; the rest of the translation error by
     s[3:]. M C M^T with M = L^-1 diag(s) L."""
-    L = decorrelation(C)
-    M = np.linalg.solve(L, np.asarray(sigma_scale)[:, None] * L)
-    out = M @ C @ M.T
-    return 0.5 * (out + out.T)
+    return scale_covariances(np.asarray(C, dtype=np.float64)[None], sigma_scale)[0]
 
 
 def scale_covariances(Cs: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
-    """`scale_covariance` of a stack (n, 6, 6) of covariances by one scale, at once."""
+    """`scale_covariance` of a stack (n, 6, 6) of covariances by one scale, at once (L as
+    `decorrelation` builds it, for each)."""
     Cs = np.asarray(Cs, dtype=np.float64).reshape(-1, 6, 6)
     L = np.broadcast_to(np.eye(6), Cs.shape).copy()
     cross = np.any(Cs[:, 3:, :3] != 0, axis=(1, 2))
