@@ -694,8 +694,13 @@ class PoseGraph:
         for chain in chains(kept, is_chain):
             if any(n in frozen for n in chain):
                 continue
-            t = rigid_test(chain_shape(chain, kept, measured, is_chain), kept, measured,
-                           placed, cfg.rigid_probability)
+            try:
+                t = rigid_test(chain_shape(chain, kept, measured, is_chain), kept, measured,
+                               placed, cfg.rigid_probability)
+            except (SolverError, RuntimeError) as exc:  # the chain is solved as it bent
+                log.warning("rigid test of the chain of %s failed, left bent: %s", chain[0],
+                            one_line(exc))
+                continue
             log.debug("chain of %s (%d nodes, %d factors out): rigid %.1f, bent %.1f: %s",
                       chain[0], t.nodes, t.factors, t.rigid_cost, t.bent_cost,
                       "rigid" if t.rigid else "bent")
@@ -710,7 +715,12 @@ class PoseGraph:
                 covs[i] = covs[i] * cfg.rigid_shrink
         held = replace(job, between_covs=covs).without(
             sorted(rejected), "pose-graph (rigid chains)").with_initial(estimate)
-        return self.optimizer(held).values(), tests
+        try:
+            return self.optimizer(held).values(), tests
+        except SolverError as exc:  # the bent solution stands: rule 7 is not worth a solve
+            log.warning("solve with the rigid chains failed, the bent solution kept: %s",
+                        one_line(exc))
+            return estimate, [replace(t, rigid=False) for t in tests]
 
     def _initial_values(self, anchor: str, seeds: dict[str, gtsam.Pose3], live: list[str],
                         facs: list[GraphFactor]) -> gtsam.Values:
