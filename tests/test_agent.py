@@ -78,6 +78,33 @@ def test_submaps_are_anchored_at_their_keyframe(world, frames, robot) -> None:
     assert np.median(err_key) <= np.median(err_session) + 0.05
 
 
+def test_a_lost_submaps_odometry_is_bridged(frames) -> None:
+    """Once a submap is known lost (`LocalMap.lost`: refused for good, failed) the next
+    submap's odometry starts from the keyframe before it: the raw odometry between the two,
+    its covariance composed over the whole stretch."""
+    fr = frames["auv2"]
+    cfg = AgentConfig(robot="auv2")
+    lm = LocalMap(cfg)
+    cuts = []
+    for f in fr:
+        if lm.add_frame(f):
+            sub = lm.cut_submap(len(cuts), f.stamp_s)
+            if sub is not None:
+                cuts.append(sub)
+                if len(cuts) == 2:
+                    lm.lost.add(sub.keyframe)  # the second submap never arrives
+                if len(cuts) == 3:
+                    break
+    assert len(cuts) == 3
+    odo = cuts[2].odometry
+    assert odo is not None and odo.from_keyframe == cuts[0].keyframe
+    raw = np.linalg.inv(fr[cuts[0].keyframe].T_est) @ fr[cuts[2].keyframe].T_est
+    np.testing.assert_allclose(_pose(odo.T_from_to), raw, atol=1e-6)
+    expected = chain_covariance([f.T_est for f in fr[cuts[0].keyframe:cuts[2].keyframe + 1]],
+                                step_covariance(cfg.odometry_sigma))
+    np.testing.assert_allclose(odo.covariance, expected, rtol=1e-9, atol=1e-15)
+
+
 @pytest.mark.parametrize("robot", ROBOTS)
 def test_odometry_chain_composes_to_the_raw_odometry(frames, robot) -> None:
     fr = frames[robot]
@@ -273,3 +300,13 @@ def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames
         assert ag.stats.bad_messages == 0
         assert ag.stats.results == {"no_match": 2, "processed": 1}
         assert set(ag.local._received) == {f.factor_id for f in factors}
+        # a submap the service will never hold is lost: the next one's odometry bridges it
+        assert ag.stats.submaps_sent == 1 and not ag.local.lost
+        kf = ag._keyframe_of[("s0", 0)]
+        for n, (outcome, code, lost) in enumerate((("refused", "busy", set()),  # sent again
+                                                    ("failed", "processing", {kf}))):
+            rs.put(keys.result_key(root, "auv1"), json.dumps({
+                "robot": "auv1", "session": "s0", "seq": 0, "outcome": outcome,
+                "code": code, "detail": "test"}))
+            assert wait_for(lambda n=n: sum(ag.stats.results.values()) == 4 + n, 10.0)
+            assert ag.local.lost == lost

@@ -61,7 +61,9 @@ class Agent:
     results. A submap refused with a "not now" code (RETRY_CODES: busy, rate_limited, store:
     after a long outage the cache's replay can exceed the service's per-robot burst) is sent
     again after RETRY_BACKOFF_S[attempt] seconds, up to len(RETRY_BACKOFF_S) times; the last
-    `cache_samples` payloads are kept for that."""
+    `cache_samples` payloads are kept for that. A submap the service will never hold (refused
+    for good, failed, given up) is marked lost in the local map: the next submap's odometry
+    starts before it, so the service's chain of this robot stays joined."""
 
     def __init__(
         self,
@@ -93,6 +95,7 @@ class Agent:
         )
         self._sub = session.declare_subscriber(factor_key, self._on_factor)
         self._sent: OrderedDict[tuple[str, int], bytes] = OrderedDict()  # (session, seq)
+        self._keyframe_of: dict[tuple[str, int], int] = {}  # (session, seq) -> its keyframe
         self._keep = cache_samples
         self._attempts: dict[tuple[str, int], int] = {}
         self._timers: set[threading.Timer] = set()
@@ -116,8 +119,18 @@ class Agent:
             res.outcome, f"{res.outcome.value} ({res.code.value if res.code else ''}: "
                          f"{res.detail})")
         log.info("%s: submap %s/%s: %s", self.config.robot, res.session, res.seq, why)
+        key = (res.session or self.config.session, res.seq)
         if res.outcome is Outcome.REFUSED and res.code in RETRY_CODES and res.seq is not None:
-            self._retry((res.session or self.config.session, res.seq))
+            self._retry(key)
+        elif res.outcome in (Outcome.REFUSED, Outcome.FAILED):
+            self._lost(key)
+
+    def _lost(self, key: tuple[str, int | None]) -> None:
+        """A submap the service will never hold: the next submap's odometry bridges it."""
+        with self._lock:
+            k = self._keyframe_of.get(key)  # type: ignore[arg-type]
+            if k is not None and key[0] == self.config.session:
+                self.local.lost.add(k)
 
     def _retry(self, key: tuple[str, int]) -> None:
         """Send a refused submap again after the next backoff (or give it up)."""
@@ -130,6 +143,7 @@ class Agent:
                 self.stats.submaps_given_up += 1
                 log.warning("%s: submap %s/%s refused %d times: given up", self.config.robot,
                             key[0], key[1], attempt)
+                self._lost(key)
                 return
             self._attempts[key] = attempt + 1
             timer = threading.Timer(RETRY_BACKOFF_S[attempt], self._resend, (key, payload))
@@ -195,6 +209,10 @@ class Agent:
             self._sent[(sub.session_id, sub.seq)] = payload
             while len(self._sent) > self._keep:
                 self._sent.popitem(last=False)
+            if sub.keyframe is not None and sub.seq is not None:
+                self._keyframe_of[(sub.session_id, sub.seq)] = sub.keyframe
+                while len(self._keyframe_of) > self._keep:
+                    self._keyframe_of.pop(next(iter(self._keyframe_of)))
         self._pub.put(payload)
         self.stats.submaps_sent += 1
         self.stats.bytes_sent += len(payload)

@@ -98,6 +98,9 @@ class LocalMap:
     up_body: list[np.ndarray | None] = field(default_factory=list)  # AHRS gravity per frame
     stamps_s: list[float] = field(default_factory=list)
     keyframes: list[int] = field(default_factory=list)  # the keyframe of every submap cut
+    # keyframes whose submap the service will never hold (refused for good, failed): the next
+    # submap's odometry starts from the last keyframe before them, so its chain stays joined
+    lost: set[int] = field(default_factory=set)
     _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
 
     def __post_init__(self) -> None:
@@ -160,14 +163,15 @@ class LocalMap:
         The submap's `keyframe` is k, the index of the last frame added: object positions are
         the smoothed (ISAM2) landmark estimates expressed in the smoothed x_k's body frame,
         p_k = T_k^-1 p. Its `odometry` is the vehicle's raw motion since the previous submap's
-        keyframe (keyframe 0, the session origin, for the first submap): see `odometry`."""
+        keyframe not known `lost` (keyframe 0, the session origin, before any): see
+        `odometry`."""
         tracks = [t for t in self.tracker.tracks if t.track_id in self._confirmed]
         if len(tracks) < 2 or self.frames_seen == 0:
             return None
         k = self.frames_seen - 1
         if self.keyframes and k <= self.keyframes[-1]:
             return None  # one submap per keyframe
-        prev = self.keyframes[-1] if self.keyframes else 0
+        prev = next((j for j in reversed(self.keyframes) if j not in self.lost), 0)
         tracks.sort(key=lambda t: t.last_seen_s)
         window = tracks[-self.config.window_objects:]
         est = self.isam.calculateEstimate()
