@@ -16,7 +16,7 @@ from mergesvc.core.graph_job import SolveJob, SolveResult, run_job
 from mergesvc.errors import SolverError
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.service import MergeService
-from mergesvc.fleet.solve_process import ProcessOptimizer, shared_optimizer
+from mergesvc.fleet.solve_process import ProcessOptimizer, TimedOptimizer, shared_optimizer
 
 
 def hard_graph(n: int, closures: int, g: PoseGraph | None = None) -> PoseGraph:
@@ -165,11 +165,16 @@ def test_a_child_that_does_not_answer_in_time_is_stopped_and_the_next_job_starts
         child(small_jobs[0])  # the child started and warm
         first = child._proc
         assert first is not None
-        with pytest.raises(SolverError, match="no answer from the solver process within"):
-            child(slow, timeout_s=0.05)
+        timed = TimedOptimizer(child, 0.05)
+        with pytest.raises(SolverError, match=r"no answer from the solver process within 0\.05 s"):
+            timed(slow)
         assert first.poll() is not None  # killed, not solving on
+        assert timed.timeout_s == 0.1  # the next try waits twice as long
+        with pytest.raises(SolverError, match=r"within 0\.1 s"):
+            timed(slow)
+        assert timed.timeout_s == 0.2
         assert child(small_jobs[0], timeout_s=60.0).poses.shape[1:] == (4, 4)
-        assert child.starts == 2
+        assert child.starts == 3
     finally:
         child.close()
 

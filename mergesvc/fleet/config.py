@@ -69,8 +69,9 @@ class ServiceConfig(BaseModel):
     )
     solve_timeout_s: float | None = Field(
         900.0, gt=0.0, description="a solve in the child process that has not answered after "
-        "this long is stopped and fails (retried after the solve backoff; the status says "
-        "so); None: no limit. In-process solves (solve_in_child false) cannot be stopped",
+        "this long is stopped and fails (retried after the solve backoff, with twice the "
+        "time; the status says so); None: no limit. In-process solves (solve_in_child "
+        "false) cannot be stopped",
     )
     embedding_dim: int | None = Field(
         None, ge=1, le=4096, description="the only embedding dimension this fleet takes "

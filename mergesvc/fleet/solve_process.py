@@ -30,6 +30,10 @@ from mergesvc.core.graph_job import Optimizer, SolveJob, SolveResult, run_job
 from mergesvc.errors import SolverError, one_line
 
 
+class SolverTimeoutError(SolverError):
+    """The solver child did not answer a job in time (it was stopped)."""
+
+
 class ProcessOptimizer:
     """Callable as an `Optimizer`: each job run in the child process."""
 
@@ -59,8 +63,9 @@ class ProcessOptimizer:
                 if timeout_s is not None and not select.select([proc.stdout], [], [],
                                                                timeout_s)[0]:
                     self._stop()
-                    raise SolverError(f"{job.what} optimisation: no answer from the solver "
-                                      f"process within {timeout_s:g} s (stopped)")
+                    raise SolverTimeoutError(
+                        f"{job.what} optimisation: no answer from the solver process within "
+                        f"{timeout_s:g} s (stopped)")
                 ok, out = pickle.load(proc.stdout)
             except (OSError, EOFError, pickle.UnpicklingError) as exc:
                 self._stop()
@@ -142,12 +147,31 @@ def shared_optimizer() -> ProcessOptimizer:
         return _shared
 
 
+class TimedOptimizer:
+    """An `Optimizer`: each job to the process's solver child with a timeout that doubles after
+    each job that ran out of it, so a graph whose solve needs longer is solved at a later try
+    rather than stopped at every one."""
+
+    def __init__(self, child: ProcessOptimizer, timeout_s: float) -> None:
+        self.child = child
+        self.timeout_s = timeout_s
+
+    def __call__(self, job: SolveJob) -> SolveResult:
+        try:
+            return self.child(job, timeout_s=self.timeout_s)
+        except SolverTimeoutError:
+            self.timeout_s *= 2.0
+            raise
+
+
 def optimizer(in_child: bool, timeout_s: float | None = None) -> Optimizer:
-    """The process's solver child (`in_child`, each job given `timeout_s`), or GTSAM in the
-    calling thread (no timeout: a thread cannot be stopped)."""
+    """The process's solver child (`in_child`; with `timeout_s`, a TimedOptimizer), or GTSAM
+    in the calling thread (no timeout: a thread cannot be stopped)."""
     if not in_child:
         return run_job
-    return functools.partial(shared_optimizer().__call__, timeout_s=timeout_s)
+    if timeout_s is None:
+        return shared_optimizer()
+    return TimedOptimizer(shared_optimizer(), timeout_s)
 
 
 def _die_with_parent(parent: int | None) -> None:
@@ -218,4 +242,5 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["ProcessOptimizer", "main", "optimizer", "serve", "shared_optimizer", "trim_heap"]
+__all__ = ["ProcessOptimizer", "SolverTimeoutError", "TimedOptimizer", "main", "optimizer",
+           "serve", "shared_optimizer", "trim_heap"]
