@@ -302,7 +302,7 @@ def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames
         assert set(ag.local._received) == {f.factor_id for f in factors}
         # a submap the service will never hold is lost: the next one's odometry bridges it
         assert ag.stats.submaps_sent == 1 and not ag.local.lost
-        kf = ag._keyframe_of[("s0", 0)]
+        kf = ag._sent[("s0", 0)][1]
         for n, (outcome, code, lost) in enumerate((("refused", "busy", set()),  # sent again
                                                     ("failed", "processing", {kf}))):
             rs.put(keys.result_key(root, "auv1"), json.dumps({

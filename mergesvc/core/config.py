@@ -269,8 +269,8 @@ class GraphConfig(BaseModel):
         "shape (core/rigid.py: a likelihood-ratio test); None: never")
     rigid_probability: float = Field(
         0.99, gt=0, lt=1, description="a chain is bent only where that lowers its factors' "
-        "summed squared whitened residuals by more than this chi-square quantile of the "
-        "freedom bending adds")
+        "summed squared whitened residuals by more than this chi-square quantile of 6 degrees "
+        "of freedom (a constant drift rate)")
     rigid_shrink: float = Field(
         1e-4, gt=0.0, le=1.0, description="a rigid chain's factors' covariances are "
         "multiplied by this in its final solve")

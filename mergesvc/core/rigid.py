@@ -111,7 +111,8 @@ def rigid_test(shape: Mapping[str, gtsam.Pose3], facs: Sequence[GraphFactor],
         S = A @ C @ A.T
         graph.add(gtsam.PriorFactorPose3(0, P, gtsam.noiseModel.Gaussian.Covariance(
             0.5 * (S + S.T), False)))
-        first = first or P
+        if first is None:
+            first = P
     n = graph.size()
     if n < 2 or first is None:  # one factor or none: a rigid placement explains it
         return RigidTest(len(shape), n, bent, bent, 0, True)

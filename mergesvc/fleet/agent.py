@@ -94,8 +94,8 @@ class Agent:
             encoding=zenoh.Encoding(keys.MSGPACK_ENCODING),
         )
         self._sub = session.declare_subscriber(factor_key, self._on_factor)
-        self._sent: OrderedDict[tuple[str, int], bytes] = OrderedDict()  # (session, seq)
-        self._keyframe_of: dict[tuple[str, int], int] = {}  # (session, seq) -> its keyframe
+        # (session, seq) -> the payload sent and the submap's keyframe
+        self._sent: OrderedDict[tuple[str, int], tuple[bytes, int | None]] = OrderedDict()
         self._keep = cache_samples
         self._attempts: dict[tuple[str, int], int] = {}
         self._timers: set[threading.Timer] = set()
@@ -128,14 +128,14 @@ class Agent:
     def _lost(self, key: tuple[str, int | None]) -> None:
         """A submap the service will never hold: the next submap's odometry bridges it."""
         with self._lock:
-            k = self._keyframe_of.get(key)  # type: ignore[arg-type]
-            if k is not None and key[0] == self.config.session:
-                self.local.lost.add(k)
+            sent = self._sent.get(key)  # type: ignore[arg-type]
+            if sent is not None and sent[1] is not None and key[0] == self.config.session:
+                self.local.lost.add(sent[1])
 
     def _retry(self, key: tuple[str, int]) -> None:
         """Send a refused submap again after the next backoff (or give it up)."""
         with self._lock:
-            payload = self._sent.get(key)
+            payload = self._sent[key][0] if key in self._sent else None
             attempt = self._attempts.get(key, 0)
             if payload is None or self._closed:
                 return
@@ -206,13 +206,9 @@ class Agent:
         """Encode and send one submap (kept for a retry: see the class docstring)."""
         payload = self._encode(sub, self.stats.submaps_sent)
         with self._lock:
-            self._sent[(sub.session_id, sub.seq)] = payload
+            self._sent[(sub.session_id, sub.seq)] = (payload, sub.keyframe)
             while len(self._sent) > self._keep:
                 self._sent.popitem(last=False)
-            if sub.keyframe is not None and sub.seq is not None:
-                self._keyframe_of[(sub.session_id, sub.seq)] = sub.keyframe
-                while len(self._keyframe_of) > self._keep:
-                    self._keyframe_of.pop(next(iter(self._keyframe_of)))
         self._pub.put(payload)
         self.stats.submaps_sent += 1
         self.stats.bytes_sent += len(payload)

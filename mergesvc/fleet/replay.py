@@ -76,14 +76,18 @@ def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projecti
     sim = LinkSimulator(cfg, rng=np.random.default_rng([seed, 17]), on_deliver=got.append)
     step_s = cfg.tdma.slot_s * len(cfg.tdma.slot_order)
     keyframe_of: dict[int, tuple[str, int]] = {}  # handle -> (robot, keyframe)
+    known: dict[str, int] = {}  # robot -> its last keyframe known delivered
+    seen = 0  # deliveries (in delivery order) counted into `known`
     rebased = 0
     for s in sorted(subs, key=lambda s: s.stamp or 0.0):
         at = float(s.stamp or 0.0)
         sim.run_until(at)
+        while seen < len(got) and got[seen].delivered_s + step_s <= at:
+            robot, k = keyframe_of[got[seen].handle]
+            known[robot] = max(known.get(robot, 0), k)
+            seen += 1
         if rebase is not None and s.odometry is not None:
-            known = [keyframe_of[d.handle][1] for d in got
-                     if keyframe_of[d.handle][0] == s.robot_id and d.delivered_s + step_s <= at]
-            base = max(known, default=0)
+            base = known.get(s.robot_id, 0)
             if base < s.odometry.from_keyframe:
                 s = rebase(s, base)
                 rebased += 1
