@@ -5,6 +5,7 @@ transport (fleet/transport.py) where the network is not the point."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -409,6 +410,52 @@ def test_queries_answer_during_a_solve_and_a_failed_solve_is_retried_and_flagged
     assert answers["status"]["submaps"]["processed"] >= 2
     assert not flagged["ok"] and "indeterminant" in flagged["error"]
     assert flagged["solution_age_s"] is not None and flagged["solution_age_s"] >= 0.0
+
+
+def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
+        tmp_path: Path) -> None:
+    """A status query through the transport reads no store figure itself (each read released
+    the GIL several times: 100-500 ms under load): it answers with those a thread of their own
+    reads every status_refresh_s, and says how old they are. They follow the store: a new
+    submap shows within a few refreshes. In-process status() reads them exact."""
+    with Fleet(cfg_at(tmp_path / "st.db", status_refresh_s=0.05)) as fl:
+        a = scene()
+        fl.put(a)
+        assert wait_for(lambda: len(fl.results) == 1, 20.0)
+        store, reads = fl.svc.store, []
+        real_counts, real_stats = store.counts, store.stats
+        asking = threading.local()
+
+        def counted(real: Any) -> Any:
+            def read() -> Any:
+                if getattr(asking, "now", False):
+                    reads.append(real.__name__)
+                return real()
+            return read
+
+        store.counts, store.stats = counted(real_counts), counted(real_stats)
+
+        def status() -> dict[str, Any]:
+            asking.now = True
+            try:
+                (reply,) = fl.t.get(keys.status_key(ROOT), {"poses": "false"})
+            finally:
+                asking.now = False
+            assert reply.ok
+            return json.loads(reply.payload)
+
+        try:
+            first = status()
+            fl.put(moved(a, "b"))
+            assert wait_for(lambda: len(fl.results) == 2, 20.0)
+            assert wait_for(lambda: sum(status()["submaps"]["stored"].values()) == 2, 10.0)
+        finally:
+            del store.counts, store.stats
+        assert reads == []  # not one store read on the query's path
+        assert sum(first["submaps"]["stored"].values()) == 1
+        assert 0.0 <= first["store"]["age_s"] < 10.0
+        assert fl.svc.status(poses=False)["store"]["age_s"] < 1.0  # in-process: read now
+        assert fl.svc.status(poses=False)["store"]["rows"]["submaps"] == 2
 
 
 # -- 11. bounded state and a stable anchor -----------------------------------------------------

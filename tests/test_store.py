@@ -214,6 +214,42 @@ def test_stats(tmp_path: Path) -> None:
     assert Store(":memory:").stats()["file_bytes"] == 0
 
 
+@pytest.mark.parametrize("name", ["merge.db", "a b#%?.db"])
+def test_status_figures_never_wait_for_a_write(tmp_path: Path, name: str) -> None:
+    """counts() and stats() read the last commit through their own connection while another
+    thread holds the store's write transaction (a commit's fsync: the status query's p99)."""
+    with Store(tmp_path / name) as s:
+        s.put_submap("r", "s", 0, payload(0, 100), 0.0)
+        held, release = threading.Event(), threading.Event()
+
+        def writer() -> None:
+            with s._transaction() as c:
+                c.execute("INSERT INTO meta (key, value) VALUES ('k', 'v')")
+                held.set()
+                release.wait(30.0)
+
+        w = threading.Thread(target=writer)
+        w.start()
+        try:
+            assert held.wait(30.0)
+            got: list[tuple[dict, dict]] = []
+            reader = threading.Thread(target=lambda: got.append((s.counts(), s.stats())))
+            reader.start()
+            reader.join(20.0)
+            done_while_held = not reader.is_alive() and not release.is_set()
+        finally:
+            release.set()
+            w.join()
+            reader.join()
+        assert done_while_held  # without its own connection it waits for the writer
+        counts, stats = got[0]
+        assert counts["submaps_pending"] == 1
+        assert stats["rows"]["meta"] == 0  # the open transaction's row is not committed yet
+        assert s.stats()["rows"]["meta"] == 1
+    with pytest.raises(StoreError, match="closed"):
+        s.counts()
+
+
 # --------------------------------------------------------------------------------------------
 # Concurrency and crashes
 # --------------------------------------------------------------------------------------------

@@ -324,6 +324,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                     "per_robot": results},
         "series": series,
         "status_samples": samples,
+        "status_probe_samples": probed or [],  # {t_s, status_ms}: when the slow ones came
         # the status probe's (a process of its own: the target's), and the driver's monitor's
         # (its round trips wait on the driver's own threads too)
         "status_ms": _status_latency(probed if probed else samples, restarts),

@@ -63,6 +63,11 @@ class ServiceConfig(BaseModel):
         "may take: after a solve of t seconds the next waits (1 / solve_duty - 1) t, so "
         "submaps arriving meanwhile are merged at once rather than behind the next solve",
     )
+    status_refresh_s: float = Field(
+        0.5, ge=0.0, description="a status query over the network answers with the store's "
+        "counts and sizes as read by a thread of its own this often (the reply's store.age_s), "
+        "so it does no I/O; 0: it reads them itself",
+    )
     solve_in_child: bool = Field(
         True, description="run the pose graph's optimisations in a child process (GTSAM "
         "holds the GIL through a solve: in-process, queries and ingress would wait on it)",

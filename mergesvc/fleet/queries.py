@@ -2,12 +2,16 @@
 session is (relocalize). Each reads the last graph solution and the sessions under the
 service's state lock, which the worker holds only to apply a unit of work, never through a
 solve: a query never waits on a solve. The global map is fused per embedding model (a model's
-objects are never fused or matched with another's), cached until the state changes.
+objects are never fused or matched with another's), cached until the state changes. The
+store's figures in a status reply are read by a thread of their own (`StoreFigures`): a status
+query over the network does no I/O.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,7 +23,7 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.fusion import fuse_objects
 from mergesvc.core.model import ObjectMap, ObjectNode, Submap
 from mergesvc.core.pipeline import match
-from mergesvc.errors import SchemaError
+from mergesvc.errors import SchemaError, StoreError, one_line
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.merger import Merger
 from mergesvc.fleet.replies import Outcome, RelocalizeReply, StatusReply, SubmapResult
@@ -27,6 +31,56 @@ from mergesvc.store import Store
 from mergesvc.wire import Projection, decode_message
 
 LATENCIES_KEPT = 1000  # per-submap timings the percentiles are taken over
+log = logging.getLogger(__name__)
+
+
+class StoreFigures:
+    """The store's counts and sizes for status replies, read every `period_s` by a thread of
+    its own. Each read releases the GIL several times, and in a busy service every release
+    waits for the worker to hand it back: a status query that read the store itself took
+    100-500 ms under load. `get(max_age_s)` gives the last read when it is at most that old,
+    else reads now (in-process callers pass 0: always exact). A failed background read keeps
+    the last figures (a full disk does not stop them)."""
+
+    def __init__(self, store: Store, period_s: float) -> None:
+        self.store = store
+        self.period_s = period_s
+        self._last: tuple[float, dict[str, Any], dict[str, Any]] | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.period_s > 0 and self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._loop, name="mergesvc-figures",
+                                            daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
+
+    def _read(self) -> tuple[float, dict[str, Any], dict[str, Any]]:
+        last = (time.monotonic(), self.store.counts(), self.store.stats())
+        self._last = last
+        return last
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._read()
+            except StoreError as exc:  # closed, or an I/O error: the last figures stand
+                log.debug("store figures not read: %s", one_line(exc))
+            self._stop.wait(self.period_s)
+
+    def get(self, max_age_s: float = 0.0) -> tuple[dict[str, Any], dict[str, Any], float]:
+        """(counts, stats, their age in seconds)."""
+        last = self._last
+        if last is None or time.monotonic() - last[0] > max_age_s:
+            last = self._read()
+        return last[1], last[2], max(0.0, time.monotonic() - last[0])
 
 
 @dataclass
@@ -207,10 +261,12 @@ class Queries:
             raise SchemaError("relocalize needs a submap")
         return self.relocalize(sub)
 
-    def status(self, stats: ServiceStats, store: Store, *, poses: bool, alive: list[str],
-               solve: dict[str, Any], frozen: int, damage: list[str]) -> dict[str, Any]:
-        """The status reply (StatusReply, strict JSON: no NaN)."""
-        counts = store.counts()
+    def status(self, stats: ServiceStats, figures: StoreFigures, *, poses: bool,
+               alive: list[str], solve: dict[str, Any], frozen: int, damage: list[str],
+               max_age_s: float = 0.0) -> dict[str, Any]:
+        """The status reply (StatusReply, strict JSON: no NaN); the store's figures at most
+        `max_age_s` old."""
+        counts, store_stats, age_s = figures.get(max_age_s)
         with self.lock:
             frames = {f: len(st.objects) for f, st in self.merger.sessions.items()}
             active, held = len(self.merger.factors), len(self.merger.held)
@@ -234,7 +290,7 @@ class Queries:
             "optimizations": stats.optimizations, "solve": solve, "frozen_keyframes": frozen,
             "embedding_dim": self.anchor_dim, "anchor": self.merger.anchor,
             "frame_poses": frame_poses, "keyframe_poses": keyframe_poses,
-            "store": store.stats(), "store_damage": list(damage),
+            "store": {**store_stats, "age_s": age_s}, "store_damage": list(damage),
         }).model_dump(mode="json")
 
     def models(self) -> dict[str, dict[str, int]]:
@@ -248,4 +304,4 @@ class Queries:
         return out
 
 
-__all__ = ["LATENCIES_KEPT", "Queries", "ServiceStats"]
+__all__ = ["LATENCIES_KEPT", "Queries", "ServiceStats", "StoreFigures"]

@@ -211,6 +211,8 @@ class StoreStats(BaseModel):
     file_bytes: int = Field(ge=0)
     wal_bytes: int = Field(ge=0)
     page_bytes: int = Field(ge=0)
+    age_s: float = Field(0.0, ge=0, description="how old these figures and the submap "
+                         "counts are (the service reads them every status_refresh_s)")
 
 
 class StatusReply(BaseModel):

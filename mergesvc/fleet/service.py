@@ -36,7 +36,7 @@ from mergesvc.fleet.merger import Merger, UnitOfWork, check_odometry
 from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.noise_scales import NoiseScaleMemory
 from mergesvc.fleet.outbox import Outbox
-from mergesvc.fleet.queries import Queries, ServiceStats
+from mergesvc.fleet.queries import Queries, ServiceStats, StoreFigures
 from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.fleet.sessions import Sessions
 from mergesvc.fleet.solve_process import optimizer, trim_heap
@@ -83,6 +83,7 @@ class MergeService:
         # the graph's writers (worker, ingest): one submap or solve at a time; queries never
         self._process_lock = threading.Lock()
         self.queries = Queries(config, self.merger, self._lock)
+        self.figures = StoreFigures(self.store, config.status_refresh_s)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
         self.outbox = Outbox(config, self.transport, self.stats)
         self.answered = Answered(self.store)  # units whose messages went out (fleet/answers)
@@ -134,6 +135,7 @@ class MergeService:
                 t.liveliness(keys.all_alive(self._root), self._on_alive),
             ]
         self.ingress.start()
+        self.figures.start()
         self._worker = threading.Thread(target=self._work, name="mergesvc-worker", daemon=True)
         self._worker.start()
         log.info("merge service up: fleet %s, %d sessions, %d factors restored",
@@ -147,6 +149,7 @@ class MergeService:
                 h.close()
         self._handles = []
         self.ingress.stop()  # what was received is persisted before closing
+        self.figures.stop()
         if self._worker is not None:
             self._worker.join(timeout=10.0)
             self._worker = None
@@ -455,20 +458,21 @@ class MergeService:
     def relocalize(self, sub: Submap) -> Any:
         return self.queries.relocalize(sub)
 
-    def status(self, poses: bool = True) -> dict[str, Any]:
+    def status(self, poses: bool = True, max_age_s: float = 0.0) -> dict[str, Any]:
         """The service's state as strict JSON (StatusReply); `poses=False` leaves the
-        (growing) pose fields empty."""
+        (growing) pose fields empty; the store's figures at most `max_age_s` old."""
         s = self._solve
         age = None if s["solved_at_s"] is None else max(0.0, self.clock() - s["solved_at_s"])
         return self.queries.status(
-            self.stats, self.store, poses=poses, alive=sorted(self.alive),
+            self.stats, self.figures, poses=poses, max_age_s=max_age_s, alive=sorted(self.alive),
             solve={"ok": s["error"] is None, "error": s["error"], "failures": s["failures"],
                    "solution_age_s": age},
             frozen=self.graph.frozen_count, damage=self.damage)
 
     def _on_status(self, query: Query) -> Reply:
         poses = query.parameters.get("poses") not in ("false", "0", "no")
-        return Reply(json.dumps(self.status(poses=poses), allow_nan=False).encode(),
+        fresh = 4.0 * self.config.status_refresh_s  # a late refresh is still taken
+        return Reply(json.dumps(self.status(poses, fresh), allow_nan=False).encode(),
                      keys.JSON_ENCODING)
 
     def _on_relocalize(self, query: Query) -> Reply:

@@ -10,8 +10,10 @@ is affordable. NORMAL is available for bulk imports and tests.
 
 Threads: one connection opened with `check_same_thread=False`, every public method holds one
 re-entrant lock for its whole transaction, so the Zenoh callback thread and the worker thread may
-share a Store. Other processes (a status command) may open the same file: WAL lets readers run
-while one writer commits; writers wait up to `busy_timeout_s`.
+share a Store. The status figures (`counts`, `stats`) read through a second, read-only
+connection of their own (a file store), so a status query never waits for a commit's fsync.
+Other processes (a status command) may open the same file: WAL lets readers run while one
+writer commits; writers wait up to `busy_timeout_s`.
 """
 
 from __future__ import annotations
@@ -75,6 +77,9 @@ class Store(FactorRecords):
         self._clock = clock
         self._lock = threading.RLock()
         self._memory = self.path == ":memory:" or self.path.startswith("file::memory:")
+        self._busy_timeout_s = busy_timeout_s
+        self._reader: sqlite3.Connection | None = None  # the status figures' (_figures)
+        self._reader_lock = threading.Lock()
         try:
             self._conn: sqlite3.Connection | None = sqlite3.connect(
                 self.path,
@@ -157,7 +162,14 @@ class Store(FactorRecords):
         log.info("created store %s (schema version %d)", self.path, STORE_SCHEMA_VERSION)
 
     def close(self) -> None:
-        """Close the connection (checkpoints the WAL). Idempotent."""
+        """Close the connections (checkpoints the WAL). Idempotent."""
+        with self._reader_lock:
+            if self._reader is not None:
+                try:
+                    self._reader.close()
+                except sqlite3.Error:
+                    log.debug("closing the status reader of %s failed", self.path)
+                self._reader = None
         with self._lock:
             if self._conn is not None:
                 try:
@@ -201,6 +213,35 @@ class Store(FactorRecords):
                 if isinstance(exc, sqlite3.Error):
                     raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
                 raise
+
+    @contextmanager
+    def _figures(self) -> Iterator[sqlite3.Connection]:
+        """A read transaction for the status figures: on a file store through the read-only
+        connection (WAL: it reads the last commit while the writer commits, never waiting for
+        its lock or its fsync), on a memory store through the one connection."""
+        if self._memory:
+            with self._transaction(write=False) as c:
+                yield c
+            return
+        with self._reader_lock:
+            if self.closed:
+                raise StoreError(f"store {self.path} is closed")
+            try:
+                if self._reader is None:
+                    self._reader = sqlite3.connect(
+                        Path(self.path).resolve().as_uri() + "?mode=ro", uri=True,
+                        timeout=self._busy_timeout_s, isolation_level=None,
+                        check_same_thread=False)
+                self._reader.execute("BEGIN")
+            except sqlite3.Error as exc:
+                raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
+            try:
+                yield self._reader
+            except sqlite3.Error as exc:
+                raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
+            finally:
+                if self._reader.in_transaction:
+                    self._reader.execute("COMMIT")
 
     # -- submaps ---------------------------------------------------------------------------------
 
@@ -472,8 +513,9 @@ class Store(FactorRecords):
     # -- status ----------------------------------------------------------------------------------
 
     def counts(self) -> dict[str, Any]:
-        """For a status endpoint: submaps and factors per status, frames, refused replays."""
-        with self._transaction(write=False) as c:
+        """For a status endpoint: submaps and factors per status, frames, refused replays (the
+        last commit's, never waiting for a write)."""
+        with self._figures() as c:
             submaps = dict(c.execute("SELECT status, COUNT(*) FROM submaps GROUP BY status"))
             factors = dict(c.execute("SELECT status, COUNT(*) FROM factors GROUP BY status"))
             n_frames = c.execute("SELECT COUNT(*) FROM frames").fetchone()[0]
@@ -487,8 +529,9 @@ class Store(FactorRecords):
         }
 
     def stats(self) -> dict[str, Any]:
-        """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical)."""
-        with self._transaction(write=False) as c:
+        """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical);
+        the last commit's, never waiting for a write."""
+        with self._figures() as c:
             present = {
                 r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
             }
