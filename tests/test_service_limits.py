@@ -411,8 +411,12 @@ def test_status_is_strict_json_before_any_submap() -> None:
             assert _strict(reply)["submaps"]["processed"] == 0
             net.put(make_submap("auv1", "s0", 0, n=4))
             assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+            # the store's figures over the network are those read last (store.age_s old)
+            assert wait_for(lambda: query_status(net.cs, FLEET)["submaps"]["stored"] == {
+                "no_match": 1}, 10.0)
             st = _strict(json.dumps(query_status(net.cs, FLEET)))
             assert st["latency_ms"]["p50"] > 0 and st["submaps"]["stored"] == {"no_match": 1}
+            assert 0.0 <= st["store"]["age_s"] <= 4 * cfg.status_refresh_s + 5.0
             # the merged poses are there by default and left out on request: a second robot
             # saw the same objects, so there is a factor and a solution
             first = make_submap("auv1", "s0", 0, n=4)
