@@ -20,8 +20,9 @@ from test_service_limits import make_submap, moved, payload
 
 import mergesvc.fleet.service as service_module
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap
-from mergesvc.errors import SolverError
+from mergesvc.errors import SolverError, StoreError
 from mergesvc.fleet.config import ConsistencyConfig, ServiceConfig
+from mergesvc.fleet.queries import StoreFigures
 from mergesvc.fleet.replies import SubmapResult
 from mergesvc.fleet.service import MergeService
 from mergesvc.fleet.transport import InProcessTransport
@@ -456,6 +457,35 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
         assert 0.0 <= first["store"]["age_s"] < 10.0
         assert fl.svc.status(poses=False)["store"]["age_s"] < 1.0  # in-process: read now
         assert fl.svc.status(poses=False)["store"]["rows"]["submaps"] == 2
+
+
+def test_the_figures_thread_outlives_a_failed_read(tmp_path: Path,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """A read of the store's figures that fails (an I/O error, any exception) is logged once
+    and the thread goes on: the next reads replace the figures it kept."""
+    with Store(tmp_path / "fig.db") as store:
+        figures = StoreFigures(store, 0.01)
+        real, fails = store.figures, [OSError("injected I/O error"), StoreError("injected")]
+
+        def flaky() -> Any:
+            if fails:
+                raise fails.pop(0)
+            return real()
+
+        store.figures = flaky  # type: ignore[method-assign]
+        with caplog.at_level(logging.DEBUG, logger="mergesvc.fleet.queries"):
+            figures.start()
+            try:
+                assert wait_for(lambda: not fails and figures._last is not None, 10.0)
+                before = figures.get(fresh=False)[0]["submaps_pending"]
+                store.put_submap("r", "s", 0, b"x" * 10, 0.0)
+                assert wait_for(lambda: figures.get(fresh=False)[0]["submaps_pending"] == 1,
+                                10.0)
+            finally:
+                figures.stop()
+    assert before == 0
+    assert [r.levelname for r in caplog.records if "not read" in r.message] == [
+        "WARNING", "DEBUG"]
 
 
 # -- 11. bounded state and a stable anchor -----------------------------------------------------

@@ -536,3 +536,12 @@ def test_paged_reads_give_what_the_whole_reads_give(store: Store) -> None:
     accepted = list(store.iter_factors(FactorStatus.ACCEPTED, page=2))
     assert accepted == store.factors(FactorStatus.ACCEPTED)
     assert [f.factor_id for f in accepted] == ["f0", "f4", "f6"]
+
+
+def test_the_figures_of_one_read_are_one_commits(tmp_path: Path) -> None:
+    with Store(tmp_path / "f.db") as s:
+        for seq in range(3):
+            s.put_submap("r", "s", seq, payload(seq, 100), 0.0)
+        counts, stats = s.figures()
+        assert counts == s.counts() and stats == s.stats()
+        assert counts["submaps_pending"] == stats["rows"]["submaps"] == 3

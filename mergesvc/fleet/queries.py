@@ -4,7 +4,7 @@ service's state lock, which the worker holds only to apply a unit of work, never
 solve: a query never waits on a solve. The global map is fused per embedding model (a model's
 objects are never fused or matched with another's), cached until the state changes. The
 store's figures in a status reply are read by a thread of their own (`StoreFigures`): a status
-query over the network does no I/O.
+query over the network does no I/O once they have been read.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.fusion import fuse_objects
 from mergesvc.core.model import ObjectMap, ObjectNode, Submap
 from mergesvc.core.pipeline import match
-from mergesvc.errors import SchemaError, StoreError, one_line
+from mergesvc.errors import SchemaError, one_line
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.merger import Merger
 from mergesvc.fleet.replies import Outcome, RelocalizeReply, StatusReply, SubmapResult
@@ -38,14 +38,15 @@ class StoreFigures:
     """The store's counts and sizes for status replies, read every `period_s` by a thread of
     its own. Each read releases the GIL several times, and in a busy service every release
     waits for the worker to hand it back: a status query that read the store itself took
-    100-500 ms under load. `get(max_age_s)` gives the last read when it is at most that old,
-    else reads now (in-process callers pass 0: always exact). A failed background read keeps
-    the last figures (a full disk does not stop them)."""
+    100-500 ms under load. `get(fresh=False)` gives the last read, however old (its age is
+    returned; the thread goes on after a failed read, keeping the last figures), and reads only
+    when there is none yet; `get(fresh=True)` reads now (in-process callers: exact)."""
 
     def __init__(self, store: Store, period_s: float) -> None:
         self.store = store
         self.period_s = period_s
         self._last: tuple[float, dict[str, Any], dict[str, Any]] | None = None
+        self._lock = threading.Lock()  # orders the replacements of _last
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -63,22 +64,30 @@ class StoreFigures:
             self._thread = None
 
     def _read(self) -> tuple[float, dict[str, Any], dict[str, Any]]:
-        last = (time.monotonic(), self.store.counts(), self.store.stats())
-        self._last = last
-        return last
+        t = time.monotonic()
+        counts, stats = self.store.figures()  # one read transaction: one commit's figures
+        read = (t, counts, stats)
+        with self._lock:  # a slower read that began earlier never replaces a later one
+            if self._last is None or self._last[0] <= t:
+                self._last = read
+        return read
 
     def _loop(self) -> None:
+        failing = False
         while not self._stop.is_set():
             try:
                 self._read()
-            except StoreError as exc:  # closed, or an I/O error: the last figures stand
-                log.debug("store figures not read: %s", one_line(exc))
+                failing = False
+            except Exception as exc:  # a closed store, an I/O error: the last figures stand
+                (log.debug if failing else log.warning)(
+                    "store figures for status not read: %s", one_line(exc))
+                failing = True
             self._stop.wait(self.period_s)
 
-    def get(self, max_age_s: float = 0.0) -> tuple[dict[str, Any], dict[str, Any], float]:
+    def get(self, fresh: bool = True) -> tuple[dict[str, Any], dict[str, Any], float]:
         """(counts, stats, their age in seconds)."""
         last = self._last
-        if last is None or time.monotonic() - last[0] > max_age_s:
+        if fresh or last is None:
             last = self._read()
         return last[1], last[2], max(0.0, time.monotonic() - last[0])
 
@@ -263,10 +272,10 @@ class Queries:
 
     def status(self, stats: ServiceStats, figures: StoreFigures, *, poses: bool,
                alive: list[str], solve: dict[str, Any], frozen: int, damage: list[str],
-               max_age_s: float = 0.0) -> dict[str, Any]:
-        """The status reply (StatusReply, strict JSON: no NaN); the store's figures at most
-        `max_age_s` old."""
-        counts, store_stats, age_s = figures.get(max_age_s)
+               fresh: bool = True) -> dict[str, Any]:
+        """The status reply (StatusReply, strict JSON: no NaN); the store's figures read now
+        (`fresh`) or the last read (StoreFigures)."""
+        counts, store_stats, age_s = figures.get(fresh)
         with self.lock:
             frames = {f: len(st.objects) for f, st in self.merger.sessions.items()}
             active, held = len(self.merger.factors), len(self.merger.held)

@@ -458,20 +458,21 @@ class MergeService:
     def relocalize(self, sub: Submap) -> Any:
         return self.queries.relocalize(sub)
 
-    def status(self, poses: bool = True, max_age_s: float = 0.0) -> dict[str, Any]:
+    def status(self, poses: bool = True, fresh: bool = True) -> dict[str, Any]:
         """The service's state as strict JSON (StatusReply); `poses=False` leaves the
-        (growing) pose fields empty; the store's figures at most `max_age_s` old."""
+        (growing) pose fields empty; the store's figures read now (`fresh`) or the last read
+        (`store.age_s` old)."""
         s = self._solve
         age = None if s["solved_at_s"] is None else max(0.0, self.clock() - s["solved_at_s"])
         return self.queries.status(
-            self.stats, self.figures, poses=poses, max_age_s=max_age_s, alive=sorted(self.alive),
+            self.stats, self.figures, poses=poses, fresh=fresh, alive=sorted(self.alive),
             solve={"ok": s["error"] is None, "error": s["error"], "failures": s["failures"],
                    "solution_age_s": age},
             frozen=self.graph.frozen_count, damage=self.damage)
 
     def _on_status(self, query: Query) -> Reply:
         poses = query.parameters.get("poses") not in ("false", "0", "no")
-        fresh = 4.0 * self.config.status_refresh_s  # a late refresh is still taken
+        fresh = self.config.status_refresh_s <= 0  # else the figures' thread's last read
         return Reply(json.dumps(self.status(poses, fresh), allow_nan=False).encode(),
                      keys.JSON_ENCODING)
 

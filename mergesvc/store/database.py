@@ -8,10 +8,11 @@ crash may roll back the last commits; FULL fsyncs the WAL at every commit, so a 
 acknowledged survives that too. Submaps arrive at most a few per second, so the fsync per commit
 is affordable. NORMAL is available for bulk imports and tests.
 
-Threads: one connection opened with `check_same_thread=False`, every public method holds one
-re-entrant lock for its whole transaction, so the Zenoh callback thread and the worker thread may
-share a Store. The status figures (`counts`, `stats`) read through a second, read-only
-connection of their own (a file store), so a status query never waits for a commit's fsync.
+Threads: one connection opened with `check_same_thread=False`, every public method but the
+status figures holds one re-entrant lock for its whole transaction, so the Zenoh callback
+thread and the worker thread may share a Store. The status figures (`counts`, `stats`,
+`figures`) read through a second, read-only connection of their own under a lock of its own (a
+file store), so they never wait for a commit's fsync.
 Other processes (a status command) may open the same file: WAL lets readers run while one
 writer commits; writers wait up to `busy_timeout_s`.
 """
@@ -78,6 +79,8 @@ class Store(FactorRecords):
         self._lock = threading.RLock()
         self._memory = self.path == ":memory:" or self.path.startswith("file::memory:")
         self._busy_timeout_s = busy_timeout_s
+        self._reader_uri = (None if self._memory
+                            else Path(self.path).resolve().as_uri() + "?mode=ro")
         self._reader: sqlite3.Connection | None = None  # the status figures' (_figures)
         self._reader_lock = threading.Lock()
         try:
@@ -162,15 +165,10 @@ class Store(FactorRecords):
         log.info("created store %s (schema version %d)", self.path, STORE_SCHEMA_VERSION)
 
     def close(self) -> None:
-        """Close the connections (checkpoints the WAL). Idempotent."""
-        with self._reader_lock:
-            if self._reader is not None:
-                try:
-                    self._reader.close()
-                except sqlite3.Error:
-                    log.debug("closing the status reader of %s failed", self.path)
-                self._reader = None
-        with self._lock:
+        """Close the connections (checkpoints the WAL: the reader is closed first, under both
+        locks, so no status read opens it again in between). Idempotent."""
+        with self._reader_lock, self._lock:
+            self._close_reader()
             if self._conn is not None:
                 try:
                     self._conn.close()
@@ -214,6 +212,14 @@ class Store(FactorRecords):
                     raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
                 raise
 
+    def _close_reader(self) -> None:
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            except sqlite3.Error:
+                log.debug("closing the status reader of %s failed", self.path)
+            self._reader = None
+
     @contextmanager
     def _figures(self) -> Iterator[sqlite3.Connection]:
         """A read transaction for the status figures: on a file store through the read-only
@@ -224,24 +230,22 @@ class Store(FactorRecords):
                 yield c
             return
         with self._reader_lock:
-            if self.closed:
+            if self.closed or self._reader_uri is None:
                 raise StoreError(f"store {self.path} is closed")
             try:
                 if self._reader is None:
                     self._reader = sqlite3.connect(
-                        Path(self.path).resolve().as_uri() + "?mode=ro", uri=True,
-                        timeout=self._busy_timeout_s, isolation_level=None,
-                        check_same_thread=False)
+                        self._reader_uri, uri=True, timeout=self._busy_timeout_s,
+                        isolation_level=None, check_same_thread=False)
                 self._reader.execute("BEGIN")
-            except sqlite3.Error as exc:
-                raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
-            try:
                 yield self._reader
-            except sqlite3.Error as exc:
+                self._reader.execute("COMMIT")
+            except sqlite3.Error as exc:  # a connection that failed is opened afresh next time
+                self._close_reader()
                 raise StoreError(f"store {self.path}: {one_line(exc)}") from exc
-            finally:
-                if self._reader.in_transaction:
-                    self._reader.execute("COMMIT")
+            except BaseException:
+                self._close_reader()
+                raise
 
     # -- submaps ---------------------------------------------------------------------------------
 
@@ -516,10 +520,25 @@ class Store(FactorRecords):
         """For a status endpoint: submaps and factors per status, frames, refused replays (the
         last commit's, never waiting for a write)."""
         with self._figures() as c:
-            submaps = dict(c.execute("SELECT status, COUNT(*) FROM submaps GROUP BY status"))
-            factors = dict(c.execute("SELECT status, COUNT(*) FROM factors GROUP BY status"))
-            n_frames = c.execute("SELECT COUNT(*) FROM frames").fetchone()[0]
-            n_conflicts = c.execute("SELECT COUNT(*) FROM submap_conflicts").fetchone()[0]
+            return self._counts(c)
+
+    def stats(self) -> dict[str, Any]:
+        """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical);
+        the last commit's, never waiting for a write."""
+        with self._figures() as c:
+            return self._stats(c)
+
+    def figures(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """(counts(), stats()) of one read: the same commit's."""
+        with self._figures() as c:
+            return self._counts(c), self._stats(c)
+
+    @staticmethod
+    def _counts(c: sqlite3.Connection) -> dict[str, Any]:
+        submaps = dict(c.execute("SELECT status, COUNT(*) FROM submaps GROUP BY status"))
+        factors = dict(c.execute("SELECT status, COUNT(*) FROM factors GROUP BY status"))
+        n_frames = c.execute("SELECT COUNT(*) FROM frames").fetchone()[0]
+        n_conflicts = c.execute("SELECT COUNT(*) FROM submap_conflicts").fetchone()[0]
         return {
             "submaps": {str(k): int(v) for k, v in submaps.items()},
             "submaps_pending": int(submaps.get(PENDING, 0)),
@@ -528,34 +547,32 @@ class Store(FactorRecords):
             "submap_conflicts": int(n_conflicts),
         }
 
-    def stats(self) -> dict[str, Any]:
-        """Rows per table and sizes: file_bytes (main file), wal_bytes, page_bytes (logical);
-        the last commit's, never waiting for a write."""
-        with self._figures() as c:
-            present = {
-                r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
-            }
-            rows = {t: int(c.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0])
-                    for t in _TABLES if t in present}
-            page_bytes = int(c.execute("PRAGMA page_count").fetchone()[0]) * int(
-                c.execute("PRAGMA page_size").fetchone()[0]
-            )
-            journal = str(c.execute("PRAGMA journal_mode").fetchone()[0])
-        file_bytes = wal_bytes = 0
-        if not self._memory:
-            file_bytes = os.path.getsize(self.path) if os.path.exists(self.path) else 0
-            wal = self.path + "-wal"
-            wal_bytes = os.path.getsize(wal) if os.path.exists(wal) else 0
+    def _stats(self, c: sqlite3.Connection) -> dict[str, Any]:
+        present = {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        rows = {t: int(c.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0])
+                for t in _TABLES if t in present}
+        page_bytes = int(c.execute("PRAGMA page_count").fetchone()[0]) * int(
+            c.execute("PRAGMA page_size").fetchone()[0]
+        )
+        journal = str(c.execute("PRAGMA journal_mode").fetchone()[0])
         return {
             "path": self.path,
             "schema_version": STORE_SCHEMA_VERSION,
             "journal_mode": journal,
             "synchronous": self.synchronous.value,
             "rows": rows,
-            "file_bytes": file_bytes,
-            "wal_bytes": wal_bytes,
+            "file_bytes": 0 if self._memory else _size(self.path),
+            "wal_bytes": 0 if self._memory else _size(self.path + "-wal"),
             "page_bytes": page_bytes,
         }
+
+
+def _size(path: str) -> int:
+    """A file's size; 0 when it is not there (a WAL checkpointed away)."""
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
 
 
 __all__ = ["CONFLICTS_KEPT", "Store"]
