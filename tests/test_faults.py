@@ -424,7 +424,7 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
         fl.put(a)
         assert wait_for(lambda: len(fl.results) == 1, 20.0)
         store, reads = fl.svc.store, []
-        real_counts, real_stats = store.counts, store.stats
+        real_counts, real_stats, real_figures = store.counts, store.stats, store.figures
         asking = threading.local()
 
         def counted(real: Any) -> Any:
@@ -435,6 +435,7 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
             return read
 
         store.counts, store.stats = counted(real_counts), counted(real_stats)
+        store.figures = counted(real_figures)  # type: ignore[method-assign]
 
         def status() -> dict[str, Any]:
             asking.now = True
@@ -451,7 +452,7 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
             assert wait_for(lambda: len(fl.results) == 2, 20.0)
             assert wait_for(lambda: sum(status()["submaps"]["stored"].values()) == 2, 10.0)
         finally:
-            del store.counts, store.stats
+            del store.counts, store.stats, store.figures
         assert reads == []  # not one store read on the query's path
         assert sum(first["submaps"]["stored"].values()) == 1
         assert 0.0 <= first["store"]["age_s"] < 10.0
