@@ -64,6 +64,29 @@ def test_arrays_round_trip() -> None:
     assert isinstance(arrays_to_nodes(arr)[1].variance, float)
 
 
+def test_a_copy_with_other_objects_has_their_arrays() -> None:
+    """model_copy(update=...) used to carry the original's cached arrays over: a submap copied
+    with 60 objects matched as the 8 it was copied from."""
+    sub = parse_model(Submap, json.dumps({**_doc(3), "seq": 0}))
+    assert sub.arrays().n == 3
+    more = sub.model_copy(update={"objects": [*sub.objects, sub.objects[0].model_copy(
+        update={"id": "o9"})]})
+    assert more.arrays().n == 4 and more.arrays().ids[-1] == "o9"
+    up = sub.model_copy(update={"up": (0.0, 0.0, 1.0)})
+    np.testing.assert_array_equal(up.arrays().up_xyz, [0.0, 0.0, 1.0])
+    same = sub.model_copy()
+    assert same.arrays() is sub.arrays()  # nothing changed: the arrays are shared
+    # pickled (a child process's job): the arrays alone, the same values, no cache
+    import pickle
+
+    arr = sub.arrays()
+    arr.cache["x"] = object()
+    back = pickle.loads(pickle.dumps(arr))
+    assert back.cache == {} and back.ids == list(arr.ids)
+    for name in ("position_xyz_m", "embeddings_nd", "variances_nd", "n_obs"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(arr, name))
+
+
 def _mutate(path: list, value) -> dict:
     doc = copy.deepcopy(_doc())
     node = doc

@@ -7,8 +7,9 @@ embedding dimension per map, unique ids, bounded sizes. The core works on `Objec
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from enum import Enum
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 from pydantic import (
@@ -24,6 +25,9 @@ from pydantic import (
 
 from mergesvc.core.arrays import MAX_COORDINATE_M, ObjectArrays
 from mergesvc.errors import DecodeError, SchemaError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 SCHEMA_VERSION = 1
 MAX_EMBEDDING_DIM = 4096
@@ -167,6 +171,15 @@ class ObjectMap(BaseModel):
         if self._arrays is None:
             self._arrays = ObjectArrays.from_objects(self.objects, up=self.up)
         return self._arrays
+
+    def model_copy(self, *, update: Mapping[str, Any] | None = None,
+                   deep: bool = False) -> Self:
+        """A copy; one with changed fields computes its arrays anew (pydantic would carry the
+        original's cached arrays over)."""
+        out = super().model_copy(update=update, deep=deep)
+        if update:
+            out._arrays = None
+        return out
 
 
 class Transform(BaseModel):

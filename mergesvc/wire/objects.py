@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.core.model import ObjectArrays, ObjectMap, Submap
+from mergesvc.core.model import ObjectMap, Submap
 from mergesvc.errors import CodecError, DecodeError, SchemaError
 from mergesvc.wire.bits import BitReader, BitWriter, bits_for
 from mergesvc.wire.factors import (
@@ -68,8 +68,7 @@ def encode_objects(
     settings: CodecSettings,
     projection: Projection | None,
 ) -> list:
-    # not m.arrays(): model_copy(update=...) carries the cached arrays of the original over
-    arr = ObjectArrays.from_objects(m.objects)
+    arr = m.arrays()
     n, d = arr.n, arr.dim
     w = BitWriter()
     ids_hdr = encode_ids(arr.ids, w)
