@@ -600,7 +600,8 @@ def _match_windowed(
     wcfg = match_config(config, candidates={
         "guided": config.candidates.guided and config.windows.guided}, verify={
         "exact": config.verify.exact and config.windows.exact,
-        "time_limit_s": min(config.windows.time_limit_s, config.verify.time_limit_s or np.inf)})
+        "time_limit_s": min(config.windows.time_limit_s, config.verify.time_limit_s or np.inf),
+        "margin_max_matches": config.verify.margin_max_matches if config.windows.margin else 0})
     proposed = np.full(sub.n, UNMATCHED, dtype=np.int64)
     scores: dict[int, float] = {}
     hypotheses = []
