@@ -121,6 +121,13 @@ class ObjectArrays:
             up = up / peak  # scaled first: no overflow for huge components
             object.__setattr__(self, "up_xyz", up / np.linalg.norm(up))
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        """Pickled as its arrays alone (memory maps read into memory, one variance column
+        when isotropic); what the stages derived (`cache`, norms, KD-tree) is made again."""
+        return ObjectArrays, (list(self.ids), np.asarray(self.position_xyz_m),
+                              np.asarray(self.embeddings_nd), np.asarray(self.variance_column),
+                              np.asarray(self.n_obs), self.up_xyz)
+
     @property
     def n(self) -> int:
         return len(self.ids)

@@ -76,7 +76,8 @@ class ServiceConfig(BaseModel):
         900.0, gt=0.0, description="a solve in the child process that has not answered after "
         "this long is stopped and fails (retried after the solve backoff, with twice the "
         "time; the status says so); None: no limit. In-process solves (solve_in_child "
-        "false) cannot be stopped",
+        "false) cannot be stopped. A large submap's matching (fleet/lane.py) is stopped "
+        "after as long, and fails",
     )
     embedding_dim: int | None = Field(
         None, ge=1, le=4096, description="the only embedding dimension this fleet takes "
@@ -107,6 +108,11 @@ class ServiceConfig(BaseModel):
         10_000, ge=1, description="received submaps waiting to be checked and persisted (the "
         "Zenoh callback only enqueues: an fsync in the callback made a fast publisher's "
         "samples drop); more are refused (error code busy)",
+    )
+    large_submap_objects: int = Field(
+        200, ge=0, description="submaps of more objects are matched in a child process of "
+        "low priority while the worker merges the others (fleet/lane.py), one at a time; the "
+        "later submaps of their session wait for them. 0: every submap in the worker",
     )
     max_candidate_frames: int = Field(
         3, ge=1, description="other sessions each submap is matched against at most: those "

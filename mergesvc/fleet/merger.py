@@ -55,6 +55,15 @@ def check_odometry(sub: Submap) -> None:
 
 
 @dataclass
+class MatchPlan:
+    """What one submap is matched against: the other sessions (name, map) and, for each, the
+    (map, submap) arrays `match` takes (in a compact code when either side has one)."""
+
+    others: list[tuple[str, SessionMap]]
+    pairs: list[tuple[Any, Any]]
+
+
+@dataclass
 class UnitOfWork:
     """What processing one stored submap decided, before anything is committed."""
 
@@ -94,22 +103,36 @@ class Merger:
 
     # -- planning ----------------------------------------------------------------------------
 
-    def plan(self, row_id: int, sub: Submap, payload: bytes,
-             lock: AbstractContextManager[Any] | None = None) -> UnitOfWork:
-        """Match, fit, take the submap into its session, weigh the new factors (module
-        docstring); `lock` (the state lock) is held for the changes, not the matching.
-        Raises what matching raises; the session may then hold the submap (a later plan of
-        the same row finds it there). A submap the graph would refuse raises SchemaError
-        first, before any change."""
+    def to_match(self, sub: Submap, payload: bytes) -> MatchPlan:
+        """The sessions `sub` is matched against and the (map, submap) arrays of each; reads
+        the sessions, changes nothing (the fleet index aside). SchemaError first when the
+        graph would refuse the submap."""
         check_odometry(sub)  # (a row stored before the boundary checked it)
         me = str(FrameId(sub.robot_id, sub.session_id))
         code = self.views.note(me, payload)  # compact: how its embeddings were coded
-        factors: list[Factor] = []
-        tried: list[FrameTried] = []
         others = self.sessions.candidate_frames(me, sub, self.config.max_candidate_frames,
                                                 self.config.max_frames_per_robot)
-        for other, sm in others:
-            res = match(*self.views.pair(other, sm.arrays, sub, code), self.config.match).result
+        return MatchPlan(others, [self.views.pair(other, sm.arrays, sub, code)
+                                  for other, sm in others])
+
+    def plan(self, row_id: int, sub: Submap, payload: bytes,
+             lock: AbstractContextManager[Any] | None = None,
+             matched: tuple[MatchPlan, list[Any]] | None = None) -> UnitOfWork:
+        """Match, fit, take the submap into its session, weigh the new factors (module
+        docstring); `lock` (the state lock) is held for the changes, not the matching.
+        `matched`: the matching already done elsewhere (`to_match` and each pair's
+        MatchResult: fleet/lane.py). Raises what matching raises; the session may then hold
+        the submap (a later plan of the same row finds it there). A submap the graph would
+        refuse raises SchemaError first, before any change."""
+        if matched is None:
+            todo = self.to_match(sub, payload)
+            results = [match(m, s, self.config.match).result for m, s in todo.pairs]
+        else:
+            todo, results = matched
+        factors: list[Factor] = []
+        tried: list[FrameTried] = []
+        others = todo.others
+        for (other, sm), res in zip(others, results):
             if not yields_factor(res):
                 tried.append(FrameTried(frame=other, reason=res.reason,
                                         matches=len(res.matches)))
@@ -306,4 +329,4 @@ class Merger:
             range_weighted=self.config.local_range_weighted)
 
 
-__all__ = ["Merger", "UnitOfWork", "check_odometry"]
+__all__ = ["MatchPlan", "Merger", "UnitOfWork", "check_odometry"]

@@ -2,8 +2,9 @@
 unit of work (fleet/merger.py) committed in one store transaction and only then published,
 inter-robot factors and a result per submap out, one GNC pose graph over every session's
 keyframes, and the queries (fleet/queries.py), over a Transport (fleet/transport.py). One
-worker merges pending rows in batches and solves after a batch that changed the graph; the state
-lock is held only to apply a unit or a solution, so queries never wait on a solve.
+worker merges pending rows in batches (a large submap's matching beside it: fleet/lane.py) and
+solves after a batch that changed the graph; the state lock is held only to apply a unit or a
+solution, so queries never wait on a solve.
 
 Guarantees: at most one final result per submap (published after its row's final status is
 committed; after a crash the same result may be published again). A store that cannot write
@@ -32,6 +33,7 @@ from mergesvc.errors import MergeError, SchemaError, StoreError, one_line
 from mergesvc.fleet.answers import Answered, answer_of
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig
 from mergesvc.fleet.ingress import Ingress
+from mergesvc.fleet.lane import Lane
 from mergesvc.fleet.merger import Merger, UnitOfWork, check_odometry
 from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.noise_scales import NoiseScaleMemory
@@ -85,6 +87,8 @@ class MergeService:
         self.queries = Queries(config, self.merger, self._lock)
         self.figures = StoreFigures(self.store, config.status_refresh_s)
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
+        self.lane = Lane(self.merger, config.large_submap_objects, self._wake.set,
+                         config.solve_timeout_s)
         self.outbox = Outbox(config, self.transport, self.stats)
         self.answered = Answered(self.store)  # units whose messages went out (fleet/answers)
         self.scales = NoiseScaleMemory(self.store, self.graph)
@@ -150,6 +154,7 @@ class MergeService:
         self._handles = []
         self.ingress.stop()  # what was received is persisted before closing
         self.figures.stop()
+        self.lane.close()
         if self._worker is not None:
             self._worker.join(timeout=10.0)
             self._worker = None
@@ -211,7 +216,7 @@ class MergeService:
             self._wake.clear()  # before the store is read: a later commit is seen next round
             try:
                 while not self._stop.is_set():
-                    ids = self.store.pending_ids(self.config.queue_size)
+                    ids = self.lane.pending(self.store.pending_ids, self.config.queue_size)
                     stalled = False
                     for row_id in ids:
                         if self._stop.is_set():
@@ -297,13 +302,15 @@ class MergeService:
             raise SchemaError(f"stored payload is a {env.msg_type.value} message, not a submap")
         return sub
 
-    def _process(self, row_id: int) -> None:
+    def _process(self, row_id: int, lane: bool = True) -> None:
         t0 = time.perf_counter()
         row = self.store.submap(row_id)
         if row.status != "pending":
             return
         sub = self._decode(row.payload)
-        uow = self.merger.plan(row_id, sub, row.payload, self._lock)
+        if lane and self.lane.defers(row_id, sub, row.payload):  # (fleet/lane.py)
+            return
+        uow = self.merger.plan(row_id, sub, row.payload, self._lock, self.lane.pop(row_id))
         self.stats.count("matches_tried", uow.matches_tried)
         try:
             self._commit(uow)
@@ -372,7 +379,7 @@ class MergeService:
         self.stats.count("submaps_received")
         if created:
             with self._process_lock:
-                self._process(row_id)
+                self._process(row_id, lane=False)
             if optimize:
                 self._flush()
                 self.answered.flush()
@@ -407,8 +414,7 @@ class MergeService:
             sol = self.graph.optimize(marginals=False)
         except Exception as exc:
             s = self._solve
-            s["failures"] += 1
-            s["error"] = one_line(exc)
+            s.update(failures=s["failures"] + 1, error=one_line(exc))
             s["next_s"] = time.monotonic() + min(SOLVE_BACKOFF_MAX_S, 2.0 ** s["failures"])
             self._dirty = True
             log.warning("pose graph optimisation failed (%d in a row): %s", s["failures"], exc)
@@ -488,8 +494,7 @@ class MergeService:
             return Reply(doc.model_dump_json().encode(), keys.JSON_ENCODING, ok=False)
 
     def _on_alive(self, key: str, alive: bool) -> None:
-        robot = keys.alive_robot(key)
-        (self.alive.add if alive else self.alive.discard)(robot)
+        (self.alive.add if alive else self.alive.discard)(keys.alive_robot(key))
 
 
 __all__ = ["MergeService", "as_transport"]

@@ -5,7 +5,9 @@ mergesvc.fleet.solve_process`, its stdin and stdout a pipe of pickled jobs and r
 stderr the parent's), shared by every graph of the process one job at a time. The caller's
 thread waits on the pipe without the GIL. A child that dies, or does not answer within the
 job's timeout (then it is killed), fails its job with SolverError (the solve's backoff retries
-it) and the next job starts a new one; the arrays are the same, so is the answer. On Linux the
+it) and the next job starts a new one; the arrays are the same, so is the answer. A job that
+is not a SolveJob runs its own `run()` (the large submaps' matches: fleet/lane.py), in a
+child of its own, which may run at a lower priority (`nice`). On Linux the
 child dies with its parent (a parent killed with SIGKILL leaves no solver running), and it
 hands its heap's free pages back after each job.
 """
@@ -37,7 +39,8 @@ class SolverTimeoutError(SolverError):
 class ProcessOptimizer:
     """Callable as an `Optimizer`: each job run in the child process."""
 
-    def __init__(self) -> None:
+    def __init__(self, nice: int = 0) -> None:
+        self.nice = nice  # the child's niceness added (a background child: 10)
         self._lock = threading.Lock()
         self._proc: subprocess.Popen[bytes] | None = None
         self.jobs = 0  # jobs the child answered
@@ -47,7 +50,7 @@ class ProcessOptimizer:
         if self._proc is None or self._proc.poll() is not None:
             self._stop()
             self._proc = _spawn([sys.executable, "-m", "mergesvc.fleet.solve_process",
-                                 str(os.getpid())])
+                                 str(os.getpid()), str(self.nice)])
             self.starts += 1
         return self._proc
 
@@ -64,12 +67,12 @@ class ProcessOptimizer:
                                                                timeout_s)[0]:
                     self._stop()
                     raise SolverTimeoutError(
-                        f"{job.what} optimisation: no answer from the solver process within "
+                        f"{_what(job)}: no answer from the solver process within "
                         f"{timeout_s:g} s (stopped)")
                 ok, out = pickle.load(proc.stdout)
             except (OSError, EOFError, pickle.UnpicklingError) as exc:
                 self._stop()
-                raise SolverError(f"{job.what} optimisation: the solver process failed "
+                raise SolverError(f"{_what(job)}: the solver process failed "
                                   f"({one_line(exc) or type(exc).__name__})") from exc
             except BaseException:  # a job or reply half through the pipe: never read it later
                 self._stop()
@@ -94,6 +97,16 @@ class ProcessOptimizer:
     def close(self) -> None:
         with self._lock:
             self._stop()
+
+    def kill(self) -> None:
+        """Stop the child now, a job in flight or not (that job fails with SolverError)."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
+
+def _what(job: Any) -> str:
+    return str(job.what) if hasattr(job, "run") else f"{job.what} optimisation"
 
 
 class _Spawner:
@@ -216,7 +229,8 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             return
         reply: tuple[bool, Any]
         try:
-            reply = (True, run_job(job))
+            run = getattr(job, "run", None)
+            reply = (True, run() if run is not None else run_job(job))
         except SolverError as exc:
             reply = (False, str(exc))
         pickle.dump(reply, out, protocol=pickle.HIGHEST_PROTOCOL)
@@ -229,6 +243,8 @@ def main() -> None:
     # the pipe is a private copy of fd 1; fd 1 itself goes to stderr, so nothing GTSAM prints
     # can corrupt it
     _die_with_parent(int(sys.argv[1]) if len(sys.argv) > 1 else None)
+    if len(sys.argv) > 2 and int(sys.argv[2]):
+        os.nice(int(sys.argv[2]))
     pipe = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     try:
