@@ -35,6 +35,7 @@ from mergesvc.bench.soak_world import (
     HEARTBEAT_S,
     HOSTILE_ROBOTS,
     HOSTILE_SEQ0,
+    LARGE_ROBOT,
     HostileKind,
     RobotWalk,
     SoakPlan,
@@ -42,13 +43,13 @@ from mergesvc.bench.soak_world import (
     agent_publisher,
     flood_payloads,
     hostile_payload,
+    large_submap,
 )
 from mergesvc.errors import MergeError, StoreError
 from mergesvc.store import StoreReader
 from mergesvc.wire import Profile, encode_message, keys
 from mergesvc.wire.session import make_zenoh_config
 
-log = logging.getLogger(__name__)
 log = logging.getLogger(__name__)
 
 
@@ -255,18 +256,8 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
                      np.random.default_rng([plan.seed, 98]))
     first, *variants = flood_payloads(walk.next_submap(0), plan.flood_variants, Profile.FULL)
     key = f"{keys.fleet_root(plan.fleet)}/submap/{FLOOD_ROBOT}/{walk.session}"
-    stored = False
-    while not gate.calm.wait(0.2):  # not during the disk-full episode
-        if stop.is_set():
-            return
-    for _ in range(10):  # sent again while it is not stored (a kill may have lost it)
-        if not gate.wait_open(stop):
-            return
-        session.put(key, first, congestion_control=zenoh.CongestionControl.BLOCK)
-        stored = _wait(lambda: (FLOOD_ROBOT, walk.session, 0) in _stored_keys(store)[0], 3.0)
-        if stored:
-            break
-    if not stored:
+    if not _put_until_stored(session, key, first, (FLOOD_ROBOT, walk.session, 0), store, stop,
+                             gate):
         return
     while not gate.calm.wait(0.2):
         if stop.is_set():
@@ -282,6 +273,44 @@ def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
         with ledger.lock:
             ledger.flood_sent = len(variants)
             ledger.flood_s = time.monotonic() - t0
+
+
+def _put_until_stored(session: Any, key: str, data: bytes, k: tuple[str, str, int],
+                      store: Path, stop: threading.Event, gate: _Gate,
+                      sent: Callable[[], Any] = lambda: None) -> bool:
+    """`data` put on `key` (not during the disk-full episode, between kills), again while
+    the store has no row `k` (a kill may have lost it), 10 times at most; `sent` called
+    before each put. Whether it was stored."""
+    import zenoh
+
+    while not gate.calm.wait(0.2):
+        if stop.is_set():
+            return False
+    for _ in range(10):
+        if not gate.wait_open(stop):
+            return False
+        sent()
+        session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+        if _wait(lambda: k in _stored_keys(store)[0], 3.0):
+            return True
+    return False
+
+
+def _large_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
+                store: Path, stop: threading.Event, gate: _Gate, ledger: Ledger) -> None:
+    """At `plan.large_at` of the run: LARGE_ROBOT's one large submap, until it is stored."""
+    if stop.wait(max(0.0, t_start + plan.large_at * plan.duration_s - time.monotonic())):
+        return
+    sub = large_submap(world, plan)
+    data = encode_message(sub, plan.profile, LARGE_ROBOT, 0)
+    key = f"{keys.fleet_root(plan.fleet)}/submap/{LARGE_ROBOT}/{sub.session_id}"
+
+    def sent() -> None:
+        with ledger.lock:
+            ledger.large_at = time.time()
+
+    _put_until_stored(session, key, data, (LARGE_ROBOT, sub.session_id, 0), store, stop, gate,
+                      sent)
 
 
 def _status(session: Any, fleet: str, timeout_s: float = 2.0) -> tuple[dict | None, int]:
@@ -448,6 +477,12 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 threads.append(threading.Thread(
                     target=_flood_loop, name="soak-flood", daemon=True,
                     args=(flooder, plan, world, t_start, store, stop, gate, ledger)))
+            if plan.large_objects:
+                large = zenoh.open(client)
+                sessions.append(large)
+                threads.append(threading.Thread(
+                    target=_large_loop, name="soak-large", daemon=True,
+                    args=(large, plan, world, t_start, store, stop, gate, ledger)))
             kill_at = sorted(float(x) for x in ctl_rng.uniform(0.15, 0.85, plan.restarts)
                              * plan.duration_s)
             echo(f"soak: {plan.robots} robots ({valid_rate:.1f} submaps/s), "

@@ -23,7 +23,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from mergesvc.bench.soak_world import FLOOD_ROBOT, HOSTILE_ROBOTS, SoakPlan
+from mergesvc.bench.soak_world import FLOOD_ROBOT, HOSTILE_ROBOTS, LARGE_ROBOT, SoakPlan
 from mergesvc.core.model import ErrorMessage
 from mergesvc.errors import MergeError
 from mergesvc.store import CONFLICTS_KEPT, StoreReader
@@ -55,6 +55,7 @@ class Ledger:
     flood_at: float | None = None  # wall time the conflict flood began
     flood_s: float = 0.0  # how long sending it took
     flood_sent: int = 0  # variants sent (after the one valid payload)
+    large_at: float | None = None  # wall time the large submap was sent (its last try)
     # the disk-full episode: what each valid robot sent (its key and bytes, for a retry),
     # when a valid submap was answered `store` (not now) and each final result it got
     payloads: dict[tuple[str, str, int], tuple[str, bytes]] = field(default_factory=dict)
@@ -143,6 +144,38 @@ def _pct(values: Sequence[float], q: float) -> float | None:
     return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else None
 
 
+def _others_p99(valid: dict[tuple[str, str, int], float],
+                row_of: dict[tuple[str, str, int], tuple[Any, ...]], t: float, w: float
+                ) -> tuple[float | None, float | None]:
+    """The valid robots' p99 latency (sent -> processed, ms) of what they sent in the window
+    of w s before t and in the one after (None with fewer than 3 submaps)."""
+    def p99(lo: float, hi: float) -> float | None:
+        ms = [(row_of[k][2] - sent) * 1e3 for k, sent in valid.items()
+              if lo <= sent < hi and k in row_of and row_of[k][2] is not None]
+        return _pct(ms, 99) if len(ms) >= 3 else None
+
+    return p99(t - w, t), p99(t, t + w)
+
+
+def _large(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], float],
+           row_of: dict[tuple[str, str, int], tuple[Any, ...]]) -> dict[str, Any]:
+    """The large submap: given a final result (processed or no match), and the other robots'
+    p99 latency in the window after it was sent at most 2x the window before."""
+    if ledger.large_at is None:
+        return {"sent": False, "ok": not plan.large_objects}
+    t, w = ledger.large_at, plan.large_window_s
+    row = next((v for k, v in row_of.items() if k[0] == LARGE_ROBOT), None)
+    before, during = _others_p99(valid, row_of, t, w)
+    ratio = during / before if before and during is not None else None
+    status = None if row is None else row[0]
+    return {"sent": True, "objects": plan.large_objects, "at_s": t - ledger.t0,
+            "status": status,
+            "latency_s": None if row is None or row[2] is None else row[2] - t,
+            "others_p99_before_ms": before, "others_p99_during_ms": during,
+            "others_p99_ratio": ratio, "window_s": w,
+            "ok": status in ("processed", "no_match") and (ratio is None or ratio <= 2.0)}
+
+
 def _flood(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], float],
            row_of: dict[tuple[str, str, int], tuple[Any, ...]], errors: dict[str, dict],
            kept: int, kept_bytes: int) -> dict[str, Any]:
@@ -153,12 +186,7 @@ def _flood(plan: SoakPlan, ledger: Ledger, valid: dict[tuple[str, str, int], flo
         return {"sent": 0, "ok": not plan.flood_variants}
     t, w = ledger.flood_at, plan.flood_window_s
 
-    def p99(lo: float, hi: float) -> float | None:
-        ms = [(row_of[k][2] - sent) * 1e3 for k, sent in valid.items()
-              if lo <= sent < hi and k in row_of and row_of[k][2] is not None]
-        return _pct(ms, 99) if len(ms) >= 3 else None
-
-    before, during = p99(t - w, t), p99(t, t + w)
+    before, during = _others_p99(valid, row_of, t, w)
     codes = errors.get(FLOOD_ROBOT, {})
     answered = sum(codes.values())
     ratio = during / before if before and during is not None else None
@@ -225,7 +253,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     valid = ledger.valid
     stored_valid = [k for k in valid if k in row_of]
     status_counts = Counter(row_of[k][0] for k in stored_valid)
-    foreign = [k for k in row_of if k not in valid and k[0] != FLOOD_ROBOT]
+    foreign = [k for k in row_of if k not in valid and k[0] not in (FLOOD_ROBOT, LARGE_ROBOT)]
     conflicts = sum(n for r, n in conflicts_of.items() if r != FLOOD_ROBOT)
     # end-to-end latency (sent -> processed) and the store's delay (stored -> processed)
     e2e = [(row_of[k][2] - t0, (row_of[k][2] - valid[k]) * 1e3) for k in stored_valid
@@ -309,6 +337,7 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
                     "stored": sum(1 for k in row_of if k[0] in HOSTILE_ROBOTS)},
         "foreign_rows": len(foreign),
         "flood": flood,
+        "large": _large(plan, ledger, valid, row_of),
         "factors": {"stored": {str(k): int(v) for k, v in factor_rows.items()},
                     "messages_per_robot": factors,
                     "answered_submaps": len(answer_ms),
@@ -353,6 +382,8 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
     }
     if plan.flood_variants:
         report["targets"]["flood_answered_bounded_others_p99_le_2x"] = flood["ok"]
+    if plan.large_objects:
+        report["targets"]["large_submap_answered_others_p99_le_2x"] = report["large"]["ok"]
     report["disk_full"] = _disk_full(plan, ledger, row_of)
     with ledger.lock:
         report["results_contradictory"] = sum(
@@ -378,6 +409,21 @@ def _flood_line(f: dict[str, Any]) -> str:
             f"answered {json.dumps(f['codes'], sort_keys=True)}, {f['hashes_kept']} hashes kept "
             f"({f['bytes_kept']} payload bytes); others' p99 {f['window_s']:.0f} s before / "
             f"after it: {ms(f['others_p99_before_ms'])} / {ms(f['others_p99_during_ms'])} ms "
+            f"({tail})")
+
+
+def _large_line(g: dict[str, Any]) -> str:
+    if not g.get("sent"):
+        return "large submap: none"
+
+    def num(x: float | None, unit: str) -> str:
+        return "-" if x is None else f"{x:.1f} {unit}" if unit == "s" else f"{x:.0f} {unit}"
+
+    ratio = g["others_p99_ratio"]
+    tail = f"x{ratio:.2f}" if ratio is not None else "too few submaps to compare"
+    return (f"large submap: {g['objects']} objects at {g['at_s']:.0f} s, {g['status']} after "
+            f"{num(g['latency_s'], 's')}; others' p99 {g['window_s']:.0f} s before / after it: "
+            f"{num(g['others_p99_before_ms'], 'ms')} / {num(g['others_p99_during_ms'], 'ms')} "
             f"({tail})")
 
 
@@ -420,6 +466,7 @@ def soak_summary(report: dict[str, Any]) -> str:
         f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
         f"{json.dumps(v['errors_answered'], sort_keys=True)}",
         _flood_line(report["flood"]),
+        _large_line(report.get("large", {})),
         _disk_full_line(report["disk_full"]),
         f"status round trip (probe process): p50 {ms(report['status_ms']['p50'])} ms, p99 "
         f"{ms(report['status_ms']['p99'])} ms ({report['status_ms']['n']} queries); in the minute "

@@ -28,6 +28,7 @@ DEFAULT_MAX_PAYLOAD = 4 * 2**20
 HOSTILE_ROBOTS = ("h0", "h1", "h2", "h3")
 HOSTILE_SEQ0 = 10**9  # hostile submaps' seqs: never one a valid robot uses
 FLOOD_ROBOT = "f0"  # the conflict flood's robot (its one submap is valid; its variants are not)
+LARGE_ROBOT = "L0"  # the large submap's robot (a whole map relocalized)
 
 
 class HostileKind(str, Enum):
@@ -83,6 +84,13 @@ class SoakPlan:
     disk_full_at: float = 0.4
     disk_full_s: float = 45.0
     disk_full_margin_bytes: int = 512 * 1024
+    # a large submap: at `large_at` of the run (0 objects: none), LARGE_ROBOT sends one submap
+    # of `large_objects` objects (the whole world seen from one keyframe, the rest other
+    # objects far away); the others' latency is compared in a window of `large_window_s`
+    # after it and the same window before it
+    large_objects: int = 5000
+    large_at: float = 0.7
+    large_window_s: float = 30.0
 
     @classmethod
     def quick(cls, seed: int = 0) -> SoakPlan:
@@ -90,7 +98,7 @@ class SoakPlan:
                    restarts=1, seed=seed, rate_hz=(1.0, 2.0), status_period_s=0.5,
                    drain_timeout_s=60.0, restart_pause_s=(0.0, 0.5), world_objects=120,
                    area_m=80.0, flood_variants=60, flood_at=0.1, flood_window_s=3.0,
-                   disk_full_at=0.0)
+                   disk_full_at=0.0, large_objects=400, large_at=0.3, large_window_s=3.0)
 
     def check(self) -> None:
         """InputError on a plan that cannot run or would break the service's limits."""
@@ -100,6 +108,10 @@ class SoakPlan:
         check_count("flood variants", self.flood_variants, 0)
         if not 0.0 < self.flood_at < 1.0:
             raise InputError(f"flood_at must be in (0, 1), got {self.flood_at}")
+        if self.large_objects and not (0.0 < self.large_at < 1.0
+                                       and self.large_objects > self.world_objects):
+            raise InputError(f"large_at must be in (0, 1) and large_objects above the world's "
+                             f"{self.world_objects}, got {self.large_at}, {self.large_objects}")
         if not 0.0 <= self.disk_full_at < 1.0 or self.disk_full_s < 0:
             raise InputError(f"disk_full_at must be in [0, 1) and disk_full_s >= 0, got "
                              f"{self.disk_full_at}, {self.disk_full_s}")
@@ -210,6 +222,23 @@ class RobotWalk:
         return sub
 
 
+def large_submap(world: SoakWorld, plan: SoakPlan) -> Submap:
+    """LARGE_ROBOT's one submap: every world object seen from a keyframe of its own, and
+    `plan.large_objects` in all with objects of random appearance in an area beside the world."""
+    rng = np.random.default_rng([plan.seed, 97])
+    sub = RobotWalk(world, LARGE_ROBOT, plan.dim, len(world.position_xyz_m), plan.step_m,
+                    rng).next_submap(0)
+    n = plan.large_objects - len(sub.objects)
+    xyz = np.column_stack([rng.uniform(0, world.area_m, n) + 2 * world.area_m,
+                           rng.uniform(0, world.area_m, n), rng.uniform(-2, 2, n)])
+    e = rng.normal(size=(n, plan.dim))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    more = [ObjectNode(id=f"x{i}", position=tuple(float(v) for v in p),
+                       embedding=[float(v) for v in row], variance=0.01, n_obs=2)
+            for i, (p, row) in enumerate(zip(xyz, e))]
+    return sub.model_copy(update={"objects": [*sub.objects, *more]})
+
+
 # ------------------------------------------------------------------------------ hostile payloads
 
 
@@ -296,5 +325,5 @@ def agent_publisher(session: Any, key: str, cache_samples: int = CACHE_SAMPLES) 
 
 
 __all__ = ["CACHE_SAMPLES", "DEFAULT_MAX_PAYLOAD", "FLOOD_ROBOT", "HEARTBEAT_S", "HOSTILE_ROBOTS",
-           "HOSTILE_SEQ0", "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld", "agent_publisher",
-           "flood_payloads", "hostile_payload"]
+           "HOSTILE_SEQ0", "LARGE_ROBOT", "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld",
+           "agent_publisher", "flood_payloads", "hostile_payload", "large_submap"]

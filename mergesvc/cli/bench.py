@@ -377,6 +377,9 @@ def bench_soak(
     quick: Annotated[bool, typer.Option(
         help="3 robots, 10 s, 1 restart, 1 robot of another model, 20 % hostile (for tests)")
                      ] = False,
+    large_objects: Annotated[int | None, typer.Option(
+        min=0, help="objects of the one large submap sent at 70 % of the run (a whole map "
+                    "relocalized; default 5000, quick 400; 0: none)")] = None,
     settings: SoakSettings = None,
 ) -> None:
     """A real `mergesvc serve` under N robots publishing at their own rates, hostile payloads,
@@ -401,6 +404,8 @@ def bench_soak(
             raise typer.BadParameter(f"{rate_hz!r}: two rates like 0.2,2",
                                      param_hint="--rate-hz") from None
         plan.rate_hz = (lo, hi)
+    if large_objects is not None:
+        plan.large_objects = large_objects
     if minutes is not None:
         plan.duration_s = minutes * 60.0
     if seconds is not None:
