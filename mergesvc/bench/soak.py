@@ -471,18 +471,15 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                     target=_attacker_loop, name="soak-attacker", daemon=True,
                     args=(attacker, plan, hostile_rate, world, att_rng, t_start, stop, gate,
                           ledger)))
-            if plan.flood_variants:
-                flooder = zenoh.open(client)
-                sessions.append(flooder)
-                threads.append(threading.Thread(
-                    target=_flood_loop, name="soak-flood", daemon=True,
-                    args=(flooder, plan, world, t_start, store, stop, gate, ledger)))
-            if plan.large_objects:
-                large = zenoh.open(client)
-                sessions.append(large)
-                threads.append(threading.Thread(
-                    target=_large_loop, name="soak-large", daemon=True,
-                    args=(large, plan, world, t_start, store, stop, gate, ledger)))
+            # the episodes of one robot each, on a session of its own
+            for on, loop, name in ((plan.flood_variants, _flood_loop, "soak-flood"),
+                                   (plan.large_objects, _large_loop, "soak-large")):
+                if on:
+                    own = zenoh.open(client)
+                    sessions.append(own)
+                    threads.append(threading.Thread(
+                        target=loop, name=name, daemon=True,
+                        args=(own, plan, world, t_start, store, stop, gate, ledger)))
             kill_at = sorted(float(x) for x in ctl_rng.uniform(0.15, 0.85, plan.restarts)
                              * plan.duration_s)
             echo(f"soak: {plan.robots} robots ({valid_rate:.1f} submaps/s), "

@@ -48,8 +48,8 @@ class MatchJob:
 
 class Lane:
     """The large submaps' matches (module docstring); `waiting` holds the rows the worker must
-    leave pending for now. Called by the worker thread (`matched`), its own thread (the
-    job) and `close`."""
+    leave pending for now. Called by the worker thread (`pending`, `defers`, `pop`), its own
+    thread (the job) and `close`."""
 
     def __init__(self, merger: Merger, threshold: int, wake: Callable[[], None],
                  timeout_s: float | None = None) -> None:
@@ -96,7 +96,7 @@ class Lane:
                 self.waiting.clear()
                 self._held.clear()
             raise
-        # arrays, not the submap's models, go through the pipe (a tenth of the bytes)
+        # arrays, not the submap's models, go through the pipe (no Python object per value)
         job = MatchJob([(m, q.arrays() if isinstance(q, Submap) else q) for m, q in todo.pairs],
                        self.merger.config.match)
         log.info("submap %s seq %s: %d objects, matched against %d sessions in the lane",
