@@ -417,7 +417,8 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
         tmp_path: Path) -> None:
     """A status query through the transport reads no store figure itself (each read released
     the GIL several times: 100-500 ms under load): it answers with those a thread of their own
-    reads every status_refresh_s, and says how old they are. They follow the store: a new
+    reads every status_refresh_s, and says how old they are; without poses it does not even
+    build the reply (the same thread builds it after each read). They follow the store: a new
     submap shows within a few refreshes. In-process status() reads them exact."""
     with Fleet(cfg_at(tmp_path / "st.db", status_refresh_s=0.05)) as fl:
         a = scene()
@@ -428,14 +429,16 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
         asking = threading.local()
 
         def counted(real: Any) -> Any:
-            def read() -> Any:
+            def read(*a: Any, **k: Any) -> Any:
                 if getattr(asking, "now", False):
                     reads.append(real.__name__)
-                return real()
+                return real(*a, **k)
             return read
 
         store.counts, store.stats = counted(real_counts), counted(real_stats)
         store.figures = counted(real_figures)  # type: ignore[method-assign]
+        real_status = fl.svc.status
+        fl.svc.status = counted(real_status)  # type: ignore[method-assign]
 
         def status() -> dict[str, Any]:
             asking.now = True
@@ -451,9 +454,14 @@ def test_a_status_query_does_no_io_and_its_store_figures_follow_the_store(
             fl.put(moved(a, "b"))
             assert wait_for(lambda: len(fl.results) == 2, 20.0)
             assert wait_for(lambda: sum(status()["submaps"]["stored"].values()) == 2, 10.0)
+
+            def poses() -> dict[str, Any]:  # built on demand, not the cached reply
+                return json.loads(fl.t.get(keys.status_key(ROOT), {})[0].payload)["frame_poses"]
+
+            assert wait_for(lambda: "b/s0" in poses(), 10.0)
         finally:
-            del store.counts, store.stats, store.figures
-        assert reads == []  # not one store read on the query's path
+            del store.counts, store.stats, store.figures, fl.svc.status
+        assert reads == []  # not one store read nor status build on the query's path
         assert sum(first["submaps"]["stored"].values()) == 1
         assert 0.0 <= first["store"]["age_s"] < 10.0
         assert fl.svc.status(poses=False)["store"]["age_s"] < 1.0  # in-process: read now

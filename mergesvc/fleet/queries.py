@@ -13,6 +13,7 @@ import logging
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,11 +41,16 @@ class StoreFigures:
     waits for the worker to hand it back: a status query that read the store itself took
     100-500 ms under load. `get(fresh=False)` gives the last read, however old (its age is
     returned; the thread goes on after a failed read, keeping the last figures), and reads only
-    when there is none yet; `get(fresh=True)` reads now (in-process callers: exact)."""
+    when there is none yet; `get(fresh=True)` reads now (in-process callers: exact). After
+    each read the thread also builds `reply` with `build` (the status reply without poses, so
+    a query only sends bytes: each Python step of building it waited for the GIL too)."""
 
-    def __init__(self, store: Store, period_s: float) -> None:
+    def __init__(self, store: Store, period_s: float,
+                 build: Callable[[], bytes] | None = None) -> None:
         self.store = store
         self.period_s = period_s
+        self.build = build
+        self.reply: bytes | None = None  # the last `build`, after the last read
         self._last: tuple[float, dict[str, Any], dict[str, Any]] | None = None
         self._lock = threading.Lock()  # orders the replacements of _last
         self._stop = threading.Event()
@@ -82,6 +88,12 @@ class StoreFigures:
                 (log.debug if failing else log.warning)(
                     "store figures for status not read: %s", one_line(exc))
                 failing = True
+            if self.build is not None:
+                try:
+                    self.reply = self.build()
+                except Exception as exc:  # a query builds its own meanwhile
+                    self.reply = None
+                    log.debug("status reply not built: %s", one_line(exc))
             self._stop.wait(self.period_s)
 
     def get(self, fresh: bool = True) -> tuple[dict[str, Any], dict[str, Any], float]:

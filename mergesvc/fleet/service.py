@@ -1,10 +1,9 @@
 """The merge service: submaps in (fleet/ingress.py: checked, persisted first), each merged as one
 unit of work (fleet/merger.py) committed in one store transaction and only then published,
-inter-robot factors and a result per submap out, one GNC pose graph over every session's
-keyframes, and the queries (fleet/queries.py), over a Transport (fleet/transport.py). One
-worker merges pending rows in batches (a large submap's matching beside it: fleet/lane.py) and
-solves after a batch that changed the graph; the state lock is held only to apply a unit or a
-solution, so queries never wait on a solve.
+factors and a result per submap out, one GNC pose graph over every session's keyframes, the
+queries (fleet/queries.py), over a Transport (fleet/transport.py). One worker merges pending
+rows in batches (a large submap's matching beside it: fleet/lane.py) and solves after a batch
+that changed the graph; the state lock is held only to apply a unit or a solution.
 
 Guarantees: at most one final result per submap (published after its row's final status is
 committed; after a crash the same result may be published again). A store that cannot write
@@ -85,7 +84,8 @@ class MergeService:
         # the graph's writers (worker, ingest): one submap or solve at a time; queries never
         self._process_lock = threading.Lock()
         self.queries = Queries(config, self.merger, self._lock)
-        self.figures = StoreFigures(self.store, config.status_refresh_s)
+        self.figures = StoreFigures(self.store, config.status_refresh_s,
+                                    lambda: self._status_json(False, False))
         self._wake = threading.Event()  # set after a submap is stored: the worker looks
         self.lane = Lane(self.merger, config.large_submap_objects, self._wake.set,
                          config.solve_timeout_s)
@@ -174,16 +174,14 @@ class MergeService:
         self.damage = self.acks.lost(self.store.final_seqs())
         for line in self.damage:
             log.error("store %s lost answered submaps: %s", self.store.path, line)
-        anchor = self.store.meta(META_ANCHOR)  # else the first processed submap's (below)
-        if anchor is not None:
+        if (anchor := self.store.meta(META_ANCHOR)) is not None:  # else the first processed's
             self.merger.set_anchor(anchor)
         for fr in self.store.frames():
             self.ingress.seen(fr.robot_id, fr.session_id, fr.last_seen_s)
-        views = self.merger.views
         for row in self.store.iter_submaps():  # a page at a time: a mission's worth
             if row.status in ("processed", "no_match"):
                 sub = self._decode(row.payload)
-                views.note(f"{sub.robot_id}/{sub.session_id}", row.payload)
+                self.merger.views.note(f"{sub.robot_id}/{sub.session_id}", row.payload)
                 self.merger.restore(sub)
         rows = [(f.created_at_s, 0, i, f, True) for i, f in
                 enumerate(self.store.iter_factors(FactorStatus.ACCEPTED))]
@@ -290,10 +288,9 @@ class MergeService:
         except StoreError as store_exc:  # not final yet: retried like any unwritten row
             log.warning("could not mark submap row %d failed: %s", row_id, store_exc)
             return
-        self.outbox.result(SubmapResult(robot=row.robot_id, session=row.session_id,
-                                          seq=row.seq if row.seq >= 0 else None,
-                                          outcome=Outcome.FAILED, code=RefusalCode.PROCESSING,
-                                          detail=detail))
+        self.outbox.result(SubmapResult(
+            robot=row.robot_id, session=row.session_id, seq=row.seq if row.seq >= 0 else None,
+            outcome=Outcome.FAILED, code=RefusalCode.PROCESSING, detail=detail))
 
     def _decode(self, payload: bytes) -> Submap:
         """A stored payload (checked to be a submap when it arrived) decoded again."""
@@ -366,9 +363,9 @@ class MergeService:
 
     def ingest(self, sub: Submap, profile: Profile = Profile.FULL, optimize: bool = True) -> int:
         """Persist and process one submap now, in the calling thread, as if it had arrived
-        coded with `profile` (a restart reloads it like any other): offline replays and tests,
-        with or without a transport. Returns its row id; a submap stored before is not
-        processed again. `optimize`: solve the pose graph now (else with the next solve)."""
+        coded with `profile` (a restart reloads it like any other): offline replays and tests.
+        Returns its row id; a submap stored before is not processed again. `optimize`: solve
+        the pose graph now (else with the next solve)."""
         if sub.seq is None:
             raise SchemaError("submap without seq")
         self.ingress.check_model(sub)
@@ -479,8 +476,11 @@ class MergeService:
     def _on_status(self, query: Query) -> Reply:
         poses = query.parameters.get("poses") not in ("false", "0", "no")
         fresh = self.config.status_refresh_s <= 0  # else the figures' thread's last read
-        return Reply(json.dumps(self.status(poses, fresh), allow_nan=False).encode(),
-                     keys.JSON_ENCODING)
+        built = None if poses or fresh else self.figures.reply  # (StoreFigures)
+        return Reply(built or self._status_json(poses, fresh), keys.JSON_ENCODING)
+
+    def _status_json(self, poses: bool, fresh: bool) -> bytes:
+        return json.dumps(self.status(poses, fresh), allow_nan=False).encode()
 
     def _on_relocalize(self, query: Query) -> Reply:
         self.stats.count("relocalize_queries")
