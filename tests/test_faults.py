@@ -497,6 +497,28 @@ def test_the_figures_thread_outlives_a_failed_read(tmp_path: Path,
         "WARNING", "DEBUG"]
 
 
+def test_the_prebuilt_status_reply_is_built_after_each_read_and_dropped_when_stale(
+        tmp_path: Path) -> None:
+    """The figures' thread builds the reply after each read; once it has stopped building (a
+    stalled thread), the reply is dropped after two periods, so a query builds its own and
+    its ages tell the truth."""
+    with Store(tmp_path / "rep.db") as store:
+        builds: list[int] = []
+
+        def build() -> bytes:
+            builds.append(1)
+            return b"reply %d" % len(builds)
+
+        figures = StoreFigures(store, 0.05, build)
+        figures.start()
+        try:
+            assert wait_for(lambda: len(builds) >= 3, 10.0)
+            assert figures.reply is not None and figures.reply.startswith(b"reply ")
+        finally:
+            figures.stop()
+        assert wait_for(lambda: figures.reply is None, 10.0, step_s=0.02)
+
+
 # -- 11. bounded state and a stable anchor -----------------------------------------------------
 
 

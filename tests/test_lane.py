@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 from helpers import wait_for
 from test_faults import Fleet, cfg_at, outcomes
-from test_service_limits import make_submap, moved
+from test_service_limits import make_submap, moved, payload
 
 from mergesvc.core.model import Submap
 from mergesvc.errors import SolverError
-from mergesvc.fleet.lane import Lane
+from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.lane import Lane, MatchJob
 from mergesvc.fleet.service import MergeService
+from mergesvc.fleet.solve_process import ProcessOptimizer
 
 
 def scene60() -> Submap:
@@ -81,7 +83,7 @@ def test_a_large_submap_does_not_hold_the_others_and_gives_the_workers_answer(
         assert wait_for(lambda: len(fl.of("c")) == 2, 30.0)
         assert [r.seq for r in fl.of("c")] == [0, 1]
         assert outcomes(fl.of("c"))[0] == "processed"
-        assert fl.svc.lane.matched_rows == 2  # a's (no other session yet) and c's
+        assert fl.svc.lane.finished == 2  # a's (no other session yet) and c's
         lane_factor = fl.svc.merger.factor(fl.of("c")[0].factors[0])
     with MergeService(cfg_at(tmp_path / "w.db", large_submap_objects=0)) as svc:
         svc.ingest(a)
@@ -131,4 +133,41 @@ def test_only_submaps_above_the_threshold_take_the_lane(tmp_path: Path, objects:
         fl.put(a)
         fl.put(part(moved(a, "c"), objects))
         assert wait_for(lambda: len(fl.of("c")) == 1, 30.0)
-        assert fl.svc.lane.matched_rows == 1 + (objects > 20)  # a's too
+        assert fl.svc.lane.finished == 1 + (objects > 20)  # a's too
+
+
+def test_a_session_waits_for_its_large_submap_until_the_next_batch() -> None:
+    """A worker's batch [c's large seq 0, b's small, c's small seq 1]: the lane takes c's first
+    and finishes at once (no other session to match); c's second still waits in this batch
+    (it used to go first: the lane's thread freed the session mid-batch), b's does not; the
+    next batch looks at every row again, in order, and c's first gets its (empty) matches."""
+    svc = MergeService(ServiceConfig(fleet="lane", store=":memory:", large_submap_objects=20))
+    try:
+        lane = svc.lane
+        big = moved(scene60(), "c")
+        small_c = part(big).model_copy(update={"seq": 1})
+        small_b = part(moved(scene60(), "b"))
+        rows = [1, 2, 3]
+        assert lane.pending(lambda k: rows[:k], 64) == rows
+        assert lane.defers(1, big, payload(big))
+        assert wait_for(lambda: lane.finished == 1, 20.0)
+        assert not lane.defers(2, small_b, payload(small_b))
+        assert lane.defers(3, small_c, payload(small_c))
+        assert lane.pending(lambda k: rows[:k], 64) == rows
+        assert not lane.defers(1, big, payload(big))
+        got = lane.pop(1)
+        assert got is not None and got[0].others == [] and got[1] == []
+        assert lane.pop(1) == got  # kept: a commit that failed plans it again with them
+        assert not lane.defers(3, small_c, payload(small_c))
+    finally:
+        svc.close()
+
+
+def test_a_killed_child_starts_no_other() -> None:
+    """`kill` (the service closing) stops the child for good: a job that comes after it fails
+    at once instead of starting a child that close would wait for."""
+    child = ProcessOptimizer()
+    child.kill()
+    with pytest.raises(SolverError, match="stopped for good"):
+        child(MatchJob([], ServiceConfig().match))
+    assert child.starts == 0

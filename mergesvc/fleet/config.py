@@ -66,7 +66,8 @@ class ServiceConfig(BaseModel):
     status_refresh_s: float = Field(
         0.5, ge=0.0, description="a status query over the network answers with the store's "
         "counts and sizes as read by a thread of its own this often (the reply's store.age_s), "
-        "so it does no I/O; 0: it reads them itself",
+        "so it does no I/O; a reply without poses is built whole by that thread after each "
+        "read (all of it this old); 0: a query reads and builds itself",
     )
     solve_in_child: bool = Field(
         True, description="run the pose graph's optimisations in a child process (GTSAM "

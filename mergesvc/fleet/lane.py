@@ -7,8 +7,9 @@ against every session `Merger.to_match` picks) in a child process of low priorit
 rows; the child exits after each submap (its memory goes back). The row stays pending
 meanwhile: a restart matches it again. The later rows of its session wait for it (a session's
 submaps are merged in order); so does another large submap until the lane is free. Once the
-matches are back the worker merges the row as any other (`Merger.plan` with them): the
-sessions matched against are the ones of when it was sent."""
+matches are back the worker merges the row as any other (`Merger.plan` with them): its matches
+are against the sessions' maps of when it was sent, its factors fitted with the sessions as
+they are when it is merged."""
 
 from __future__ import annotations
 
@@ -61,14 +62,22 @@ class Lane:
         self._lock = threading.Lock()
         self._busy: tuple[int, str] | None = None  # (row, session) in the lane
         self._done: dict[int, tuple[MatchPlan, Any]] = {}  # row -> (plan, results or error)
+        self._last: tuple[int, tuple[MatchPlan, Any]] | None = None  # popped last (a retry)
         self.waiting: set[int] = set()
         self._held: set[str] = set()  # sessions with a row waiting: their later rows wait too
-        self.matched_rows = 0  # submaps the lane matched
+        self.finished = 0  # submaps the lane finished (matched, failed, or nothing to match)
         self._closed = False
 
     def pending(self, read: Callable[[int], list[int]], n: int) -> list[int]:
-        """The first n pending rows (`read(k)`: the first k) the worker may merge now."""
-        waiting = self.waiting.copy()
+        """The first n pending rows (`read(k)`: the first k) not known to wait, for a batch of
+        the worker's (`defers` holds back those it finds waiting). With the lane free, every
+        row is looked at again, in order (only here: a batch never sees a session's later row
+        go before its first)."""
+        with self._lock:
+            if self._busy is None:
+                self.waiting.clear()
+                self._held.clear()
+            waiting = self.waiting.copy()
         return [i for i in read(n + len(waiting)) if i not in waiting][:n]
 
     def defers(self, row_id: int, sub: Submap, payload: bytes) -> bool:
@@ -77,7 +86,7 @@ class Lane:
         of its session waiting). False when its matches are ready (`pop`) or it is small."""
         me = str(FrameId(sub.robot_id, sub.session_id))
         with self._lock:
-            if row_id in self._done:
+            if row_id in self._done or (self._last is not None and self._last[0] == row_id):
                 return False
             if me in self._held or (self._busy is not None and self._large(sub)):
                 self.waiting.add(row_id)
@@ -90,28 +99,31 @@ class Lane:
             self._held.add(me)
         try:
             todo = self.merger.to_match(sub, payload)
-        except BaseException:
+            # arrays, not the submap's models, go through the pipe (no Python object per value)
+            job = MatchJob([(m, q.arrays() if isinstance(q, Submap) else q)
+                            for m, q in todo.pairs], self.merger.config.match)
+            threading.Thread(target=self._run, args=(row_id, todo, job), daemon=True,
+                             name="mergesvc-lane").start()
+        except BaseException:  # the lane free again; the row fails in the worker
             with self._lock:
                 self._busy = None
-                self.waiting.clear()
-                self._held.clear()
             raise
-        # arrays, not the submap's models, go through the pipe (no Python object per value)
-        job = MatchJob([(m, q.arrays() if isinstance(q, Submap) else q) for m, q in todo.pairs],
-                       self.merger.config.match)
         log.info("submap %s seq %s: %d objects, matched against %d sessions in the lane",
                  me, sub.seq, len(sub.objects), len(todo.pairs))
-        threading.Thread(target=self._run, args=(row_id, todo, job), daemon=True,
-                         name="mergesvc-lane").start()
         return True
 
     def pop(self, row_id: int) -> tuple[MatchPlan, list[Any]] | None:
-        """The lane's matches of `row_id` (None: it has none); raises its failure."""
+        """The lane's matches of `row_id` (None: it has none); raises its failure. The last
+        one popped is kept: a unit whose commit failed is planned again with it."""
         with self._lock:
-            todo, out = self._done.pop(row_id, (None, None))
+            if row_id in self._done:
+                self._last = (row_id, self._done.pop(row_id))
+            elif self._last is None or self._last[0] != row_id:
+                return None
+            todo, out = self._last[1]
         if isinstance(out, Exception):
             raise out
-        return None if todo is None else (todo, out)
+        return todo, out
 
     def _large(self, sub: Submap) -> bool:
         return 0 < self.threshold < len(sub.objects)
@@ -128,16 +140,14 @@ class Lane:
         self._child.close()  # large submaps are rare: its memory goes back until the next
         with self._lock:
             self._done[row_id] = (todo, out)
-            self._busy = None
-            self.waiting.clear()  # each looked at again, in order
-            self._held.clear()
-            self.matched_rows += 1
+            self._busy = None  # the worker's next batch looks at every row again (`pending`)
+            self.finished += 1
         self._wake()
 
     def close(self) -> None:
+        """Stop the lane now (a job in flight fails; its row stays pending)."""
         self._closed = True
         self._child.kill()
-        self._child.close()
 
 
 __all__ = ["Lane", "MatchJob"]

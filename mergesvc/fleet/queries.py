@@ -50,7 +50,7 @@ class StoreFigures:
         self.store = store
         self.period_s = period_s
         self.build = build
-        self.reply: bytes | None = None  # the last `build`, after the last read
+        self._reply: tuple[float, bytes] | None = None  # (when, the last `build`)
         self._last: tuple[float, dict[str, Any], dict[str, Any]] | None = None
         self._lock = threading.Lock()  # orders the replacements of _last
         self._stop = threading.Event()
@@ -90,11 +90,20 @@ class StoreFigures:
                 failing = True
             if self.build is not None:
                 try:
-                    self.reply = self.build()
+                    self._reply = (time.monotonic(), self.build())
                 except Exception as exc:  # a query builds its own meanwhile
-                    self.reply = None
+                    self._reply = None
                     log.debug("status reply not built: %s", one_line(exc))
             self._stop.wait(self.period_s)
+
+    @property
+    def reply(self) -> bytes | None:
+        """The reply the thread built last, unless it is older than two periods (a stalled
+        thread: a query then builds its own, whose ages tell the truth)."""
+        built = self._reply
+        if built is None or time.monotonic() - built[0] > 2.0 * self.period_s + 0.1:
+            return None
+        return built[1]
 
     def get(self, fresh: bool = True) -> tuple[dict[str, Any], dict[str, Any], float]:
         """(counts, stats, their age in seconds)."""

@@ -41,12 +41,15 @@ class ProcessOptimizer:
 
     def __init__(self, nice: int = 0) -> None:
         self.nice = nice  # the child's niceness added (a background child: 10)
+        self._killed = False
         self._lock = threading.Lock()
         self._proc: subprocess.Popen[bytes] | None = None
         self.jobs = 0  # jobs the child answered
         self.starts = 0  # children started
 
     def _child(self) -> subprocess.Popen[bytes]:
+        if self._killed:
+            raise SolverError("the child process was stopped for good (kill)")
         if self._proc is None or self._proc.poll() is not None:
             self._stop()
             self._proc = _spawn([sys.executable, "-m", "mergesvc.fleet.solve_process",
@@ -99,7 +102,9 @@ class ProcessOptimizer:
             self._stop()
 
     def kill(self) -> None:
-        """Stop the child now, a job in flight or not (that job fails with SolverError)."""
+        """Stop the child now, a job in flight or not (that job fails with SolverError), and
+        for good: no later job starts one (without waiting for the lock a job holds)."""
+        self._killed = True
         proc = self._proc
         if proc is not None and proc.poll() is None:
             proc.kill()
