@@ -158,6 +158,7 @@ EXPLICIT: dict[Path_, Any] = {
     ("link", "channel", "link_range_m"): {"topside->v2": 500.0},
     ("agent", "up"): (0.0, -1.0, 0.0),
     ("service", "embedding_dims"): [384, 768],
+    ("service", "odometry_bounds"): {"car1": [0.01, 0.01, 0.01, 2.0, 3.0, 2.0]},
 }
 
 DEFAULTS = Settings()

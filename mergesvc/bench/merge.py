@@ -151,9 +151,14 @@ def run_merge_bench(
                         "odometry_sigma": world.odometry_step_sigma,
                         "cut_every_objects": 8, "window_objects": 12, "cut_every_m": 40.0})
 
-                res = replay(world, service=service, agent=car, link=None, projection=None,
+                svc = service
+                if world.odometry_bound_sigma is not None:  # loop-closed: the owner says so
+                    svc = service.model_copy(update={"odometry_bounds": {
+                        r: world.odometry_bound_sigma for r in KITTI_ROBOTS}})
+                res = replay(world, service=svc, agent=car, link=None, projection=None,
                              seed=s)
                 res["odometry_step_sigma"] = list(world.odometry_step_sigma)
+                res["odometry_bound_sigma"] = world.odometry_bound_sigma
             else:
                 laps = plan.pool_long_laps if name in ("pool-long", "pool-calib") else (
                     plan.pool_laps)

@@ -4,6 +4,8 @@ and the names its noise groups go by. Pydantic models only: cheap to import.
 
 from __future__ import annotations
 
+import math
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mergesvc.core.calibration import CalibrationConfig
@@ -35,6 +37,12 @@ CLOSURE_GROUP = "closures"  # the noise group of every inter-robot factor (calib
 def odometry_group(robot: str) -> str:
     """The noise group of a robot's odometry edges: every session of one robot together."""
     return f"odometry:{robot}"
+
+
+def bound_group(robot: str) -> str:
+    """The noise group of a robot's bound edges (its keyframes against its session's first):
+    an odometry group of its own, calibrated apart from the steps."""
+    return f"{odometry_group(robot)}:bound"
 
 
 class ServiceConfig(BaseModel):
@@ -139,6 +147,13 @@ class ServiceConfig(BaseModel):
         4.0, ge=1.0, description="every inter-robot factor's covariance is multiplied by this "
         "when solving (not in what is sent): successive factors share objects and errors, "
         "so the graph counts them as fewer (docs/uncertainty.md)")
+    odometry_bounds: dict[str, tuple[float, float, float, float, float, float]] = Field(
+        default_factory=dict, description="robot id -> the standard deviations (rad x3, m x3, "
+        "GTSAM order) of its odometry's error at any keyframe relative to its session's first, "
+        "for a vehicle whose odometry is a loop-closed estimate (its error does not grow with "
+        "distance): each keyframe is also tied to the first by that covariance, so the solve "
+        "cannot bend the trajectory further than that (docs/pose_graph.md). Robots not listed: "
+        "the odometry's error grows as its edges compose")
     local_fit: bool = Field(
         True, description="fit each factor on the matched objects with the other session's "
         "placed around its anchoring keyframe by odometry (not by the merged solution, whose "
@@ -172,6 +187,15 @@ class ServiceConfig(BaseModel):
         "covariance says, docs/benchmarks.md)",
     )
 
+    @field_validator("odometry_bounds")
+    @classmethod
+    def _odometry_bounds(cls, v: dict[str, tuple[float, ...]]) -> dict[str, tuple[float, ...]]:
+        for robot, sigmas in v.items():
+            if not all(math.isfinite(x) and x > 0 for x in sigmas):
+                raise ValueError(f"odometry_bounds[{robot!r}]: six finite standard deviations "
+                                 f"above 0, got {list(sigmas)}")
+        return v
+
     @field_validator("factor_profile")
     @classmethod
     def _factor_profile(cls, v: Profile) -> Profile:
@@ -181,5 +205,5 @@ class ServiceConfig(BaseModel):
         return v
 
 
-__all__ = ["CLOSURE_GROUP", "LIVE_KEYFRAMES", "ConsistencyConfig", "ServiceConfig",
+__all__ = ["CLOSURE_GROUP", "LIVE_KEYFRAMES", "ConsistencyConfig", "ServiceConfig", "bound_group",
            "odometry_group"]

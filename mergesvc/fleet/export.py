@@ -164,6 +164,9 @@ def _graph_edges(svc: MergeService, ids: dict[str, int]) -> tuple[list[tuple[int
         elif fid in odometry:
             e = odometry[fid]
             T, C, kind = e.T_from_to, np.asarray(e.covariance), "odometry"
+        elif fid in svc.merger.bound_edges:
+            T, C = svc.merger.bound_edges[fid]
+            kind = "odometry_bound"
         else:
             raise MergeError(f"factor {fid} of the pose graph is neither an odometry edge nor "
                              "a factor in force")

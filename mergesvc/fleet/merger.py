@@ -35,11 +35,11 @@ from mergesvc.core.pipeline import match
 from mergesvc.core.poses import check_covariance
 from mergesvc.errors import InputError, MergeError, SchemaError
 from mergesvc.fleet.closures import ClosureSets
-from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, odometry_group
+from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, bound_group, odometry_group
 from mergesvc.fleet.held import FactorTable
 from mergesvc.fleet.mixed import ProfileViews
 from mergesvc.fleet.replies import NO_FRAMES, FrameTried, Outcome, SubmapResult
-from mergesvc.fleet.sessions import SessionMap, Sessions
+from mergesvc.fleet.sessions import SessionMap, Sessions, SessionState
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,9 @@ class Merger:
         self.sessions = sessions
         self.views = views
         self.factors = FactorTable()  # in force: in the graph, sent (fleet/held.py)
+        # keyframe-to-first edges of robots with a declared odometry bound: id -> (T, C)
+        self.bound_edges: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
+        self._unbound: dict[str, set[int]] = {}  # session -> keyframes not joined to 0
         self.held: dict[str, Factor] = {}  # kept, not trusted (yet)
         self.closures = ClosureSets(config.consistency, self._chains)
         self.anchor: str | None = None  # the anchor session "robot/session"
@@ -266,7 +269,28 @@ class Merger:
                 self.graph.add_factor(edge.edge_id, a, b, edge.T_from_to, edge.covariance,
                                       known_inlier=True, group=odometry_group(sub.robot_id))
         self.graph.add_frame(st.node(k))
+        if sub.robot_id in self.config.odometry_bounds and k != 0:
+            self._add_bounds(st, k, sub.robot_id)
         return closes_loop
+
+    def _add_bounds(self, st: SessionState, k: int, robot: str) -> None:
+        """A robot with a declared odometry bound (ServiceConfig.odometry_bounds): keyframe k
+        tied to its session's keyframe 0 by the odometry between them, with the bound's
+        covariance (a known inlier in the robot's bound group); a keyframe not yet joined to
+        0 waits, and is tied when a later edge joins it."""
+        waiting = self._unbound.setdefault(st.name, set())
+        if f"bound:{st.node(k)}" not in self.bound_edges:  # (a submap applied again: it is)
+            waiting.add(k)
+        C = np.diag(np.square(np.asarray(self.config.odometry_bounds[robot], np.float64)))
+        for j in sorted(waiting):
+            T = st.origin_pose(j)
+            if T is None:
+                continue
+            fid = f"bound:{st.node(j)}"
+            self.graph.add_factor(fid, st.node(0), st.node(j), T, C, known_inlier=True,
+                                  group=bound_group(robot))
+            self.bound_edges[fid] = (T, C)
+            waiting.discard(j)
 
     def set_anchor(self, name: str) -> None:
         self.anchor = name

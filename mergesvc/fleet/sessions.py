@@ -57,6 +57,9 @@ class SessionState:
     _adjacent: dict[int, list[int]] = field(
         default_factory=lambda: defaultdict(list), repr=False
     )
+    # keyframe -> its pose in keyframe 0's frame along the odometry (edges never change)
+    _origin: dict[int, gtsam.Pose3] = field(default_factory=lambda: {0: gtsam.Pose3()},
+                                            repr=False)
 
     @property
     def name(self) -> str:
@@ -103,6 +106,24 @@ class SessionState:
         self._adjacent[pair[0]].append(pair[1])
         self._adjacent[pair[1]].append(pair[0])
         return edge
+
+    def origin_pose(self, k: int) -> gtsam.Pose3 | None:
+        """Keyframe k's pose in keyframe 0's frame, composed along the odometry; None while no
+        chain of edges joins them."""
+        hit = self._origin.get(k)
+        if hit is None:
+            for j in self._adjacent.get(k, ()):  # the usual case: one step from a known one
+                if j in self._origin:
+                    e = self.edges.get((j, k))
+                    hit = self._origin[j].compose(
+                        e.T_from_to if e is not None else self.edges[(k, j)].T_from_to.inverse())
+                    break
+            else:
+                got = self.placements(0, {k}).get(k)
+                hit = None if got is None else got[0]
+            if hit is not None:
+                self._origin[k] = hit
+        return hit
 
     def placements(self, source: int, targets: set[int], scale: np.ndarray | None = None
                    ) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:

@@ -85,6 +85,9 @@ class DriveFleet:
     cars: list[DriveCar]
     cfg: RunConfig
     odometry_step_sigma: tuple[float, float]  # measured per-step error std: rad, m
+    # measured std of the odometry's error at a keyframe relative to its stretch's start
+    # (rad x3, m x3, GTSAM order): a loop-closed estimate's bound; None for drift="vo"
+    odometry_bound_sigma: tuple[float, ...] | None = None
 
     @property
     def robots(self) -> list[DriveCar]:
@@ -225,7 +228,16 @@ def drive_fleet(
     ev = np.asarray(errs)
     sigma = (float(np.sqrt((ev[:, :3] ** 2).mean())), float(np.sqrt((ev[:, 3:] ** 2).mean())))
     return DriveFleet(seed, (C_CAMERA @ objects.T).T, objects, ids, classes, truth_emb, cars,
-                      cfg, sigma)
+                      cfg, sigma, None if drift == "vo" else _bound_sigma(cars))
+
+
+def _bound_sigma(cars: Sequence[DriveCar]) -> tuple[float, ...]:
+    """RMS per axis (GTSAM order, body frame, camera axes) of the odometry's error at every
+    pose relative to its car's start: what a loop-closed estimate's owner would declare."""
+    e = [np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.linalg.inv(c.T_true[0]) @ c.T_true[k])
+                                       .between(gtsam.Pose3(c.T_est[k]))))
+         for c in cars for k in range(len(c.T_true))]
+    return tuple(float(x) for x in np.sqrt(np.mean(np.square(e), axis=0)))
 
 
 __all__ = ["DRIFTS", "STRETCHES_FULL", "STRETCHES_QUICK", "DriveCar", "DriveFleet", "drive_config",
