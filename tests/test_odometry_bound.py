@@ -134,13 +134,14 @@ def test_origin_pose_waits_for_a_chain_to_the_first_keyframe() -> None:
 
 
 def test_keyframes_that_arrive_before_their_chain_are_tied_when_it_joins(tmp_path) -> None:
-    """A submap whose odometry starts at a keyframe the service has not seen (the one before
-    was delayed): its keyframe waits, and is tied to keyframe 0 when the late edge arrives."""
+    """Submaps whose odometry starts at a keyframe the service has not seen (the one before
+    was delayed): their keyframes wait, and are tied to keyframe 0 when the late edge joins
+    them."""
     own = [s for s in cost_stream(150, seed=0, robots=4)
            if s.robot_id == "auv1" and s.session_id == "s0"][:6]
     assert own[0].odometry.from_keyframe == 0
     assert all(b.odometry.from_keyframe == a.keyframe for a, b in itertools.pairwise(own))
-    order = [own[0], own[2], own[3], own[1], own[4], own[5]]  # own[1]'s edge joins 2 and 3
+    order = [own[0], own[2], own[3], own[4], own[5], own[1]]  # own[1]'s edge joins the rest
     cfg = ServiceConfig(store=str(tmp_path / "s.db"), odometry_bounds={"auv1": SIGMAS})
     svc = MergeService(cfg, session=None)
     try:
@@ -148,7 +149,8 @@ def test_keyframes_that_arrive_before_their_chain_are_tied_when_it_joins(tmp_pat
         for sub in order:
             svc.ingest(sub, optimize=False)
             seen.append(len(svc.merger.bound_edges))
-        assert seen == [1, 1, 1, 4, 5, 6]
+        assert seen == [1, 1, 1, 1, 1, 6]
+        assert svc.merger._unbound["auv1/s0"] == set()
         chain = _odometry_chains(own)["auv1/s0"]
         for sub in own:
             T, _ = svc.merger.bound_edges[f"bound:auv1/s0#{sub.keyframe}"]

@@ -100,6 +100,7 @@ class Merger:
         # keyframe-to-first edges of robots with a declared odometry bound: id -> (T, C)
         self.bound_edges: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
         self._unbound: dict[str, set[int]] = {}  # session -> keyframes not joined to 0
+        self._bound_cov: dict[str, np.ndarray] = {}
         self.held: dict[str, Factor] = {}  # kept, not trusted (yet)
         self.closures = ClosureSets(config.consistency, self._chains)
         self.anchor: str | None = None  # the anchor session "robot/session"
@@ -251,9 +252,10 @@ class Merger:
         return f
 
     def _add_to_graph(self, sub: Submap) -> bool:
-        """The submap's keyframe node and odometry edge (a known inlier) into the graph; the
-        first session is the anchor. True when the edge joined two nodes the graph had (it
-        may close a loop: the graph must be solved again)."""
+        """The submap's keyframe node and odometry edge (a known inlier) into the graph, and
+        its bound edges (`_add_bounds`); the first session is the anchor. True when the edge
+        joined two nodes the graph had or a bound edge came in (either may close a loop: the
+        graph must be solved again)."""
         st = self.sessions[str(FrameId(sub.robot_id, sub.session_id))]
         if self.anchor is None:
             self.set_anchor(st.name)
@@ -269,20 +271,30 @@ class Merger:
                 self.graph.add_factor(edge.edge_id, a, b, edge.T_from_to, edge.covariance,
                                       known_inlier=True, group=odometry_group(sub.robot_id))
         self.graph.add_frame(st.node(k))
-        if sub.robot_id in self.config.odometry_bounds and k != 0:
-            self._add_bounds(st, k, sub.robot_id)
+        if sub.robot_id in self.config.odometry_bounds:
+            ends = (k,) if odo is None or sub.keyframe is None else (odo.from_keyframe, k)
+            closes_loop = self._add_bounds(st, ends, sub.robot_id) or closes_loop
         return closes_loop
 
-    def _add_bounds(self, st: SessionState, k: int, robot: str) -> None:
-        """A robot with a declared odometry bound (ServiceConfig.odometry_bounds): keyframe k
-        tied to its session's keyframe 0 by the odometry between them, with the bound's
-        covariance (a known inlier in the robot's bound group); a keyframe not yet joined to
-        0 waits, and is tied when a later edge joins it."""
+    def _add_bounds(self, st: SessionState, ends: tuple[int, ...], robot: str) -> bool:
+        """A robot with a declared odometry bound (ServiceConfig.odometry_bounds): each
+        keyframe (`ends`: the new submap's, and its odometry edge's other end) tied to its
+        session's keyframe 0 by the odometry between them, with the bound's covariance (a
+        known inlier in the robot's bound group). A keyframe not yet joined to 0 waits, and is
+        tied when an edge joins it. True when an edge was added (it closes a loop through
+        keyframe 0: a solve must see it)."""
         waiting = self._unbound.setdefault(st.name, set())
-        if f"bound:{st.node(k)}" not in self.bound_edges:  # (a submap applied again: it is)
-            waiting.add(k)
-        C = np.diag(np.square(np.asarray(self.config.odometry_bounds[robot], np.float64)))
-        for j in sorted(waiting):
+        waiting.update(j for j in ends if j != 0 and f"bound:{st.node(j)}" not in
+                       self.bound_edges)  # (a submap applied again has its edges)
+        if not any(st.joined(j) for j in ends):  # nothing joined to 0 changed
+            return False
+        C = self._bound_cov.get(robot)
+        if C is None:
+            C = np.diag(np.square(np.asarray(self.config.odometry_bounds[robot], np.float64)))
+            C.setflags(write=False)
+            self._bound_cov[robot] = C  # one per robot, shared by its edges
+        added = False
+        for j in sorted(j for j in waiting if st.joined(j)):
             T = st.origin_pose(j)
             if T is None:
                 continue
@@ -291,6 +303,8 @@ class Merger:
                                   group=bound_group(robot))
             self.bound_edges[fid] = (T, C)
             waiting.discard(j)
+            added = True
+        return added
 
     def set_anchor(self, name: str) -> None:
         self.anchor = name

@@ -60,6 +60,7 @@ class SessionState:
     # keyframe -> its pose in keyframe 0's frame along the odometry (edges never change)
     _origin: dict[int, gtsam.Pose3] = field(default_factory=lambda: {0: gtsam.Pose3()},
                                             repr=False)
+    _parent: dict[int, int] = field(default_factory=dict, repr=False)  # union-find of edges
 
     @property
     def name(self) -> str:
@@ -105,25 +106,47 @@ class SessionState:
         self.keyframes.add(edge.from_.k)
         self._adjacent[pair[0]].append(pair[1])
         self._adjacent[pair[1]].append(pair[0])
+        a, b = self._root(pair[0]), self._root(pair[1])
+        if a != b:
+            self._parent[a] = b
         return edge
+
+    def joined(self, k: int) -> bool:
+        """Whether odometry edges join keyframe k to keyframe 0."""
+        return self._root(k) == self._root(0)
+
+    def _root(self, k: int) -> int:
+        parent = self._parent
+        while parent.get(k, k) != k:
+            parent[k] = parent.get(parent[k], parent[k])  # path halving
+            k = parent[k]
+        return k
 
     def origin_pose(self, k: int) -> gtsam.Pose3 | None:
         """Keyframe k's pose in keyframe 0's frame, composed along the odometry; None while no
-        chain of edges joins them."""
+        chain of edges joins them. Each keyframe is composed once (cached, with every keyframe
+        the search passed on its way to one already known)."""
         hit = self._origin.get(k)
-        if hit is None:
-            for j in self._adjacent.get(k, ()):  # the usual case: one step from a known one
-                if j in self._origin:
-                    e = self.edges.get((j, k))
-                    hit = self._origin[j].compose(
-                        e.T_from_to if e is not None else self.edges[(k, j)].T_from_to.inverse())
-                    break
-            else:
-                got = self.placements(0, {k}).get(k)
-                hit = None if got is None else got[0]
-            if hit is not None:
-                self._origin[k] = hit
-        return hit
+        if hit is not None or not self.joined(k):
+            return hit
+        rel = {k: gtsam.Pose3()}  # poses in k's frame, breadth first from k
+        todo = deque([k])
+        while todo:
+            a = todo.popleft()
+            for b in self._adjacent.get(a, ()):
+                if b in rel:
+                    continue
+                e = self.edges.get((a, b))
+                T = rel[a].compose(e.T_from_to if e is not None
+                                   else self.edges[(b, a)].T_from_to.inverse())
+                if b in self._origin:  # known: place k, then every keyframe passed
+                    T_0_k = self._origin[b].compose(T.inverse())
+                    for v, T_k_v in rel.items():
+                        self._origin[v] = T_0_k.compose(T_k_v)
+                    return T_0_k
+                rel[b] = T
+                todo.append(b)
+        return None  # (not reached: joined means a path)
 
     def placements(self, source: int, targets: set[int], scale: np.ndarray | None = None
                    ) -> dict[int, tuple[gtsam.Pose3, np.ndarray]]:
