@@ -60,3 +60,21 @@ def test_vo_drifts_more_than_the_loop_closed_estimate_with_the_same_step_errors(
     # ... but they no longer cancel: more drift over the fleet (1.6 km stretches: measured
     # ORB-SLAM2 0.8-0.9 m, vo 1.3-9.5 m ATE per car)
     assert sum(ate_vo) > 1.5 * sum(ate_orb), (ate_orb, ate_vo)
+
+
+@needs_kitti
+def test_the_loop_closed_estimate_declares_its_bound_and_vo_none() -> None:
+    """What bench merge's kitti00 cars declare (service.odometry_bounds): the RMS of each pose's
+    error relative to its car's start, recomputed here from the poses, and the path length its
+    error stays alike over; visual odometry without loop closures declares none."""
+    orb = drive_fleet(0)
+    e = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(np.linalg.inv(c.T_true[0]) @ T).between(
+        gtsam.Pose3(E))) for c in orb.cars for T, E in zip(c.T_true, c.T_est)])
+    np.testing.assert_allclose(orb.odometry_bound_sigma, np.sqrt((e ** 2).mean(axis=0)),
+                               rtol=1e-12)
+    # measured: 0.010-0.013 rad and 2.1-3.2 m per axis, 134 m of a 1.6 km stretch
+    assert all(0.0 < s < 0.05 for s in orb.odometry_bound_sigma[:3])
+    assert all(0.5 < s < 10.0 for s in orb.odometry_bound_sigma[3:])
+    assert 20.0 < orb.odometry_bound_span_m < 800.0
+    vo = drive_fleet(0, drift="vo")
+    assert vo.odometry_bound_sigma is None and vo.odometry_bound_span_m is None

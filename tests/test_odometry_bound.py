@@ -150,11 +150,35 @@ def test_keyframes_that_arrive_before_their_chain_are_tied_when_it_joins(tmp_pat
             svc.ingest(sub, optimize=False)
             seen.append(len(svc.merger.bound_edges))
         assert seen == [1, 1, 1, 1, 1, 6]
-        assert svc.merger._unbound["auv1/s0"] == set()
+        assert svc.merger._unbound["auv1/s0"] == {}
         chain = _odometry_chains(own)["auv1/s0"]
         for sub in own:
             T, _ = svc.merger.bound_edges[f"bound:auv1/s0#{sub.keyframe}"]
             assert T.equals(chain[sub.keyframe], 1e-9)
+    finally:
+        svc.close()
+
+
+def test_bound_edges_within_the_span_count_as_one(tmp_path) -> None:
+    """odometry_bound_span_m: a keyframe's bound covariance is the declared one times the span
+    over its odometry edge's length (at least once): the edges within one span carry one
+    declared bound's information between them."""
+    own = [s for s in cost_stream(150, seed=0, robots=4)
+           if s.robot_id == "auv1" and s.session_id == "s0"][:8]
+    span = 30.0
+    cfg = ServiceConfig(store=str(tmp_path / "s.db"), odometry_bounds={"auv1": SIGMAS},
+                        odometry_bound_span_m=span)
+    svc = MergeService(cfg, session=None)
+    try:
+        for sub in own:
+            svc.ingest(sub, optimize=False)
+        shares = []
+        for sub in own:
+            step = np.linalg.norm(pose3_from_model(sub.odometry.T_from_to).translation())
+            _, C = svc.merger.bound_edges[f"bound:auv1/s0#{sub.keyframe}"]
+            shares.append(max(1.0, span / step))
+            np.testing.assert_allclose(C, np.diag(np.square(SIGMAS)) * shares[-1], rtol=1e-12)
+        assert max(shares) > 2.0  # the span covers several keyframes here
     finally:
         svc.close()
 

@@ -153,12 +153,14 @@ def run_merge_bench(
 
                 svc = service
                 if world.odometry_bound_sigma is not None:  # loop-closed: the owner says so
-                    svc = service.model_copy(update={"odometry_bounds": {
-                        r: world.odometry_bound_sigma for r in KITTI_ROBOTS}})
+                    svc = service.model_copy(update={
+                        "odometry_bounds": {r: world.odometry_bound_sigma for r in KITTI_ROBOTS},
+                        "odometry_bound_span_m": world.odometry_bound_span_m})
                 res = replay(world, service=svc, agent=car, link=None, projection=None,
                              seed=s)
                 res["odometry_step_sigma"] = list(world.odometry_step_sigma)
                 res["odometry_bound_sigma"] = world.odometry_bound_sigma
+                res["odometry_bound_span_m"] = world.odometry_bound_span_m
             else:
                 laps = plan.pool_long_laps if name in ("pool-long", "pool-calib") else (
                     plan.pool_laps)

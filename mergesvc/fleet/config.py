@@ -154,6 +154,11 @@ class ServiceConfig(BaseModel):
         "distance): each keyframe is also tied to the first by that covariance, so the solve "
         "cannot bend the trajectory further than that (docs/pose_graph.md). Robots not listed: "
         "the odometry's error grows as its edges compose")
+    odometry_bound_span_m: float = Field(
+        0.0, ge=0.0, description="the distance over which a bounded odometry's errors stay "
+        "alike (they are correlated along the path): the bound edges within it count as one, "
+        "each edge's covariance the declared one times this distance over the odometry edge's "
+        "length (at least once). 0: every keyframe's error counts as independent")
     local_fit: bool = Field(
         True, description="fit each factor on the matched objects with the other session's "
         "placed around its anchoring keyframe by odometry (not by the merged solution, whose "

@@ -32,7 +32,7 @@ from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.pipeline import match
-from mergesvc.core.poses import check_covariance
+from mergesvc.core.poses import check_covariance, pose3_from_model
 from mergesvc.errors import InputError, MergeError, SchemaError
 from mergesvc.fleet.closures import ClosureSets
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, bound_group, odometry_group
@@ -99,8 +99,8 @@ class Merger:
         self.factors = FactorTable()  # in force: in the graph, sent (fleet/held.py)
         # keyframe-to-first edges of robots with a declared odometry bound: id -> (T, C)
         self.bound_edges: dict[str, tuple[gtsam.Pose3, np.ndarray]] = {}
-        self._unbound: dict[str, set[int]] = {}  # session -> keyframes not joined to 0
-        self._bound_cov: dict[str, np.ndarray] = {}
+        # session -> keyframe not joined to 0 yet -> its bound covariance's factor
+        self._unbound: dict[str, dict[int, float]] = {}
         self.held: dict[str, Factor] = {}  # kept, not trusted (yet)
         self.closures = ClosureSets(config.consistency, self._chains)
         self.anchor: str | None = None  # the anchor session "robot/session"
@@ -273,36 +273,39 @@ class Merger:
         self.graph.add_frame(st.node(k))
         if sub.robot_id in self.config.odometry_bounds:
             ends = (k,) if odo is None or sub.keyframe is None else (odo.from_keyframe, k)
-            closes_loop = self._add_bounds(st, ends, sub.robot_id) or closes_loop
+            step = None if odo is None else float(np.linalg.norm(pose3_from_model(
+                odo.T_from_to).translation()))
+            closes_loop = self._add_bounds(st, ends, step, sub.robot_id) or closes_loop
         return closes_loop
 
-    def _add_bounds(self, st: SessionState, ends: tuple[int, ...], robot: str) -> bool:
+    def _add_bounds(self, st: SessionState, ends: tuple[int, ...], step_m: float | None,
+                    robot: str) -> bool:
         """A robot with a declared odometry bound (ServiceConfig.odometry_bounds): each
         keyframe (`ends`: the new submap's, and its odometry edge's other end) tied to its
-        session's keyframe 0 by the odometry between them, with the bound's covariance (a
-        known inlier in the robot's bound group). A keyframe not yet joined to 0 waits, and is
-        tied when an edge joins it. True when an edge was added (it closes a loop through
-        keyframe 0: a solve must see it)."""
-        waiting = self._unbound.setdefault(st.name, set())
-        waiting.update(j for j in ends if j != 0 and f"bound:{st.node(j)}" not in
-                       self.bound_edges)  # (a submap applied again has its edges)
+        session's keyframe 0 by the odometry between them, with the bound's covariance times
+        the keyframes its errors stay alike over (`odometry_bound_span_m` over the edge's
+        length `step_m`), a known inlier in the robot's bound group. A keyframe not yet joined
+        to 0 waits, and is tied when an edge joins it. True when an edge was added (it closes
+        a loop through keyframe 0: a solve must see it)."""
+        span = self.config.odometry_bound_span_m
+        share = max(1.0, span / step_m) if span > 0 and step_m else 1.0
+        waiting = self._unbound.setdefault(st.name, {})
+        for j in ends:  # (a submap applied again has its edges)
+            if j != 0 and f"bound:{st.node(j)}" not in self.bound_edges:
+                waiting.setdefault(j, share)
         if not any(st.joined(j) for j in ends):  # nothing joined to 0 changed
             return False
-        C = self._bound_cov.get(robot)
-        if C is None:
-            C = np.diag(np.square(np.asarray(self.config.odometry_bounds[robot], np.float64)))
-            C.setflags(write=False)
-            self._bound_cov[robot] = C  # one per robot, shared by its edges
+        B = np.diag(np.square(np.asarray(self.config.odometry_bounds[robot], np.float64)))
         added = False
         for j in sorted(j for j in waiting if st.joined(j)):
             T = st.origin_pose(j)
             if T is None:
                 continue
             fid = f"bound:{st.node(j)}"
+            C = B * waiting.pop(j)
             self.graph.add_factor(fid, st.node(0), st.node(j), T, C, known_inlier=True,
                                   group=bound_group(robot))
             self.bound_edges[fid] = (T, C)
-            waiting.discard(j)
             added = True
         return added
 

@@ -88,6 +88,8 @@ class DriveFleet:
     # measured std of the odometry's error at a keyframe relative to its stretch's start
     # (rad x3, m x3, GTSAM order): a loop-closed estimate's bound; None for drift="vo"
     odometry_bound_sigma: tuple[float, ...] | None = None
+    # ... and the distance (m) over which that error stays alike (its autocorrelation's 1/e)
+    odometry_bound_span_m: float | None = None
 
     @property
     def robots(self) -> list[DriveCar]:
@@ -228,16 +230,28 @@ def drive_fleet(
     ev = np.asarray(errs)
     sigma = (float(np.sqrt((ev[:, :3] ** 2).mean())), float(np.sqrt((ev[:, 3:] ** 2).mean())))
     return DriveFleet(seed, (C_CAMERA @ objects.T).T, objects, ids, classes, truth_emb, cars,
-                      cfg, sigma, None if drift == "vo" else _bound_sigma(cars))
+                      cfg, sigma, *((None, None) if drift == "vo" else _bound(cars)))
 
 
-def _bound_sigma(cars: Sequence[DriveCar]) -> tuple[float, ...]:
-    """RMS per axis (GTSAM order, body frame, camera axes) of the odometry's error at every
-    pose relative to its car's start: what a loop-closed estimate's owner would declare."""
-    e = [np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.linalg.inv(c.T_true[0]) @ c.T_true[k])
-                                       .between(gtsam.Pose3(c.T_est[k]))))
-         for c in cars for k in range(len(c.T_true))]
-    return tuple(float(x) for x in np.sqrt(np.mean(np.square(e), axis=0)))
+def _bound(cars: Sequence[DriveCar]) -> tuple[tuple[float, ...], float]:
+    """What a loop-closed estimate's owner would declare: the RMS per axis (GTSAM order, body
+    frame, camera axes) of the odometry's error at every pose relative to its car's start, and
+    the distance over which that error stays alike (the mean over cars of the path length at
+    which its translation's autocorrelation falls below 1/e)."""
+    errs, spans = [], []
+    for c in cars:
+        e = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(np.linalg.inv(c.T_true[0]) @ T)
+                                         .between(gtsam.Pose3(E)))
+                      for T, E in zip(c.T_true, c.T_est)])
+        errs.append(e)
+        x = e[:, 3:] - e[:, 3:].mean(axis=0)
+        step_m = np.mean(np.linalg.norm(np.diff(c.T_true[:, :3, 3], axis=0), axis=1))
+        lag = next((lag for lag in range(1, len(x) // 2) if np.mean(
+            [np.corrcoef(x[:-lag, i], x[lag:, i])[0, 1] for i in range(3)]) < np.exp(-1)),
+            len(x) // 2)
+        spans.append(lag * step_m)
+    rms = np.sqrt(np.mean(np.square(np.vstack(errs)), axis=0))
+    return tuple(float(v) for v in rms), float(np.mean(spans))
 
 
 __all__ = ["DRIFTS", "STRETCHES_FULL", "STRETCHES_QUICK", "DriveCar", "DriveFleet", "drive_config",
