@@ -350,14 +350,14 @@ class MergeService:
             self.acks.record(sub.robot_id, sub.session_id, sub.seq or 0)
         except StoreError as exc:
             log.error("%s", exc)
+        self.stats.count("factors_accepted", len(uow.sent))  # before a vehicle can see them
+        self.stats.count("factors_matched", len(uow.factors))
+        self.stats.count("factors_retracted", len(uow.withdrawn))
+        self.stats.count("submaps_processed")
         for f in uow.sent:
             self.outbox.factor(f)
         for f in uow.withdrawn:
             self.outbox.factor(f.model_copy(update={"status": FactorStatus.RETRACTED}))
-        self.stats.count("factors_accepted", len(uow.sent))
-        self.stats.count("factors_matched", len(uow.factors))
-        self.stats.count("factors_retracted", len(uow.withdrawn))
-        self.stats.count("submaps_processed")
         self.outbox.result(uow.result)
         self.answered.add(uow.row_id)
 
