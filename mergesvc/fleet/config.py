@@ -151,9 +151,10 @@ class ServiceConfig(BaseModel):
         default_factory=dict, description="robot id -> the standard deviations (rad x3, m x3, "
         "GTSAM order) of its odometry's error at any keyframe relative to its session's first, "
         "for a vehicle whose odometry is a loop-closed estimate (its error does not grow with "
-        "distance): each keyframe is also tied to the first by that covariance, so the solve "
-        "cannot bend the trajectory further than that (docs/pose_graph.md). Robots not listed: "
-        "the odometry's error grows as its edges compose")
+        "distance): each keyframe is also tied to the first by that covariance (shared over "
+        "odometry_bound_span_m), so the solve cannot bend the trajectory much further than "
+        "that (docs/pose_graph.md). Robots not listed: the odometry's error grows as its "
+        "edges compose")
     odometry_bound_span_m: float = Field(
         0.0, ge=0.0, description="the distance over which a bounded odometry's errors stay "
         "alike (they are correlated along the path): the bound edges within it count as one, "
