@@ -32,7 +32,7 @@ from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.graph import PoseGraph
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.pipeline import match
-from mergesvc.core.poses import check_covariance, pose3_from_model
+from mergesvc.core.poses import check_covariance
 from mergesvc.errors import InputError, MergeError, SchemaError
 from mergesvc.fleet.closures import ClosureSets
 from mergesvc.fleet.config import CLOSURE_GROUP, ServiceConfig, bound_group, odometry_group
@@ -262,7 +262,7 @@ class Merger:
         self.graph.add_frame(st.node(0))
         closes_loop = False
         k = 0 if sub.keyframe is None else sub.keyframe
-        odo = sub.odometry
+        odo, edge = sub.odometry, None
         if odo is not None and sub.keyframe is not None:
             edge = st.edges.get((odo.from_keyframe, k))
             if edge is not None:
@@ -272,9 +272,8 @@ class Merger:
                                       known_inlier=True, group=odometry_group(sub.robot_id))
         self.graph.add_frame(st.node(k))
         if sub.robot_id in self.config.odometry_bounds:
-            ends = (k,) if odo is None or sub.keyframe is None else (odo.from_keyframe, k)
-            step = None if odo is None else float(np.linalg.norm(pose3_from_model(
-                odo.T_from_to).translation()))
+            ends = (k,) if edge is None else (odo.from_keyframe, k)
+            step = None if edge is None else float(np.linalg.norm(edge.T_from_to.translation()))
             closes_loop = self._add_bounds(st, ends, step, sub.robot_id) or closes_loop
         return closes_loop
 
