@@ -69,6 +69,37 @@ def test_ivf_recall_of_the_exact_top_k_including_look_alikes() -> None:
     assert index.n_probe < index.n_lists  # an index, not a scan in disguise
 
 
+def test_ivf_probes_as_many_lists_as_the_map_needs() -> None:
+    """The lists probed are measured on the map, not fixed: tight separate clusters need a few,
+    diffuse overlapping ones many; the recall it reports is what brute force finds."""
+    rng = np.random.default_rng(6)
+    C = rng.normal(size=(200, 32))
+    C /= np.linalg.norm(C, axis=1, keepdims=True)
+    tight = (C[rng.integers(0, 200, 20_000)]
+             + 0.02 * rng.normal(size=(20_000, 32)) / np.sqrt(32)).astype(np.float32)
+    diffuse, _ = _clustered(20_000, 32, 2)
+    found = {}
+    for name, X in (("tight", tight), ("diffuse", diffuse)):
+        norms = np.linalg.norm(X.astype(np.float64), axis=1)
+        index = IvfSearch(X, norms, seed=1)
+        assert index.recall >= 0.995 and index.n_probe < index.n_lists
+        # other map rows than the calibration's: the exact top-12 without the row itself
+        who = np.random.default_rng(7).choice(len(X), 100, replace=False)
+        q = (X[who] / norms[who, None]).astype(np.float32)
+        got, ref = index.search(q, 13)[0], _brute(X, q, 13)
+        recall = [len((set(g) - {w}) & (set(r) - {w})) / len(set(r) - {w})
+                  for g, r, w in zip(got, ref, who)]
+        assert np.mean(recall) >= 0.99, (name, np.mean(recall))
+        found[name] = index.n_probe
+    assert found["tight"] < found["diffuse"], found
+    X, _ = _clustered(2000, 8, 8)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    fixed = IvfSearch(X, norms, n_probe=3)
+    assert fixed.n_probe == 3 and 0 < fixed.recall <= 1  # told: kept, the rest measured
+    told = IvfSearch(X, norms, n_probe=3, shortlist=64)
+    assert (told.n_probe, told.shortlist) == (3, 64) and np.isnan(told.recall)
+
+
 def test_ivf_add_makes_new_rows_findable() -> None:
     X, _ = _clustered(4000, 16, 4)
     norms = np.linalg.norm(X.astype(np.float64), axis=1)

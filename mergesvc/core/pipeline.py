@@ -44,6 +44,7 @@ from mergesvc.core.model import (
     RejectReason,
     Transform,
 )
+from mergesvc.core.search import multiplied_pairs
 from mergesvc.core.solvers import dense, heuristic, ngm
 from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
@@ -124,7 +125,10 @@ def match(
             f"embedding dimensions differ: map has {m_arr.dim}, submap has {s_arr.dim}"
         )
     timer.lap("prepare")
-    with blas_threads(m_arr.n * s_arr.n):
+    # the BLAS's threads pay off on a whole-map product only: not on an indexed map's stages
+    paper = config.mode is MatchMode.PAPER
+    with blas_threads(m_arr.n * s_arr.n if paper else
+                      multiplied_pairs(m_arr, config.candidates, s_arr.n)):
         if config.mode is MatchMode.PAPER:
             return _match_paper(m_arr, s_arr, config, timer)
         return _match_verified(m_arr, s_arr, config, timer)

@@ -1,12 +1,14 @@
 """Nearest map objects by cosine, the candidate stage's shortlist: exact or indexed.
 
 `ExactSearch`: chunked float32 products over the map's rows, a running top-k; memory per step
-bounded whatever the map size, exact. `IvfSearch`: an inverted-file index (faiss-cpu, 8-bit
-scalar-quantised codes, a quarter of the float32 embeddings) probed for a wider shortlist that
-is then re-ranked with the exact float32 cosines: its answer is the exact top-k whenever the
-true top-k lie in the probed lists. Both add rows incrementally (`add`), so a service whose map
-grows keeps one index. `map_search` picks one for a map by the candidates settings and keeps it
-with the map's arrays, built once.
+bounded whatever the map size, exact. `IvfSearch`: an inverted-file index (faiss-cpu, 4-bit
+codes per dimension scanned with SIMD lookups, an eighth of the float32 embeddings) probed for
+a wide shortlist that is then re-ranked with the exact float32 cosines: its answer is the exact
+top-k whenever the true top-k lie in the probed lists and the shortlist. Unless told, the lists
+probed are chosen when the index is built, by the recall of the exact top-k it measures on a
+sample of the map's own rows. Both add rows incrementally (`add`), so a service whose map grows
+keeps one index. `map_search` picks one for a map by the candidates settings and keeps it with
+the map's arrays, built once.
 """
 
 from __future__ import annotations
@@ -113,12 +115,16 @@ class ExactSearch:
 
 
 class IvfSearch:
-    """Inverted-file index (faiss IndexIVFScalarQuantizer, 8-bit codes, inner product on unit
-    rows) probed for `rerank` x k rows, re-ranked by exact float32 cosines from the map's own
-    embeddings. n_lists: about 4 sqrt(n) by default; n_probe lists probed per query."""
+    """Inverted-file index over unit rows (faiss IndexIVFPQFastScan: one 4-bit code per
+    dimension, inner product) probed for at least `shortlist` rows per query (rerank x k when
+    more), re-ranked by the exact float32 cosines from the map's own embeddings. n_lists:
+    sqrt(n), at most 1024. n_probe and shortlist: given, or measured (`_calibrate`) so that
+    `quantile` of the exact top-`calibrate_k` of `calibrate_queries` map rows is found."""
 
     def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray, *,
                  n_lists: int | None = None, n_probe: int | None = None, rerank: int = 2,
+                 shortlist: int | None = None, calibrate_k: int = 12,
+                 calibrate_queries: int = 256, quantile: float = 0.999,
                  train_per_list: int = 32, seed: int = 0) -> None:
         try:
             import faiss  # a large library: imported only when an index is wanted
@@ -126,31 +132,80 @@ class IvfSearch:
             raise InputError("the IVF candidate index needs faiss-cpu") from exc
         self._faiss = faiss
         n, d = embeddings_nd.shape
-        # sqrt(n) lists (at most 1024), an eighth of them probed: a sixteenth missed 1 in 8
-        # of the exact top-12 on diffuse 32-d clusters (tests/test_search.py); measured
-        # recall: docs/benchmarks/scale.md
         self.n_lists = int(n_lists or min(max(16, math.isqrt(n)), 1024, max(1, n // 8)))
-        self.n_probe = min(n_probe or max(8, self.n_lists // 8), self.n_lists)
         self.rerank = max(1, rerank)
+        self.n_probe = min(n_probe or self.n_lists, self.n_lists)
+        self.shortlist = shortlist or 0
         self._parts: list[tuple[np.ndarray, np.ndarray]] = []
         self.n = 0
         quantizer = faiss.IndexFlatIP(d)
-        self.index = faiss.IndexIVFScalarQuantizer(
-            quantizer, d, self.n_lists, faiss.ScalarQuantizer.QT_8bit, faiss.METRIC_INNER_PRODUCT)
-        self.index.cp.max_points_per_centroid = train_per_list
-        self.index.cp.niter = 10
-        self.index.cp.seed = seed
+        # 4-bit codes scanned 32 at a time from registers: ~4x faster than 8-bit scalar codes
+        # at the same recall after re-ranking (docs/benchmarks/scale.md)
+        self.index = faiss.IndexIVFPQFastScan(quantizer, d, self.n_lists, d, 4,
+                                              faiss.METRIC_INNER_PRODUCT)
         rng = np.random.default_rng(seed)
         n_train = min(n, train_per_list * self.n_lists)
-        sample = np.sort(rng.choice(n, size=n_train, replace=False))
-        # building is one large product per step: every core; searching a few rows: one
-        faiss.omp_set_num_threads(os.cpu_count() or 1)
+        rows = np.sort(rng.choice(n, size=n_train, replace=False))
+        sample = _unit32(embeddings_nd[rows], norms_n[rows])
+        cores = os.cpu_count() or 1
         try:
-            self.index.train(_unit32(embeddings_nd[sample], norms_n[sample]))
+            # the lists' centres: large products, every core
+            faiss.omp_set_num_threads(cores)
+            clustering = faiss.Clustering(d, self.n_lists)
+            clustering.niter, clustering.seed = 10, seed
+            clustering.max_points_per_centroid = train_per_list
+            clustering.train(sample, quantizer)
+            # then the codes (the lists are trained, so skipped): a tiny k-means per dimension,
+            # where more threads only wait on each other
+            faiss.omp_set_num_threads(1)
+            self.index.train(sample)
             self._quantizer = quantizer  # faiss keeps a pointer only: keep the object alive
+            faiss.omp_set_num_threads(cores)
             self.add(embeddings_nd, norms_n)
         finally:
             faiss.omp_set_num_threads(1)
+        self.recall = float("nan")  # measured by the calibration, on the map's own rows
+        if n_probe is None or shortlist is None:  # what is not told is measured
+            self._calibrate(calibrate_k, calibrate_queries, quantile, rng,
+                            probe=n_probe is None, depth=shortlist is None)
+
+    def _calibrate(self, k: int, queries: int, quantile: float, rng: np.random.Generator, *,
+                   probe: bool, depth: bool) -> None:
+        """n_probe and shortlist from a sample of the map's own rows as queries, each without
+        itself: the lists nearest a query that hold `quantile` of their exact top-k rows, then
+        the re-ranking depth at which the codes' scores rank as many of those first; and the
+        recall of the exact top-k the two give (ties count either way)."""
+        e, norms = self._parts[0]
+        rows = np.sort(rng.choice(len(e), size=min(len(e), queries), replace=False))
+        q = _unit32(e[rows], norms[rows])
+        exact, cos = ExactSearch(e, norms).search(q, k + 1)
+        mine = exact != rows[:, None]
+        items = [r[m][:k] for r, m in zip(exact, mine)]
+        kth = np.array([c[m][:k][-1] for c, m in zip(cos, mine)])
+        who = np.repeat(np.arange(len(q)), [len(i) for i in items])
+        flat = np.concatenate(items)
+        # the rank of each top-k row's list among its query's lists, nearest first
+        quantizer = self.index.quantizer
+        _, order = quantizer.search(q, self.n_lists)
+        rank = np.empty_like(order)
+        np.put_along_axis(rank, order, np.arange(self.n_lists)[None, :], axis=1)
+        _, home = quantizer.search(_unit32(*self._rows(flat)), 1)
+        list_rank = rank[who, home[:, 0]]
+        if probe:
+            self.n_probe = int(np.quantile(list_rank, quantile, method="higher")) + 1
+        if depth:  # where the codes rank the top-k rows the probe reaches
+            self.index.nprobe = self.n_probe
+            deepest = min(self.n, 4096)
+            _, found = self.index.search(q, deepest)
+            hit = found[who] == flat[:, None]
+            pos = np.where(hit.any(axis=1), hit.argmax(axis=1), deepest)
+            pos = pos[list_rank < self.n_probe]
+            need = int(np.quantile(pos, quantile, method="higher")) + 1 if len(pos) else 1
+            self.shortlist = int(min(deepest, max(2 * k, -(-need // 32) * 32)))
+        got, got_cos = self.search(q, k + 1)
+        held = [min(k, int(np.sum(c[r != row] >= t - 1e-5)))
+                for r, c, row, t in zip(got, got_cos, rows, kth)]
+        self.recall = float(np.mean(held)) / k
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
         e = np.asarray(embeddings_nd) if embeddings_nd.dtype == np.float32 else \
@@ -187,7 +242,7 @@ class IvfSearch:
         # a few queries: one thread (waking more costs more); a large submap's: every core
         big = len(q) * self.n >= PIN_BELOW_PAIRS
         self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
-        _, found = self.index.search(q, min(self.n, self.rerank * k))
+        _, found = self.index.search(q, min(self.n, max(self.rerank * k, self.shortlist)))
         found = found.astype(np.int64)
         # exact float32 cosines of what the probe found: sorted rows read the map in order
         flat = np.unique(found[found >= 0])
@@ -225,6 +280,15 @@ def map_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) ->
     return search
 
 
+def multiplied_pairs(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int) -> int:
+    """Submap x map object pairs the candidate search multiplies for n_queries, the work a
+    multi-threaded BLAS may pay for: all of them for an exact search, none for the index (its
+    scan runs on faiss's own threads, its re-ranking on the shortlists alone)."""
+    if map_.n > cfg.prefilter and isinstance(map_search(map_, cfg, n_queries), IvfSearch):
+        return 0
+    return map_.n * n_queries
+
+
 def attach_search(map_: ObjectArrays, search: MapSearch) -> None:
     """Use `search` (rows in the map's order, search.n == map_.n) for this map's candidate
     searches: a service keeps one index per map and `add`s the objects a map gains."""
@@ -234,4 +298,4 @@ def attach_search(map_: ObjectArrays, search: MapSearch) -> None:
 
 
 __all__ = ["ExactSearch", "IvfSearch", "MapSearch", "attach_search", "make_search",
-           "map_search"]
+           "map_search", "multiplied_pairs"]
