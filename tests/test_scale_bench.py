@@ -3,11 +3,14 @@ recall reported (never a wall-clock assertion)."""
 
 from __future__ import annotations
 
+import multiprocessing
 from pathlib import Path
 
+import numpy as np
 from typer.testing import CliRunner
 
 from mergesvc.bench.scale import THREAD_MODES, ScalePlan, markdown_table, run_scale
+from mergesvc.bench.scoring import peak_rss_mb
 from mergesvc.cli import app
 
 
@@ -30,3 +33,13 @@ def test_a_tiny_scale_run_reports_every_cell(tmp_path: Path) -> None:
 def test_the_command_refuses_map_sizes_outside_its_plan() -> None:
     res = CliRunner().invoke(app, ["bench", "scale", "--quick", "--map-size", "7"])
     assert res.exit_code == 2 and "not in the plan" in res.output
+
+
+def test_a_spawned_child_reports_its_own_peak_memory_not_its_parents() -> None:
+    """The children of `bench scale` are spawned by a parent that has just built a world:
+    their peak must be theirs (ru_maxrss kept the parent's across the exec)."""
+    held = np.ones(400 * 2**20 // 8)  # 400 MB resident in the parent
+    parent = peak_rss_mb()
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        child = pool.apply(peak_rss_mb)
+    assert held.sum() > 0 and parent > 400 and child < parent - 300, (parent, child)

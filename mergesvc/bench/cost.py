@@ -12,7 +12,6 @@ amortized cost adds its share (1/B) of its batch's solves. The method: docs/benc
 
 from __future__ import annotations
 
-import resource
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -22,7 +21,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mergesvc.bench.scoring import check_count, fmt_median_range, median_range
+from mergesvc.bench.scoring import check_count, fmt_median_range, median_range, peak_rss_mb
 from mergesvc.core.model import Submap
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError
@@ -158,7 +157,8 @@ def _feed(make_service: Callable[[str], CostService], subs: Iterable[Submap], mo
         share = sum(r["solve_ms"] for r in group) / len(group)
         for r in group:
             r["amortized_ms"] = r["process_ms"] + share
-    out.update(rows=rows, peak_rss_mb=_peak_rss_mb())
+    # RSS, not tracemalloc: GTSAM allocates in C++, out of tracemalloc's sight
+    out.update(rows=rows, peak_rss_mb=peak_rss_mb())
     return out
 
 
@@ -184,12 +184,6 @@ def _one(svc: CostService, sub: Submap, solve: bool, overhead: list[float]) -> d
             "factors_matched": int(svc.stats.factors_matched - matched0),
             "process_ms": wall_ms - solve_ms, "solve_ms": solve_ms, "solved": solved,
             "robot": sub.robot_id, "session": sub.session_id, "seq": sub.seq}
-
-
-def _peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (Linux: ru_maxrss in kB). GTSAM allocates
-    in C++, out of tracemalloc's sight: RSS is the honest number."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _bucket_rows(rows: list[dict[str, Any]], edges: tuple[int, ...]) -> list[dict[str, Any]]:

@@ -15,7 +15,6 @@ import json
 import multiprocessing
 import os
 import platform
-import resource
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.bench.scoring import check_count
+from mergesvc.bench.scoring import check_count, peak_rss_mb
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.core.search import ExactSearch, map_search
@@ -71,10 +70,6 @@ def _rss_mb() -> float:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
         return float("nan")
-
-
-def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _node_accuracy(assignment: np.ndarray, truth: np.ndarray) -> float:
@@ -161,10 +156,10 @@ def _child(job: dict[str, Any]) -> dict[str, Any]:
             "recall": {k: float(np.nanmean([r[k] for r in recall if k in r]))
                        for k in ("recall_at_k", "recall_at_k_lookalikes", "true_in_shortlist")
                        if any(k in r for r in recall)},
-            "peak_rss_mb": _peak_mb(),
+            "peak_rss_mb": peak_rss_mb(),
         }
     out["cells"] = cells
-    out["peak_rss_mb"] = _peak_mb()
+    out["peak_rss_mb"] = peak_rss_mb()
     out["index"] = type(map_.cache.get("search")).__name__ if "search" in map_.cache else \
         "ExactSearch"
     return out

@@ -14,6 +14,22 @@ from mergesvc.errors import InputError
 from mergesvc.sim import Scenario
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory, MB: Linux's VmHWM, which starts afresh when a
+    process execs (ru_maxrss keeps the peak of what the process was before: a benchmark's child
+    would report its parent's); ru_maxrss where /proc is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def check_count(name: str, value: int, minimum: int = 1) -> None:
     """A benchmark's count argument (repeats, seeds): InputError below `minimum`."""
     if value < minimum:
