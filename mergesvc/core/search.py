@@ -124,7 +124,7 @@ class IvfSearch:
     def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray, *,
                  n_lists: int | None = None, n_probe: int | None = None, rerank: int = 2,
                  shortlist: int | None = None, calibrate_k: int = 12,
-                 calibrate_queries: int = 256, quantile: float = 0.999,
+                 calibrate_queries: int = 256, quantile: float = 0.9999,
                  train_per_list: int = 32, seed: int = 0) -> None:
         try:
             import faiss  # a large library: imported only when an index is wanted
