@@ -80,3 +80,39 @@ def test_read_only_inputs_are_accepted_unchanged() -> None:
     b = ObjectArrays(a.ids, a.position_xyz_m, e, a.variances_nd, a.n_obs)
     assert b.embeddings_nd is e
     assert np.isfinite(b.norms_n).all() and b.uncertainty_s.shape == (20,)
+
+
+def _rss_file_mb() -> float:
+    """Mapped file pages resident in this process, MB (Linux)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("RssFile:"):
+                return int(line.split()[1]) / 1024.0
+    pytest.skip("no RssFile in /proc/self/status")
+
+
+def test_a_pass_over_a_mapped_map_does_not_keep_the_file_resident(tmp_path) -> None:
+    """release_rows drops the pages of the rows given (whole pages only); validation, norms
+    and building an index over a mapped map leave little of the file resident."""
+    from mergesvc.core.arrays import release_rows
+    from mergesvc.core.search import IvfSearch
+
+    n, d = 40_000, 384  # 61 MB of float32
+    rng = np.random.default_rng(0)
+    IvfSearch(rng.normal(size=(200, 4)).astype(np.float32), np.ones(200))  # faiss mapped
+    path = tmp_path / "e.f32"
+    rng.normal(size=(n, d)).astype(np.float32).tofile(path)
+    e = np.memmap(path, dtype=np.float32, mode="r", shape=(n, d))
+    base = _rss_file_mb()
+    assert float(e.sum(dtype=np.float64)) != 0 and _rss_file_mb() - base > 50  # all read
+    release_rows(e, 0, n // 2)
+    assert 20 < _rss_file_mb() - base < 40  # the first half dropped
+    release_rows(e)
+    assert _rss_file_mb() - base < 2
+    release_rows(np.ones((10, 3)))  # ordinary memory: nothing to do
+    # the checks and the norms of a mapped map, then an index built over it
+    a = ObjectArrays([f"o{i}" for i in range(n)], rng.normal(size=(n, 3)), e, np.ones(n),
+                     np.ones(n, dtype=np.int64))
+    norms = a.norms_n
+    index = IvfSearch(a.embeddings_nd, norms)
+    assert index.n == n and _rss_file_mb() - base < 10, _rss_file_mb() - base

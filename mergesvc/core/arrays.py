@@ -4,12 +4,15 @@ Memory layout, held once per map: embeddings in float32 (the wire's `full` preci
 variance given as one number per object kept as one number per object (a read-only (n, d)
 broadcast view, no (n, d) copy); no normalised copy of the embeddings (cosines divide by the
 cached row norms). Any array may be a read-only memory map (wire/mapfile.py): nothing here
-writes into the arrays it is given, and whole-map passes (validation, norms) run in chunks.
+writes into the arrays it is given, and whole-map passes (validation, norms) run in chunks,
+dropping the mapped pages each chunk read (`release_rows`): a pass over a mapped map does not
+make the whole file this process's resident memory.
 """
 
 from __future__ import annotations
 
 import functools
+import mmap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,8 +35,30 @@ def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
     return range(0, n, step)
 
 
+def release_rows(a: np.ndarray, lo: int = 0, hi: int | None = None) -> None:
+    """Drop the pages that lie wholly within rows lo..hi of a memory-mapped array from this
+    process's resident memory; they stay in the page cache and come back on the next read.
+    Nothing for an array in ordinary memory or whose rows are not contiguous."""
+    base: Any = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    hi = len(a) if hi is None else min(hi, len(a))
+    if not isinstance(base, mmap.mmap) or not hasattr(base, "madvise") or hi <= lo \
+            or not a[lo:hi].flags.c_contiguous:
+        return
+    start = a[lo:hi].ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
+    end = start + (hi - lo) * a.strides[0]
+    first, last = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE, end // mmap.PAGESIZE * mmap.PAGESIZE
+    if last > first:
+        base.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+
 def _all_finite(a: np.ndarray) -> bool:
-    return all(bool(np.isfinite(a[lo:lo + _CHUNK_ROWS]).all()) for lo in chunks(len(a)))
+    for lo in chunks(len(a)):
+        if not np.isfinite(a[lo:lo + _CHUNK_ROWS]).all():
+            return False
+        release_rows(a, lo, lo + _CHUNK_ROWS)
+    return True
 
 
 def _as_float32(e: Any) -> np.ndarray:
@@ -154,6 +179,7 @@ class ObjectArrays:
         for lo in chunks(self.n):
             blk = e[lo:lo + _CHUNK_ROWS].astype(np.float64)
             out[lo:lo + len(blk)] = np.sqrt(np.einsum("ij,ij->i", blk, blk))
+            release_rows(e, lo, lo + _CHUNK_ROWS)
         return out
 
     @functools.cached_property
@@ -221,4 +247,4 @@ class ObjectArrays:
         )
 
 
-__all__ = ["FLOAT32_MAX", "MAX_COORDINATE_M", "ObjectArrays", "chunks"]
+__all__ = ["FLOAT32_MAX", "MAX_COORDINATE_M", "ObjectArrays", "chunks", "release_rows"]

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mergesvc.core.arrays import ObjectArrays, chunks
+from mergesvc.core.arrays import ObjectArrays, chunks, release_rows
 from mergesvc.core.config import CandidatesConfig, SearchKind
 from mergesvc.core.threads import PIN_BELOW_PAIRS
 from mergesvc.errors import InputError
@@ -65,13 +65,16 @@ def _best_first(rows: np.ndarray, score: np.ndarray, k: int) -> tuple[np.ndarray
 class ExactSearch:
     """Exact top-k by cosine over chunks of the map's rows (float32 products).
 
-    Holds references to the map's embeddings and norms (no copy); `add` appends rows."""
+    Holds references to the map's embeddings and norms (no copy); `add` appends rows.
+    release: drop each chunk's mapped pages once read (a one-off pass over a mapped map; a
+    search repeated on a resident map is faster without)."""
 
     def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray,
-                 chunk_rows: int = 65_536) -> None:
+                 chunk_rows: int = 65_536, release: bool = False) -> None:
         self._parts: list[tuple[np.ndarray, np.ndarray]] = [(embeddings_nd, norms_n)]
         self.n = len(embeddings_nd)
         self.chunk_rows = chunk_rows
+        self.release = release
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
         e = np.asarray(embeddings_nd, dtype=np.float32)
@@ -96,6 +99,8 @@ class ExactSearch:
                 hi = min(len(e), lo + self.chunk_rows)
                 s = q @ e[lo:hi].T
                 s *= inv[lo:hi]
+                if self.release:
+                    release_rows(e, lo, hi)
                 rows = np.broadcast_to(np.arange(offset + lo, offset + hi), s.shape)
                 if best.shape[1] >= k:
                     # only what beats the current k-th best can enter
@@ -147,6 +152,7 @@ class IvfSearch:
         n_train = min(n, train_per_list * self.n_lists)
         rows = np.sort(rng.choice(n, size=n_train, replace=False))
         sample = _unit32(embeddings_nd[rows], norms_n[rows])
+        release_rows(embeddings_nd)  # what the sample's rows mapped of a mapped map
         cores = os.cpu_count() or 1
         try:
             # the lists' centres: large products, every core
@@ -168,6 +174,7 @@ class IvfSearch:
         if n_probe is None or shortlist is None:  # what is not told is measured
             self._calibrate(calibrate_k, calibrate_queries, quantile, rng,
                             probe=n_probe is None, depth=shortlist is None)
+        self._release()  # what training and calibrating read of a mapped map
 
     def _calibrate(self, k: int, queries: int, quantile: float, rng: np.random.Generator, *,
                    probe: bool, depth: bool) -> None:
@@ -178,7 +185,7 @@ class IvfSearch:
         e, norms = self._parts[0]
         rows = np.sort(rng.choice(len(e), size=min(len(e), queries), replace=False))
         q = _unit32(e[rows], norms[rows])
-        exact, cos = ExactSearch(e, norms).search(q, k + 1)
+        exact, cos = ExactSearch(e, norms, release=True).search(q, k + 1)
         mine = exact != rows[:, None]
         items = [r[m][:k] for r, m in zip(exact, mine)]
         kth = np.array([c[m][:k][-1] for c, m in zip(cos, mine)])
@@ -213,6 +220,7 @@ class IvfSearch:
         n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
         for lo in chunks(len(e), 65_536):
             self.index.add(_unit32(e[lo:lo + 65_536], n[lo:lo + 65_536]))
+            release_rows(e, lo, lo + 65_536)
         self._parts.append((e, np.asarray(n)))
         self.n += len(e)
 
@@ -230,6 +238,10 @@ class IvfSearch:
             e, n = self._parts[p]
             out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
         return out_e, out_n
+
+    def _release(self) -> None:
+        for e, _ in self._parts:
+            release_rows(e)
 
     def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         q = np.ascontiguousarray(q_unit, dtype=np.float32)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.core.arrays import ObjectArrays
+from mergesvc.core.arrays import ObjectArrays, release_rows
 from mergesvc.core.model import (
     MAX_EMBEDDING_DIM,
     MAX_ID_LENGTH,
@@ -233,11 +233,7 @@ def release_pages(arrays: ObjectArrays) -> None:
     """Drop the mapped pages a whole-map pass (validation, norms, an index) read from this
     process's resident memory; they stay in the page cache and come back on the next read."""
     for a in (arrays.embeddings_nd, arrays.variances_nd):
-        base = a
-        while isinstance(base, np.ndarray) and base.base is not None:
-            base = base.base
-        if isinstance(base, mmap.mmap) and hasattr(base, "madvise"):
-            base.madvise(mmap.MADV_DONTNEED)
+        release_rows(a)
 
 
 def model_to_file(model: ObjectMap, path: Path | str) -> None:
