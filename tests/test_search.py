@@ -8,7 +8,14 @@ import pytest
 
 from mergesvc.core.arrays import ObjectArrays
 from mergesvc.core.config import CandidatesConfig
-from mergesvc.core.search import ExactSearch, IvfSearch, attach_search, make_search, map_search
+from mergesvc.core.search import (
+    ExactSearch,
+    IvfSearch,
+    attach_search,
+    make_search,
+    map_search,
+    multiplied_pairs,
+)
 from mergesvc.errors import InputError
 
 
@@ -127,3 +134,46 @@ def test_map_search_picks_and_keeps_the_index_by_size() -> None:
     assert map_search(m, small) is exact
     with pytest.raises(InputError):
         attach_search(m, ExactSearch(X[:10], m.norms_n[:10]))
+
+
+def test_ivf_never_returns_a_missing_row() -> None:
+    """A small calibrated probe whose lists hold fewer rows than asked probes more lists; a
+    query no code scores (a zero embedding) gets the exact search's rows."""
+    rng = np.random.default_rng(9)
+    C = rng.normal(size=(200, 32))
+    X = (C[rng.integers(0, 200, 20_000)] + 0.02 * rng.normal(size=(20_000, 32))).astype(
+        np.float32)
+    index = IvfSearch(X, np.linalg.norm(X.astype(np.float64), axis=1))
+    assert index.n_probe * 20_000 / index.n_lists < 512  # its lists hold fewer than asked
+    q = np.vstack([X[:40] / np.linalg.norm(X[:40], axis=1, keepdims=True),
+                   np.zeros((1, 32))]).astype(np.float32)
+    rows, cos = index.search(q, 512)
+    assert rows.min() >= 0 and all(len(set(r)) == 512 for r in rows)
+    assert np.all(cos[-1] == 0)  # the zero query: every row alike, none missing
+
+
+def test_ivf_keeps_its_recall_as_the_map_grows() -> None:
+    """The re-ranking depth measured at build scales with the rows added since."""
+    X, _ = _clustered(20_000, 32, 10)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    index = IvfSearch(X[:2000], norms[:2000])
+    index.add(X[2000:], norms[2000:])
+    rng = np.random.default_rng(11)
+    who = rng.choice(20_000, 200, replace=False)
+    q = X[who] + 0.1 * rng.normal(size=(200, 32)) * norms[who, None] / np.sqrt(32)
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    got, ref = index.search(q, 12)[0], _brute(X, q, 12)
+    recall = np.mean([len(set(g) & set(r)) / 12 for g, r in zip(got, ref)])
+    assert recall >= 0.99, recall
+
+
+def test_the_blas_counts_whole_map_products_only_and_tiny_maps_are_searched_exactly() -> None:
+    X, _ = _clustered(3000, 8, 12)
+    m = ObjectArrays([f"m{i}" for i in range(3000)], np.zeros((3000, 3)), X, np.ones(3000),
+                     np.ones(3000, dtype=np.int64))
+    assert multiplied_pairs(m, CandidatesConfig(), 20) == 3000 * 20  # exact: all of them
+    assert multiplied_pairs(m, CandidatesConfig(index="ivf"), 20) == 0  # the index's own
+    tiny = ObjectArrays([f"t{i}" for i in range(100)], np.zeros((100, 3)), X[:100],
+                        np.ones(100), np.ones(100, dtype=np.int64))
+    assert isinstance(make_search(tiny, CandidatesConfig(index="ivf", index_min_lists=4)),
+                      ExactSearch)

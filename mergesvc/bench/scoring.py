@@ -138,4 +138,4 @@ def _cpu_count() -> int:
     return os.cpu_count() or 0
 
 
-__all__ = ["check_count", "fmt_median_range", "median_range", "score_case"]
+__all__ = ["check_count", "fmt_median_range", "median_range", "peak_rss_mb", "score_case"]

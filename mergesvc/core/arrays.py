@@ -36,18 +36,20 @@ def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
 
 
 def release_rows(a: np.ndarray, lo: int = 0, hi: int | None = None) -> None:
-    """Drop the pages that lie wholly within rows lo..hi of a memory-mapped array from this
-    process's resident memory; they stay in the page cache and come back on the next read.
-    Nothing for an array in ordinary memory or whose rows are not contiguous."""
+    """Drop the pages that lie wholly within rows lo..hi of a read-only memory-mapped array
+    from this process's resident memory; they stay in the page cache and come back on the next
+    read. Nothing for an array in ordinary memory, a writable mapping (a copy-on-write map
+    would lose its edits) or rows that are not contiguous."""
     base: Any = a
     while isinstance(base, np.ndarray) and base.base is not None:
         base = base.base
     hi = len(a) if hi is None else min(hi, len(a))
     if not isinstance(base, mmap.mmap) or not hasattr(base, "madvise") or hi <= lo \
-            or not a[lo:hi].flags.c_contiguous:
+            or not memoryview(base).readonly or not a[lo:hi].flags.c_contiguous:
         return
-    start = a[lo:hi].ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
-    end = start + (hi - lo) * a.strides[0]
+    rows = a[lo:hi]
+    start = rows.ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
+    end = start + rows.nbytes
     first, last = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE, end // mmap.PAGESIZE * mmap.PAGESIZE
     if last > first:
         base.madvise(mmap.MADV_DONTNEED, first, last - first)

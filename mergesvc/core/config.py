@@ -53,7 +53,7 @@ class CandidatesConfig(_Section):
         None, ge=1, description="index: inverted lists (None: sqrt(map objects), at most 1024)")
     index_probe: int | None = Field(
         None, ge=1, description="index: lists probed per query (None: measured when the index "
-        "is built, the fewest that find 99.9 % of the exact top-k of a sample of map rows)")
+        "is built: 1.5 x the fewest that find 99.9 % of the exact top-k of a sample of map rows)")
     index_min_lists: int = Field(
         64, ge=1, description="index: maps with fewer than twice this many objects are searched "
         "exactly")

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 _SEARCH_KEY = "search"  # where map_search keeps a map's index in ObjectArrays.cache
 _QUERY_BLOCK = 256  # queries per product: (256 x 65,536) float32 scores, 64 MB
+_MIN_INDEXED = 256  # fewer map rows are searched exactly (the codes need 16 rows to train)
 
 
 class MapSearch(Protocol):
@@ -123,13 +124,14 @@ class IvfSearch:
     """Inverted-file index over unit rows (faiss IndexIVFPQFastScan: one 4-bit code per
     dimension, inner product) probed for at least `shortlist` rows per query (rerank x k when
     more), re-ranked by the exact float32 cosines from the map's own embeddings. n_lists:
-    sqrt(n), at most 1024. n_probe and shortlist: given, or measured (`_calibrate`) so that
-    `quantile` of the exact top-`calibrate_k` of `calibrate_queries` map rows is found."""
+    sqrt(n), at most 1024. n_probe and shortlist: given, or measured (`_calibrate`): `margin`
+    times what finds `quantile` of the exact top-`calibrate_k` of `calibrate_queries` map
+    rows."""
 
     def __init__(self, embeddings_nd: np.ndarray, norms_n: np.ndarray, *,
                  n_lists: int | None = None, n_probe: int | None = None, rerank: int = 2,
                  shortlist: int | None = None, calibrate_k: int = 12,
-                 calibrate_queries: int = 256, quantile: float = 0.9999,
+                 calibrate_queries: int = 512, quantile: float = 0.999, margin: float = 1.5,
                  train_per_list: int = 32, seed: int = 0) -> None:
         try:
             import faiss  # a large library: imported only when an index is wanted
@@ -141,6 +143,7 @@ class IvfSearch:
         self.rerank = max(1, rerank)
         self.n_probe = min(n_probe or self.n_lists, self.n_lists)
         self.shortlist = shortlist or 0
+        self._n_built = n  # rows when the depth was set: it grows with the lists
         self._parts: list[tuple[np.ndarray, np.ndarray]] = []
         self.n = 0
         quantizer = faiss.IndexFlatIP(d)
@@ -172,16 +175,19 @@ class IvfSearch:
             faiss.omp_set_num_threads(1)
         self.recall = float("nan")  # measured by the calibration, on the map's own rows
         if n_probe is None or shortlist is None:  # what is not told is measured
-            self._calibrate(calibrate_k, calibrate_queries, quantile, rng,
+            self._calibrate(calibrate_k, calibrate_queries, quantile, margin, rng,
                             probe=n_probe is None, depth=shortlist is None)
         self._release()  # what training and calibrating read of a mapped map
+        faiss.omp_set_num_threads(1)
 
-    def _calibrate(self, k: int, queries: int, quantile: float, rng: np.random.Generator, *,
-                   probe: bool, depth: bool) -> None:
+    def _calibrate(self, k: int, queries: int, quantile: float, margin: float,
+                   rng: np.random.Generator, *, probe: bool, depth: bool) -> None:
         """n_probe and shortlist from a sample of the map's own rows as queries, each without
-        itself: the lists nearest a query that hold `quantile` of their exact top-k rows, then
-        the re-ranking depth at which the codes' scores rank as many of those first; and the
-        recall of the exact top-k the two give (ties count either way)."""
+        itself: `margin` times the lists nearest a query that hold `quantile` of their exact
+        top-k rows, then `margin` times the re-ranking depth at which the codes' scores rank
+        as many of those first (a submap's views of an object are noisier than the map's own
+        rows: they reach further); and the recall of the exact top-k the two give on the
+        sample (ties count either way)."""
         e, norms = self._parts[0]
         rows = np.sort(rng.choice(len(e), size=min(len(e), queries), replace=False))
         q = _unit32(e[rows], norms[rows])
@@ -199,15 +205,20 @@ class IvfSearch:
         _, home = quantizer.search(_unit32(*self._rows(flat)), 1)
         list_rank = rank[who, home[:, 0]]
         if probe:
-            self.n_probe = int(np.quantile(list_rank, quantile, method="higher")) + 1
+            lists = int(np.quantile(list_rank, quantile, method="higher")) + 1
+            self.n_probe = min(self.n_lists, math.ceil(margin * lists))
         if depth:  # where the codes rank the top-k rows the probe reaches
             self.index.nprobe = self.n_probe
             deepest = min(self.n, 4096)
-            _, found = self.index.search(q, deepest)
-            hit = found[who] == flat[:, None]
-            pos = np.where(hit.any(axis=1), hit.argmax(axis=1), deepest)
+            pos = np.full(len(flat), deepest)
+            for lo in chunks(len(q), 64):  # bounds the (items x deepest) comparison
+                found = self.index.search(q[lo:lo + 64], deepest)[1]
+                sel = (who >= lo) & (who < lo + 64)
+                hit = found[who[sel] - lo] == flat[sel, None]
+                pos[sel] = np.where(hit.any(axis=1), hit.argmax(axis=1), deepest)
             pos = pos[list_rank < self.n_probe]
             need = int(np.quantile(pos, quantile, method="higher")) + 1 if len(pos) else 1
+            need = math.ceil(margin * need)
             self.shortlist = int(min(deepest, max(2 * k, -(-need // 32) * 32)))
         got, got_cos = self.search(q, k + 1)
         held = [min(k, int(np.sum(c[r != row] >= t - 1e-5)))
@@ -239,6 +250,27 @@ class IvfSearch:
             out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
         return out_e, out_n
 
+    def _probe(self, q: np.ndarray, depth: int, k: int) -> np.ndarray:
+        """(m, depth) rows the codes score best in the lists probed, best first. A query whose
+        lists hold fewer than k rows (a small probe of a small map) probes twice as many lists
+        until they do; one no code scores (a zero embedding) gets the exact search's rows."""
+        probe = self.n_probe
+        self.index.nprobe = probe
+        found = self.index.search(q, depth)[1].astype(np.int64)
+        short = found[:, k - 1] < 0  # faiss pads with -1 after the rows it found
+        while short.any() and probe < self.n_lists:
+            probe = min(2 * probe, self.n_lists)
+            self.index.nprobe = probe
+            found[short] = self.index.search(q[short], depth)[1]
+            short = found[:, k - 1] < 0
+        if short.any():
+            (e, norms), *rest = self._parts
+            exact = ExactSearch(e, norms)
+            for e_more, n_more in rest:
+                exact.add(e_more, n_more)
+            found[short] = exact.search(q[short], depth)[0]
+        return found
+
     def _release(self) -> None:
         for e, _ in self._parts:
             release_rows(e)
@@ -250,12 +282,12 @@ class IvfSearch:
             parts = [self.search(q[lo:lo + block], k) for lo in chunks(len(q), block)]
             return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
         k = max(1, min(k, self.n))
-        self.index.nprobe = self.n_probe
+        # the lists grow with `add`: the depth measured at build grows with them
+        depth = min(self.n, max(self.rerank * k, -(-self.shortlist * self.n // self._n_built)))
         # a few queries: one thread (waking more costs more); a large submap's: every core
         big = len(q) * self.n >= PIN_BELOW_PAIRS
         self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
-        _, found = self.index.search(q, min(self.n, max(self.rerank * k, self.shortlist)))
-        found = found.astype(np.int64)
+        found = self._probe(q, depth, k)
         # exact float32 cosines of what the probe found: sorted rows read the map in order
         flat = np.unique(found[found >= 0])
         e, norms = self._rows(flat)
@@ -273,7 +305,7 @@ def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -
         big = map_.n >= cfg.index_min_objects or (
             map_.n * n_queries >= cfg.index_min_pairs and map_.n >= cfg.index_min_pairs_map)
         kind = SearchKind.IVF if big else SearchKind.EXACT
-    if kind is SearchKind.IVF and map_.n >= 2 * cfg.index_min_lists:
+    if kind is SearchKind.IVF and map_.n >= max(2 * cfg.index_min_lists, _MIN_INDEXED):
         return IvfSearch(map_.embeddings_nd, map_.norms_n, n_lists=cfg.index_lists,
                          n_probe=cfg.index_probe, seed=0)
     return ExactSearch(map_.embeddings_nd, map_.norms_n)
