@@ -27,6 +27,7 @@ def test_a_tiny_scale_run_reports_every_cell(tmp_path: Path) -> None:
     assert res["cells"]["60"]["node_accuracy"] >= 0.9
     assert res["cells"]["60"]["recall"]["recall_at_k"] == 1.0  # exact search: exact top-k
     assert "| 400 | 2-5 |" in markdown_table(report)
+    assert 0 < res["rss_end_shared_mb"] < res["rss_end_mb"]  # the libraries at least
     assert not list(tmp_path.iterdir())  # the worlds' files are gone
 
 

@@ -63,11 +63,13 @@ class ScalePlan:
         return cls({900: (3, 20), 5_000: (3, 20, 200)}, **kw)
 
 
-def _rss_mb() -> float:
-    """Resident memory now (Linux /proc), MB; nan elsewhere."""
+def _rss_mb(shared: bool = False) -> float:
+    """Resident memory now (Linux /proc), MB; nan elsewhere. shared: only its pages of mapped
+    files (a memory-mapped map's, the libraries'), which the page cache holds and may reclaim."""
     try:
         with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+            pages = int(f.read().split()[2 if shared else 1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
         return float("nan")
 
@@ -160,6 +162,7 @@ def _child(job: dict[str, Any]) -> dict[str, Any]:
         }
     out["cells"] = cells
     out["peak_rss_mb"] = peak_rss_mb()
+    out["rss_end_mb"], out["rss_end_shared_mb"] = _rss_mb(), _rss_mb(shared=True)
     out["index"] = type(map_.cache.get("search")).__name__ if "search" in map_.cache else \
         "ExactSearch"
     return out
@@ -225,7 +228,9 @@ def run_scale(plan: ScalePlan, echo: Callable[[str], Any] = print,
             echo(f"[{time.perf_counter() - start:7.1f}s] map {n_map}: load "
                  f"{res['load_s']:.2f} s, prepare {res['prepare_s']:.2f} s, RSS loaded "
                  f"{res['rss_loaded_mb']:.0f} MB, prepared {res['rss_prepared_mb']:.0f} MB, "
-                 f"peak {res['peak_rss_mb']:.0f} MB, search {res['index']}")
+                 f"peak {res['peak_rss_mb']:.0f} MB, after matching {res['rss_end_mb']:.0f} MB "
+                 f"({res['rss_end_shared_mb']:.0f} MB of it mapped files), search "
+                 f"{res['index']}")
             if partial is not None:  # what is done so far survives an interrupted run
                 write_report(report, partial)
             for f in Path(tmp).iterdir():
