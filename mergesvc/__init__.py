@@ -12,7 +12,14 @@ and message models, and the codec's entry points.
 
 import importlib
 import logging
+import os
 import typing
+
+# A multi-threaded OpenBLAS call leaves its worker threads spinning for 2^28 cycles afterwards,
+# on a core that the next small match (pinned to one thread: core/threads.py) or another
+# robot's work wants; 2^20 cycles keeps them awake between back-to-back products only. Read
+# when OpenBLAS loads: it holds when mergesvc is imported before numpy; a value set is kept.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
 
 # name -> the module that defines it. Imported on first use (PEP 562), so `import mergesvc`
 # (and `mergesvc --help`) does not load numpy, scipy, gtsam and pydantic up front.
