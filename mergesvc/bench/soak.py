@@ -434,14 +434,20 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                  str(plan.status_period_s)], stdout=subprocess.PIPE, env=env, text=True)
             probes.append(probe)
 
+            probe_up = threading.Event()
+
             def read_probe() -> None:
                 for line in probe.stdout or ():
+                    probe_up.set()
                     with contextlib.suppress(ValueError, KeyError):
                         doc = json.loads(line)
                         if doc["ms"] is not None:
                             probed.append({"t_s": doc["t"] - ledger.t0, "status_ms": doc["ms"]})
 
             threading.Thread(target=read_probe, name="soak-probe", daemon=True).start()
+            # the robots start once the probe asks (its start-up, a loaded machine's seconds,
+            # is not the service's): the status figures then cover the whole run
+            probe_up.wait(timeout=30.0)
             # the robots: valid ones, then the mismatching ones
             rates = []
             for i in range(plan.robots + plan.mismatch_robots):
