@@ -147,8 +147,8 @@ class IvfSearch:
         self._parts: list[tuple[np.ndarray, np.ndarray]] = []
         self.n = 0
         quantizer = faiss.IndexFlatIP(d)
-        # 4-bit codes scanned 32 at a time from registers: ~4x faster than 8-bit scalar codes
-        # at the same recall after re-ranking (docs/benchmarks/scale.md)
+        # 4-bit codes scanned 32 at a time from registers: faster than 8-bit scalar codes,
+        # decoded one by one, at the same recall after re-ranking (docs/benchmarks/scale.md)
         self.index = faiss.IndexIVFPQFastScan(quantizer, d, self.n_lists, d, 4,
                                               faiss.METRIC_INNER_PRODUCT)
         rng = np.random.default_rng(seed)
