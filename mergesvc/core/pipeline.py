@@ -129,7 +129,7 @@ def match(
     paper = config.mode is MatchMode.PAPER
     with blas_threads(m_arr.n * s_arr.n if paper else
                       multiplied_pairs(m_arr, config.candidates, s_arr.n)):
-        if config.mode is MatchMode.PAPER:
+        if paper:
             return _match_paper(m_arr, s_arr, config, timer)
         return _match_verified(m_arr, s_arr, config, timer)
 

@@ -52,6 +52,14 @@ def _unit32(e: np.ndarray, norms: np.ndarray | None = None) -> np.ndarray:
     return e / np.where(n > 0, n, 1.0).astype(np.float32)[:, None]
 
 
+def _held(embeddings_nd: np.ndarray, norms_n: np.ndarray | None) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """Rows as a search holds them: float32 (no copy when they are) and their norms."""
+    e = np.asarray(embeddings_nd, dtype=np.float32)
+    n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
+    return e, np.asarray(n)
+
+
 def _best_first(rows: np.ndarray, score: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Top k of each row of (m, c) scores with their column labels rows (m, c), best first."""
     k = min(k, score.shape[1])
@@ -78,10 +86,29 @@ class ExactSearch:
         self.release = release
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
-        e = np.asarray(embeddings_nd, dtype=np.float32)
-        n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
-        self._parts.append((e, np.asarray(n)))
-        self.n += len(e)
+        self._parts.append(_held(embeddings_nd, norms_n))
+        self.n += len(self._parts[-1][0])
+
+    def rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k,) global rows -> their (k, d) float32 embeddings and (k,) norms (sorted rows
+        read a mapped map in order)."""
+        if len(self._parts) == 1:
+            e, n = self._parts[0]
+            return np.asarray(e[rows], dtype=np.float32), n[rows]
+        starts = np.cumsum([0] + [len(e) for e, _ in self._parts])
+        part = np.searchsorted(starts, rows, side="right") - 1
+        out_e = np.empty((len(rows), self._parts[0][0].shape[1]), dtype=np.float32)
+        out_n = np.empty(len(rows))
+        for p in np.unique(part):
+            sel = part == p
+            e, n = self._parts[p]
+            out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
+        return out_e, out_n
+
+    def drop_pages(self) -> None:
+        """Drop the mapped pages reading its rows made resident (`release_rows`)."""
+        for e, _ in self._parts:
+            release_rows(e)
 
     def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(q_unit, dtype=np.float32)
@@ -144,8 +171,9 @@ class IvfSearch:
         self.n_probe = min(n_probe or self.n_lists, self.n_lists)
         self.shortlist = shortlist or 0
         self._n_built = n  # rows when the depth was set: it grows with the lists
-        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
-        self.n = 0
+        e, norms = _held(embeddings_nd, norms_n)
+        self._exact = ExactSearch(e, norms)  # the rows, re-ranking's and the fallback's
+        self.n = n
         quantizer = faiss.IndexFlatIP(d)
         # 4-bit codes scanned 32 at a time from registers: faster than 8-bit scalar codes,
         # decoded one by one, at the same recall after re-ranking (docs/benchmarks/scale.md)
@@ -154,8 +182,8 @@ class IvfSearch:
         rng = np.random.default_rng(seed)
         n_train = min(n, train_per_list * self.n_lists)
         rows = np.sort(rng.choice(n, size=n_train, replace=False))
-        sample = _unit32(embeddings_nd[rows], norms_n[rows])
-        release_rows(embeddings_nd)  # what the sample's rows mapped of a mapped map
+        sample = _unit32(e[rows], norms[rows])
+        release_rows(e)  # what the sample's rows mapped of a mapped map
         cores = os.cpu_count() or 1
         try:
             # the lists' centres: large products, every core
@@ -170,25 +198,25 @@ class IvfSearch:
             self.index.train(sample)
             self._quantizer = quantizer  # faiss keeps a pointer only: keep the object alive
             faiss.omp_set_num_threads(cores)
-            self.add(embeddings_nd, norms_n)
+            self._encode(e, norms)
         finally:
             faiss.omp_set_num_threads(1)
         self.recall = float("nan")  # measured by the calibration, on the map's own rows
         if n_probe is None or shortlist is None:  # what is not told is measured
-            self._calibrate(calibrate_k, calibrate_queries, quantile, margin, rng,
+            self._calibrate(e, norms, calibrate_k, calibrate_queries, quantile, margin, rng,
                             probe=n_probe is None, depth=shortlist is None)
-        self._release()  # what training and calibrating read of a mapped map
+        self._exact.drop_pages()  # what training and calibrating read of a mapped map
         faiss.omp_set_num_threads(1)
 
-    def _calibrate(self, k: int, queries: int, quantile: float, margin: float,
-                   rng: np.random.Generator, *, probe: bool, depth: bool) -> None:
+    def _calibrate(self, e: np.ndarray, norms: np.ndarray, k: int, queries: int,
+                   quantile: float, margin: float, rng: np.random.Generator, *, probe: bool,
+                   depth: bool) -> None:
         """n_probe and shortlist from a sample of the map's own rows as queries, each without
         itself: `margin` times the lists nearest a query that hold `quantile` of their exact
         top-k rows, then `margin` times the re-ranking depth at which the codes' scores rank
         as many of those first (a submap's views of an object are noisier than the map's own
         rows: they reach further); and the recall of the exact top-k the two give on the
         sample (ties count either way)."""
-        e, norms = self._parts[0]
         rows = np.sort(rng.choice(len(e), size=min(len(e), queries), replace=False))
         q = _unit32(e[rows], norms[rows])
         exact, cos = ExactSearch(e, norms, release=True).search(q, k + 1)
@@ -202,7 +230,7 @@ class IvfSearch:
         _, order = quantizer.search(q, self.n_lists)
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(self.n_lists)[None, :], axis=1)
-        _, home = quantizer.search(_unit32(*self._rows(flat)), 1)
+        _, home = quantizer.search(_unit32(*self._exact.rows(flat)), 1)
         list_rank = rank[who, home[:, 0]]
         if probe:
             lists = int(np.quantile(list_rank, quantile, method="higher")) + 1
@@ -226,29 +254,16 @@ class IvfSearch:
         self.recall = float(np.mean(held)) / k
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
-        e = np.asarray(embeddings_nd) if embeddings_nd.dtype == np.float32 else \
-            np.asarray(embeddings_nd, dtype=np.float32)
-        n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
+        e, n = _held(embeddings_nd, norms_n)
+        self._encode(e, n)
+        self._exact.add(e, n)
+        self.n = self._exact.n
+
+    def _encode(self, e: np.ndarray, n: np.ndarray) -> None:
+        """Rows' codes into the index, a chunk at a time, each chunk's mapped pages dropped."""
         for lo in chunks(len(e), 65_536):
             self.index.add(_unit32(e[lo:lo + 65_536], n[lo:lo + 65_536]))
             release_rows(e, lo, lo + 65_536)
-        self._parts.append((e, np.asarray(n)))
-        self.n += len(e)
-
-    def _rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(k,) global rows -> their (k, d) float32 embeddings and (k,) norms."""
-        if len(self._parts) == 1:
-            e, n = self._parts[0]
-            return e[rows], n[rows]
-        starts = np.cumsum([0] + [len(e) for e, _ in self._parts])
-        part = np.searchsorted(starts, rows, side="right") - 1
-        out_e = np.empty((len(rows), self._parts[0][0].shape[1]), dtype=np.float32)
-        out_n = np.empty(len(rows))
-        for p in np.unique(part):
-            sel = part == p
-            e, n = self._parts[p]
-            out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
-        return out_e, out_n
 
     def _probe(self, q: np.ndarray, depth: int, k: int) -> np.ndarray:
         """(m, depth) rows the codes score best in the lists probed, best first. A query whose
@@ -264,16 +279,8 @@ class IvfSearch:
             found[short] = self.index.search(q[short], depth)[1]
             short = found[:, k - 1] < 0
         if short.any():
-            (e, norms), *rest = self._parts
-            exact = ExactSearch(e, norms)
-            for e_more, n_more in rest:
-                exact.add(e_more, n_more)
-            found[short] = exact.search(q[short], depth)[0]
+            found[short] = self._exact.search(q[short], depth)[0]
         return found
-
-    def _release(self) -> None:
-        for e, _ in self._parts:
-            release_rows(e)
 
     def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         q = np.ascontiguousarray(q_unit, dtype=np.float32)
@@ -290,7 +297,7 @@ class IvfSearch:
         found = self._probe(q, depth, k)
         # exact float32 cosines of what the probe found: sorted rows read the map in order
         flat = np.unique(found[found >= 0])
-        e, norms = self._rows(flat)
+        e, norms = self._exact.rows(flat)
         pos = np.searchsorted(flat, np.maximum(found, 0))
         cos = np.einsum("mkd,md->mk", e[pos], q) / np.where(norms > 0, norms, 1.0)[pos]
         cos = np.where(found >= 0, cos, -np.inf).astype(np.float32)
