@@ -14,7 +14,7 @@ from mergesvc.bench import (
     score_case,
 )
 from mergesvc.core.affinity import fit_same_object_model, unit_rows
-from mergesvc.core.candidates import pair_scores, retrieve
+from mergesvc.core.candidates import pair_scores, retrieve, row_medians
 from mergesvc.core.config import NodeAffinity, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.sim import Family, Scenario, make_scenario
@@ -137,3 +137,10 @@ def test_floor_sample_kept_with_the_map_changes_nothing(
             assert np.array_equal(getattr(cands, name), getattr(runs[0][0], name))
         assert np.array_equal(calib.floor_n, runs[0][1].floor_n) and calib.ceil == runs[0][1].ceil
         assert after == runs[0][2]
+
+
+@pytest.mark.parametrize("cols", [1, 2, 7, 512, 513])
+def test_row_medians_are_numpys_medians_to_the_bit(cols: int) -> None:
+    rng = np.random.default_rng(cols)
+    for values in (rng.normal(size=(20, cols)), rng.integers(0, 3, (5, cols)).astype(float)):
+        np.testing.assert_array_equal(row_medians(values), np.median(values, axis=1))

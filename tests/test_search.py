@@ -58,6 +58,22 @@ def test_exact_search_equals_brute_force_across_chunks_and_adds() -> None:
         cos[:, 0], np.einsum("md,md->m", q, X[ref[:, 0]]) / norms[ref[:, 0]], rtol=1e-5)
 
 
+def test_exact_search_in_any_order_finds_the_same_rows_and_cosines() -> None:
+    """ordered=False (one product, no sort) on a map of one chunk: the ordered answer's rows
+    and cosines, row by row, in some order."""
+    X, _ = _clustered(900, 24, 2)
+    q = np.random.default_rng(3).normal(size=(20, 24)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    s = ExactSearch(X, np.linalg.norm(X.astype(np.float64), axis=1))
+    rows, cos = s.search(q, 256)
+    any_rows, any_cos = s.search(q, 256, ordered=False)
+    assert any_rows.shape == (20, 256)
+    assert not np.array_equal(any_rows, rows)  # not sorted: the shortcut was taken
+    order = np.argsort(-any_cos, axis=1, kind="stable")
+    np.testing.assert_array_equal(np.sort(any_rows, axis=1), np.sort(rows, axis=1))
+    np.testing.assert_allclose(np.take_along_axis(any_cos, order, axis=1), cos, rtol=1e-6)
+
+
 def test_ivf_recall_of_the_exact_top_k_including_look_alikes() -> None:
     X, src = _clustered(20_000, 32, 2)
     norms = np.linalg.norm(X.astype(np.float64), axis=1)

@@ -124,11 +124,15 @@ def retrieve(
     # shortlist: every map node for small maps, else the best `prefilter` by plain cosine
     # (core/search.py: exact chunked products, or the map's index when it is large)
     cos = None
+    q = sub.unit_rows()  # (n1, d) float64, and float32 for the products over the map
+    q32 = q.astype(np.float32)
     if n2 <= cand_cfg.prefilter:
         shortlist = np.broadcast_to(np.arange(n2), (n1, n2))
     else:
         search = map_search(map_, cand_cfg, n1)
-        shortlist, cos = search.search(sub.unit_rows().astype(np.float32), cand_cfg.prefilter)
+        # best first only where the nearest is read (the likelihood ratio's model)
+        shortlist, cos = search.search(q32, cand_cfg.prefilter,
+                                       ordered=kind is NodeAffinity.LIKELIHOOD_RATIO)
     sample, sample_rows = _map_sample(map_, cand_cfg.sample, rng)
     D_ref = None
     same = None
@@ -159,33 +163,29 @@ def retrieve(
         A = np.take_along_axis(A_union, inverse.reshape(shortlist.shape), axis=1)
     # typical unrelated map object: median affinity over the map (or a sample of it)
     if sample is None and n2 <= cand_cfg.prefilter:
-        floor = np.median(A, axis=1)
+        floor = row_medians(A)
     elif kind is NodeAffinity.UCOS:
         # the median of a sample needs no float64: one float32 product
-        q = sub.unit_rows().astype(np.float32)
         if sample_rows is None:
             idx = np.arange(n2)
             n_idx = map_.norms_n[idx]
-            cos_s = (q @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
-            floor = np.median(_ucos_pairs(sub, map_, cos_s, idx[None, :]), axis=1)
+            cos_s = (q32 @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
+            floor = row_medians(_ucos_pairs(sub, map_, cos_s, idx[None, :]))
         else:  # the same arithmetic on the rows kept with the map
-            cos_s = (q @ sample_rows["embeddings"].T) / sample_rows["norms"][None, :]
+            cos_s = (q32 @ sample_rows["embeddings"].T) / sample_rows["norms"][None, :]
             s2 = sample_rows["uncertainty"][None, :]
-            floor = np.median(cos_s.astype(np.float64)
-                              / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0), axis=1)
+            floor = row_medians(cos_s.astype(np.float64)
+                                / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0))
     else:
         idx = np.arange(n2) if sample is None else sample
-        floor = np.median(
-            node_affinity(kind, sub, map_, idx, aff_cfg.normalize_embeddings, D_ref, same),
-            axis=1,
-        )
+        floor = row_medians(
+            node_affinity(kind, sub, map_, idx, aff_cfg.normalize_embeddings, D_ref, same))
     k = min(cand_cfg.top_k, A.shape[1])
     top = np.argpartition(-A, k - 1, axis=1)[:, :k]
     A_top = np.take_along_axis(A, top, axis=1)
     if kind is NodeAffinity.UCOS and cos is not None:
         # the chosen pairs' affinity in float64, as pair_scores (guided matching) computes it
         nodes = np.take_along_axis(shortlist, top, axis=1)
-        q = sub.unit_rows()
         n2 = map_.norms_n[nodes]
         exact_cos = np.empty(nodes.shape)
         for lo in range(0, n1, 512):  # (512, k, d) float64 at a time
@@ -204,6 +204,17 @@ def retrieve(
     rows = np.broadcast_to(np.arange(n1)[:, None], top.shape)[keep]
     map_nodes = np.take_along_axis(shortlist, top, axis=1)[keep]
     return _sorted(rows, map_nodes, A_top[keep], np.minimum(score[keep], 1.0)), calib
+
+
+def row_medians(values: np.ndarray) -> np.ndarray:
+    """np.median(values, axis=1) of an (n, c) array without NaN (the same arithmetic: the
+    middle element, or the mean of the middle two), without its general-case overhead."""
+    c = values.shape[1]
+    h = c // 2
+    if c % 2:
+        return np.partition(values, h, axis=1)[:, h]
+    part = np.partition(values, [h - 1, h], axis=1)
+    return (part[:, h - 1] + part[:, h]) / 2.0
 
 
 def quantile(values: np.ndarray, q: float) -> float:

@@ -37,8 +37,10 @@ class MapSearch(Protocol):
 
     n: int
 
-    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(m, d) unit queries -> ((m, k) map rows, (m, k) cosines), each row best first."""
+    def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(m, d) unit queries -> ((m, k) map rows, (m, k) cosines), each row best first
+        (in any order when not `ordered`)."""
         ...
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
@@ -110,8 +112,17 @@ class ExactSearch:
         for e, _ in self._parts:
             release_rows(e)
 
-    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(q_unit, dtype=np.float32)
+        if not ordered and len(self._parts) == 1 and k < self.n <= self.chunk_rows \
+                and len(q) <= _QUERY_BLOCK:
+            # one product and the top k in any order: no running top-k to merge
+            e, norms = self._parts[0]
+            s = q @ e.T
+            s *= (1.0 / np.where(norms > 0, norms, 1.0)).astype(np.float32)
+            part = np.argpartition(-s, k - 1, axis=1)[:, :k]
+            return part, np.take_along_axis(s, part, axis=1)
         if len(q) > _QUERY_BLOCK:  # bounds the (queries x chunk) products
             parts = [self.search(q[lo:lo + _QUERY_BLOCK], k) for lo in chunks(len(q),
                                                                               _QUERY_BLOCK)]
@@ -282,8 +293,9 @@ class IvfSearch:
             found[short] = self._exact.search(q[short], depth)[0]
         return found
 
-    def search(self, q_unit: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        q = np.ascontiguousarray(q_unit, dtype=np.float32)
+    def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
+        q = np.ascontiguousarray(q_unit, dtype=np.float32)  # always best first
         block = max(1, _QUERY_BLOCK // 4)
         if len(q) > block:  # bounds the re-ranking's (queries x found x d) gather
             parts = [self.search(q[lo:lo + block], k) for lo in chunks(len(q), block)]

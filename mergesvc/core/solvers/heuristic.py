@@ -15,35 +15,23 @@ from mergesvc.core.solvers.hungarian import harden
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
 
-def _group_sum(values: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:
-    return np.bincount(groups, weights=values, minlength=n)
-
-
 # RRWM's Sinkhorn step stops once no column exceeds its cap by more than this: the last
 # steps of up to 20 only move the soft scores by less (same hard answers: tests/test_solvers.py)
 RRWM_CAP_TOL = 1e-4
 
 
-def sinkhorn(
-    x_m: np.ndarray, problem: AssignmentProblem, iters: int = 20, slack: bool = False,
-    cap_tol: float = 0.0,
-) -> np.ndarray:
-    """Alternate row and column normalisation of the candidate scores. (m,) -> (m,).
-
-    With slack, column sums are only capped at 1 (a map node may stay unmatched) and rows are
-    normalised to 1 (every submap node has one unit of mass); it stops once no column sum
-    exceeds 1 + cap_tol.
-    """
+def sinkhorn(x_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, n1: int, n2: int,
+             cap: float = 1.0, iters: int = 20) -> np.ndarray:
+    """Sinkhorn with slack on the candidate scores, (m,) -> (m,): rows normalised to 1 (every
+    submap node has one unit of mass), column sums only capped at 1 (a map node may stay
+    unmatched); stops once no column sum exceeds `cap`."""
     x = np.maximum(x_m, 1e-300)
     for _ in range(iters):
-        rs = _group_sum(x, problem.rows, problem.n1)
-        x = x / np.maximum(rs[problem.rows], 1e-300)
-        cs = _group_sum(x, problem.cols, problem.n2)
-        if slack and cs.max() <= 1.0 + cap_tol:
-            # rows sum to 1 and no col exceeds its cap: every later step divides by 1
+        x = x / np.bincount(rows, x, n1)[rows]  # sums of values >= 1e-300: never below it
+        cs = np.bincount(cols, x, n2)
+        if cs.max() <= cap:
             return x
-        cs = np.maximum(cs, 1.0) if slack else np.maximum(cs, 1e-300)
-        x = x / cs[problem.cols]
+        x = x / np.maximum(cs, 1.0)[cols]
     return x
 
 
@@ -78,11 +66,12 @@ def rrwm(
     d_max = max(K.sum(axis=1).max(), 1e-12)
     P = K / d_max  # eq. 5: random walk with absorbing reweighting
     x = np.full(problem.m, 1.0 / max(problem.m, 1))
+    rows, cols, n1, n2 = problem.rows, problem.cols, problem.n1, problem.n2
     for _ in range(max_iter):
         x_new = P @ x
         # reweighted jump: exponential emphasis then bistochastic projection (eq. 7-8)
         y = np.exp(beta * x_new / max(x_new.max(), 1e-300))
-        y = sinkhorn(y, problem, slack=True, cap_tol=cap_tol)
+        y = sinkhorn(y, rows, cols, n1, n2, 1.0 + cap_tol)
         x_new = alpha * x_new + (1 - alpha) * y
         x_new /= max(x_new.sum(), 1e-300)
         if np.abs(x_new - x).sum() < tol:
