@@ -14,7 +14,6 @@ import numpy as np
 from mergesvc.core.solvers.hungarian import harden
 from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
 
-
 # RRWM's Sinkhorn step stops once no column exceeds its cap by more than this: the last
 # steps of up to 20 only move the soft scores by less (same hard answers: tests/test_solvers.py)
 RRWM_CAP_TOL = 1e-4
