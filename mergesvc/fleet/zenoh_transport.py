@@ -6,6 +6,13 @@ their caches, and the timestamped ones it recovers from a cache-only publisher) 
 (every other sample: a plain `put`, whose timestamp order across clients the advanced one may
 not keep). Each sample reaches the callback once: a timestamped, unsequenced sample both get is
 passed on by whichever sees it first (the last SEEN_SAMPLES remembered).
+
+A publisher that (re)appears after the subscriber (a restart the robots reconnect to late) has
+its whole cache asked for here, not by zenoh.ext's late-publisher detection: zenoh.ext delivers
+the first live sample of a source it has no state for at once and then drops every older
+recovered one as a duplicate, so a put racing the reconnection lost the backlog. The sweep's
+samples are passed on in any order and more than once: the store keeps each (robot, session,
+seq) once and takes a replay for free.
 """
 
 from __future__ import annotations
@@ -71,12 +78,27 @@ class ZenohTransport:
                     sample.timestamp is None or self._first_delivery(sample)):
                 deliver(sample)
 
+        within = zenoh.KeyExpr(key_expr)
+
+        def swept(reply: Any) -> None:
+            if reply.ok is not None and within.intersects(reply.ok.key_expr):
+                sequenced(reply.ok)
+
+        def sweep(token: Any) -> None:
+            """A publisher's cache, all of it (replies come on the publication key)."""
+            if token.kind == zenoh.SampleKind.PUT:
+                self.session.get(str(token.key_expr), swept,
+                                 consolidation=zenoh.ConsolidationMode.NONE,
+                                 accept_replies=zenoh.ReplyKeyExpr.ANY)
+
         return _Handles(
             declare_advanced_subscriber(
                 self.session, key_expr, sequenced,
-                history=HistoryConfig(detect_late_publishers=True, max_samples=10_000),
+                history=HistoryConfig(detect_late_publishers=False, max_samples=10_000),
                 recovery=RecoveryConfig(heartbeat=True), subscriber_detection=True),
-            self.session.declare_subscriber(key_expr, unsequenced))
+            self.session.declare_subscriber(key_expr, unsequenced),
+            self.session.liveliness().declare_subscriber(f"{key_expr}/@adv/pub/**", sweep,
+                                                         history=True))
 
     def _first_delivery(self, sample: Any) -> bool:
         """Whether this timestamped, unsequenced sample is seen for the first time (both
