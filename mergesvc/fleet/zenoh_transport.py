@@ -87,9 +87,10 @@ class ZenohTransport:
         def sweep(token: Any) -> None:
             """A publisher's cache, all of it (replies come on the publication key)."""
             if token.kind == zenoh.SampleKind.PUT:
-                self.session.get(str(token.key_expr), swept,
-                                 consolidation=zenoh.ConsolidationMode.NONE,
-                                 accept_replies=zenoh.ReplyKeyExpr.ANY)
+                with contextlib.suppress(zenoh.ZError):  # the session is closing
+                    self.session.get(str(token.key_expr), swept,
+                                     consolidation=zenoh.ConsolidationMode.NONE,
+                                     accept_replies=zenoh.ReplyKeyExpr.ANY)
 
         return _Handles(
             declare_advanced_subscriber(
