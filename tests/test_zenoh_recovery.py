@@ -51,7 +51,7 @@ def test_a_backlog_survives_a_put_racing_the_reconnection() -> None:
             handles = [ZenohTransport(router).subscribe(
                 "fleet/submap/**", lambda s: got.add(int(s.payload)), recover=True)]
             # the robot reconnects within its client backoff, puts, and everything arrives
-            assert wait_for(lambda: raced[0] > cycle and len(got) == sent[0], 8.0), (
+            assert wait_for(lambda c=cycle: raced[0] > c and len(got) == sent[0], 8.0), (
                 f"cycle {cycle}: never delivered {sorted(set(range(sent[0])) - got)}")
     finally:
         seen.undeclare()
