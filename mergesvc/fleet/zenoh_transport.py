@@ -98,8 +98,8 @@ class ZenohTransport:
                 history=HistoryConfig(detect_late_publishers=False, max_samples=10_000),
                 recovery=RecoveryConfig(heartbeat=True), subscriber_detection=True),
             self.session.declare_subscriber(key_expr, unsequenced),
-            self.session.liveliness().declare_subscriber(f"{key_expr}/@adv/pub/**", sweep,
-                                                         history=True))
+            self.session.liveliness().declare_subscriber(
+                keys.advanced_publishers(key_expr), sweep, history=True))
 
     def _first_delivery(self, sample: Any) -> bool:
         """Whether this timestamped, unsequenced sample is seen for the first time (both

@@ -172,11 +172,19 @@ def all_under(prefix: str) -> str:
     return f"{_prefix(prefix)}/**"
 
 
+def advanced_publishers(key_expr: str) -> str:
+    """The liveliness tokens of zenoh-ext's advanced publishers on a key expression (wildcards
+    allowed), in zenoh-ext's own layout: {key_expr}/@adv/pub/**. A token's key less that
+    suffix's chunks is the publication key, and a query on the token's key reaches its cache."""
+    return f"{key_expr}/@adv/pub/**"
+
+
 __all__ = [
     "BRIDGE_DOWNLINK",
     "JSON_ENCODING",
     "MSGPACK_ENCODING",
     "ROOT",
+    "advanced_publishers",
     "alive_key",
     "alive_robot",
     "all_alive",
