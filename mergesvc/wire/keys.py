@@ -179,11 +179,23 @@ def advanced_publishers(key_expr: str) -> str:
     return f"{key_expr}/@adv/pub/**"
 
 
+def advanced_publisher_source(token_key: str) -> tuple[str, str] | None:
+    """(zid, eid) of the advanced publisher whose liveliness token is `token_key`
+    ({key}/@adv/pub/{zid}/{eid}/...), as its samples' source id prints them; None if the key
+    is not such a token."""
+    _, sep, rest = token_key.partition("/@adv/pub/")
+    parts = rest.split("/")
+    if not sep or len(parts) < 2 or not parts[0] or not parts[1]:
+        return None
+    return parts[0], parts[1]
+
+
 __all__ = [
     "BRIDGE_DOWNLINK",
     "JSON_ENCODING",
     "MSGPACK_ENCODING",
     "ROOT",
+    "advanced_publisher_source",
     "advanced_publishers",
     "alive_key",
     "alive_robot",
