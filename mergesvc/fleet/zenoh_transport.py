@@ -1,8 +1,9 @@
 """The service's Transport over a Zenoh session (the only fleet module that names zenoh).
 
 `subscribe(recover=True)` declares two subscribers on the key expression (and one on its
-advanced publishers' liveliness tokens, below): the zenoh.ext advanced one (history and recovery: the samples of advanced publishers, live or recovered from
-their caches, and the timestamped ones it recovers from a cache-only publisher) and a plain one
+advanced publishers' liveliness tokens, below): the zenoh.ext advanced one (history and
+recovery: the samples of advanced publishers, live or recovered from their caches, and the
+timestamped ones it recovers from a cache-only publisher) and a plain one
 (every other sample: a plain `put`, whose timestamp order across clients the advanced one may
 not keep). A timestamped, unsequenced sample both get is passed on by whichever sees it first
 (the last SEEN_SAMPLES remembered).
