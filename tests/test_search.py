@@ -59,7 +59,7 @@ def test_exact_search_equals_brute_force_across_chunks_and_adds() -> None:
 
 
 def test_exact_search_in_any_order_finds_the_same_rows_and_cosines() -> None:
-    """ordered=False (one product, no sort) on a map of one chunk: the ordered answer's rows
+    """ordered=False (the last top-k left unsorted) on a map of one chunk: the ordered answer's rows
     and cosines, row by row, in some order."""
     X, _ = _clustered(900, 24, 2)
     q = np.random.default_rng(3).normal(size=(20, 24)).astype(np.float32)
@@ -68,7 +68,7 @@ def test_exact_search_in_any_order_finds_the_same_rows_and_cosines() -> None:
     rows, cos = s.search(q, 256)
     any_rows, any_cos = s.search(q, 256, ordered=False)
     assert any_rows.shape == (20, 256)
-    assert not np.array_equal(any_rows, rows)  # not sorted: the shortcut was taken
+    assert not np.array_equal(any_rows, rows)  # not sorted: the last sort was skipped
     order = np.argsort(-any_cos, axis=1, kind="stable")
     np.testing.assert_array_equal(np.sort(any_rows, axis=1), np.sort(rows, axis=1))
     np.testing.assert_allclose(np.take_along_axis(any_cos, order, axis=1), cos, rtol=1e-6)

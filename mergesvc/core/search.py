@@ -62,13 +62,17 @@ def _held(embeddings_nd: np.ndarray, norms_n: np.ndarray | None) -> tuple[np.nda
     return e, np.asarray(n)
 
 
-def _best_first(rows: np.ndarray, score: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Top k of each row of (m, c) scores with their column labels rows (m, c), best first."""
+def _best_first(rows: np.ndarray, score: np.ndarray, k: int, ordered: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Top k of each row of (m, c) scores with their column labels rows (m, c), best first
+    (in any order when not `ordered`)."""
     k = min(k, score.shape[1])
     if k < score.shape[1]:
         part = np.argpartition(-score, k - 1, axis=1)[:, :k]
         rows = np.take_along_axis(rows, part, axis=1)
         score = np.take_along_axis(score, part, axis=1)
+    if not ordered:
+        return rows, score
     order = np.argsort(-score, axis=1, kind="stable")
     return np.take_along_axis(rows, order, axis=1), np.take_along_axis(score, order, axis=1)
 
@@ -115,26 +119,20 @@ class ExactSearch:
     def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
                ) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(q_unit, dtype=np.float32)
-        if not ordered and len(self._parts) == 1 and k < self.n <= self.chunk_rows \
-                and len(q) <= _QUERY_BLOCK:
-            # one product and the top k in any order: no running top-k to merge
-            e, norms = self._parts[0]
-            s = q @ e.T
-            s *= (1.0 / np.where(norms > 0, norms, 1.0)).astype(np.float32)
-            part = np.argpartition(-s, k - 1, axis=1)[:, :k]
-            return part, np.take_along_axis(s, part, axis=1)
         if len(q) > _QUERY_BLOCK:  # bounds the (queries x chunk) products
-            parts = [self.search(q[lo:lo + _QUERY_BLOCK], k) for lo in chunks(len(q),
-                                                                              _QUERY_BLOCK)]
+            parts = [self.search(q[lo:lo + _QUERY_BLOCK], k, ordered)
+                     for lo in chunks(len(q), _QUERY_BLOCK)]
             return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
         m = len(q)
         k = max(1, min(k, self.n))
         best_rows = np.zeros((m, 0), dtype=np.int64)
         best = np.zeros((m, 0), dtype=np.float32)
         offset = 0
+        left = sum(len(chunks(len(e), self.chunk_rows)) for e, _ in self._parts)
         for e, norms in self._parts:
             inv = (1.0 / np.where(norms > 0, norms, 1.0)).astype(np.float32)
             for lo in chunks(len(e), self.chunk_rows):
+                left -= 1
                 hi = min(len(e), lo + self.chunk_rows)
                 s = q @ e[lo:hi].T
                 s *= inv[lo:hi]
@@ -153,7 +151,8 @@ class ExactSearch:
                         rows = np.take_along_axis(rows, part, axis=1)
                 if best.shape[1]:
                     rows, s = np.hstack([best_rows, rows]), np.hstack([best, s])
-                best_rows, best = _best_first(rows, s, k)
+                # the running top-k stays sorted (its k-th best gates the next chunk)
+                best_rows, best = _best_first(rows, s, k, ordered or left > 0)
             offset += len(e)
         return best_rows, best
 
