@@ -122,3 +122,38 @@ def test_a_pass_over_a_mapped_map_does_not_keep_the_file_resident(tmp_path) -> N
     norms = a.norms_n
     index = IvfSearch(a.embeddings_nd, norms)
     assert index.n == n and _rss_file_mb() - base < 10, _rss_file_mb() - base
+
+
+@pytest.mark.parametrize("noted", [True, False], ids=["pread", "mapped-then-dropped"])
+def test_scattered_rows_of_a_mapped_map_are_copied_without_making_it_resident(
+        tmp_path, noted: bool) -> None:
+    """take_rows returns a[rows] (any order, repeats) and leaves none of the file resident:
+    a file noted by map_file is read with pread, another read-only mapping drops what each
+    batch mapped; indexing the mapping directly keeps the 64 KB around every row read."""
+    import mmap
+
+    from mergesvc.core.arrays import map_file, take_rows
+
+    n, d = 40_000, 384  # 61 MB of float32, 1.5 KB a row
+    rng = np.random.default_rng(1)
+    ref = rng.normal(size=(n, d)).astype(np.float32)
+    path = tmp_path / "e.f32"
+    with open(path, "wb") as f:
+        f.write(b"\0" * 128)  # rows start past a header, as in a map file
+        ref.tofile(f)
+    with open(path, "rb") as f:
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        if noted:
+            map_file(mm, f.fileno())
+    e = np.ndarray((n, d), dtype=np.float32, buffer=mm, offset=128)
+    rows = rng.choice(n, 6_000, replace=True)  # repeats, unsorted: > one batch
+    base = _rss_file_mb()
+    got = take_rows(e, rows)
+    assert _rss_file_mb() - base < 2, _rss_file_mb() - base
+    np.testing.assert_array_equal(got, ref[rows])
+    np.testing.assert_array_equal(take_rows(e[:, :7], rows[:5]), ref[rows[:5], :7])  # a view
+    with pytest.raises(IndexError):
+        take_rows(e, np.array([n]))
+    assert float(e[rows].sum()) != 0 and _rss_file_mb() - base > 30  # what indexing maps
+    del e
+    mm.close()

@@ -92,6 +92,37 @@ def test_ivf_recall_of_the_exact_top_k_including_look_alikes() -> None:
     assert index.n_probe < index.n_lists  # an index, not a scan in disguise
 
 
+def test_ivf_best_rows_are_exact_and_the_rest_within_the_codes_error() -> None:
+    """The index ranks what it probes by 8-bit codes held in memory and reads the map's rows
+    only where the codes' error could change the best exact_top: those rows and cosines are
+    the exact search's (look-alikes, near ties and rows whose codes clipped included), the
+    rest are the codes' cosines, within their stated error."""
+    X, _ = _clustered(6_000, 32, 4, twins=0.4)
+    norms = np.linalg.norm(X.astype(np.float64), axis=1)
+    index = IvfSearch(X, norms, n_probe=10**6, shortlist=6_000, exact_top=10)
+    # rows beyond the codes' range (fit on the training sample): clipped, still found exactly
+    rng = np.random.default_rng(5)
+    far = X[:50] + 0.0
+    far[:, 3] += 40 * np.abs(X[:, 3]).max()
+    index.add(far)
+    Y = np.vstack([X, far])
+    assert (index._excess[6_000:6_050] > 0).all() and (index._excess[:6_000] == 0).mean() > 0.99
+    who = np.concatenate([rng.choice(6_000, 150, replace=False), np.arange(6_000, 6_050)])
+    q = Y[who] + 0.05 * rng.normal(size=(len(who), 32)) * np.linalg.norm(Y[who], axis=1,
+                                                                       keepdims=True) / 6
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    rows, cos = index.search(q, 40)
+    ref_rows, ref_cos = ExactSearch(Y, np.linalg.norm(Y.astype(np.float64), axis=1)).search(q, 40)
+    np.testing.assert_array_equal(rows[:, :10], ref_rows[:, :10])
+    np.testing.assert_allclose(cos[:, :10], ref_cos[:, :10], atol=1e-6)
+    exact = np.einsum("mkd,md->mk", Y[rows].astype(np.float64), q) / np.linalg.norm(
+        Y[rows].astype(np.float64), axis=2)
+    bound = 6 / np.sqrt(12) * np.linalg.norm(q * index._step, axis=1)
+    assert (np.abs(cos - exact) <= bound[:, None] + 1e-6).all()
+    assert (np.abs(cos - exact)[:, 10:] > 1e-5).mean() > 0.2  # not all read: the codes
+    assert np.mean([len(set(a) & set(b)) / 40 for a, b in zip(rows, ref_rows)]) > 0.95
+
+
 def test_ivf_probes_as_many_lists_as_the_map_needs() -> None:
     """The lists probed are measured on the map, not fixed: tight separate clusters need a few,
     diffuse overlapping ones many; the recall it reports is what brute force finds."""

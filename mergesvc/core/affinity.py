@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mergesvc.core.arrays import take_rows
 from mergesvc.core.config import AffinityConfig, NodeAffinity
 from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
@@ -53,7 +54,8 @@ def ucos(sub: ObjectArrays, map_: ObjectArrays, map_index: np.ndarray | None = N
     """`weighted_cosine` of every submap object to every (or the indexed) map object, from the
     arrays' cached norms and uncertainties (no normalised copy of the map). (n1, n2)."""
     idx = slice(None) if map_index is None else map_index
-    e2 = map_.embeddings_nd[idx].astype(np.float64)
+    e2 = (map_.embeddings_nd if map_index is None
+          else take_rows(map_.embeddings_nd, map_index)).astype(np.float64)
     n2 = map_.norms_n[idx]
     cos = (sub.unit_rows() @ e2.T) / np.where(n2 > 0, n2, 1.0)[None, :]
     s1, s2 = sub.uncertainty_s, map_.uncertainty_s[idx]
@@ -63,8 +65,9 @@ def ucos(sub: ObjectArrays, map_: ObjectArrays, map_index: np.ndarray | None = N
 def _gaussian_inputs(
     objs: ObjectArrays, index: np.ndarray | None, normalize: bool, appearance: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(np.float64)
-    var = objs.variances_nd if index is None else objs.variances_nd[index]
+    mu = (objs.embeddings_nd if index is None else take_rows(objs.embeddings_nd, index)
+          ).astype(np.float64)
+    var = objs.variances_nd if index is None else take_rows(objs.variances_nd, index)
     if appearance:
         # The fused variance shrinks as 1/n_obs; times n_obs it is the spread of single views
         # of the object (its appearance distribution), which does not depend on how often the
@@ -245,8 +248,9 @@ def _lr_inputs(objs: ObjectArrays, index: np.ndarray | None, normalize: bool
     if normalize:
         mu = objs.unit_rows(index)
     else:
-        mu = (objs.embeddings_nd if index is None else objs.embeddings_nd[index]).astype(float)
-    return mu, objs.variances_nd if index is None else objs.variances_nd[index]
+        mu = (objs.embeddings_nd if index is None else take_rows(objs.embeddings_nd, index)
+              ).astype(float)
+    return mu, objs.variances_nd if index is None else take_rows(objs.variances_nd, index)
 
 
 def _sqdist(mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import functools
 import mmap
+import os
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +30,10 @@ MAX_COORDINATE_M = 1e9
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 # rows per step of a whole-map pass: bounds its temporaries to a few tens of MB
 _CHUNK_ROWS = 16_384
+# the bytes around a page read that the kernel maps with it (fault-around: 16 pages of 4 KB,
+# aligned), and the rows `take_rows` reads before dropping what they mapped
+_FAULT_AROUND = 65_536
+_TAKE_BATCH = 4_096
 
 
 def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
@@ -53,6 +59,67 @@ def release_rows(a: np.ndarray, lo: int = 0, hi: int | None = None) -> None:
     first, last = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE, end // mmap.PAGESIZE * mmap.PAGESIZE
     if last > first:
         base.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+
+# the files behind read-only maps (`map_file`), open while their map lives: rows are read
+# from them instead of through the mapping
+_MAPPED_FILES: weakref.WeakKeyDictionary[mmap.mmap, int] = weakref.WeakKeyDictionary()
+
+
+def map_file(mm: mmap.mmap, fileno: int) -> None:
+    """Note that `mm` maps the whole file open as `fileno` from its start, read-only: the file
+    is kept open (a descriptor of its own, closed with the map) and `take_rows` reads
+    scattered rows of arrays over the map from it with pread instead of through the mapping."""
+    fd = os.dup(fileno)
+    _MAPPED_FILES[mm] = fd
+    weakref.finalize(mm, os.close, fd)
+
+
+def _read_only_map(a: np.ndarray) -> mmap.mmap | None:
+    """The read-only mmap an array views, or None (ordinary memory, a writable mapping)."""
+    base: Any = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    if isinstance(base, mmap.mmap) and hasattr(base, "madvise") and memoryview(base).readonly:
+        return base
+    return None
+
+
+def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """a[rows], a copy, that leaves no page of a read-only memory-mapped array resident. The
+    kernel maps the `_FAULT_AROUND` bytes around any page read, so scattered reads through the
+    mapping would make most of a large file resident: rows of a file noted by `map_file` are
+    read with pread (a few microseconds a row); of another read-only mapping, read `_TAKE_BATCH`
+    at a time in file order, each batch's pages dropped again (tens of microseconds a row)."""
+    rows = np.asarray(rows, dtype=np.int64)
+    base = _read_only_map(a)
+    if base is None or len(rows) == 0 or not a.flags.c_contiguous:
+        return a[rows]
+    if rows.min() < 0 or rows.max() >= len(a):
+        raise IndexError(f"rows out of range for {len(a)} rows")
+    out = np.empty((len(rows), *a.shape[1:]), dtype=a.dtype)
+    start = a.ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
+    row_bytes = a.strides[0]
+    fd = _MAPPED_FILES.get(base)
+    if fd is not None:
+        view = out.reshape(len(rows), -1).view(np.uint8)
+        for i, r in enumerate(rows.tolist()):
+            if os.preadv(fd, [view[i]], start + r * row_bytes) != row_bytes:
+                raise OSError("a memory-mapped file was truncated while in use")
+        return out
+    order = np.argsort(rows, kind="stable")
+    for lo in range(0, len(rows), _TAKE_BATCH):
+        sel = order[lo:lo + _TAKE_BATCH]
+        out[sel] = a[rows[sel]]
+        # the windows each row lies in, merged into runs (rows in order: both ends ascend)
+        first = (start + rows[sel] * row_bytes) // _FAULT_AROUND
+        last = (start + (rows[sel] + 1) * row_bytes - 1) // _FAULT_AROUND
+        new_run = np.flatnonzero(first[1:] > last[:-1] + 1) + 1
+        for a_w, b_w in zip(first[np.r_[0, new_run]].tolist(),
+                            last[np.r_[new_run - 1, len(sel) - 1]].tolist()):
+            at = a_w * _FAULT_AROUND
+            base.madvise(mmap.MADV_DONTNEED, at, min((b_w + 1) * _FAULT_AROUND, len(base)) - at)
+    return out
 
 
 def _all_finite(a: np.ndarray) -> bool:
@@ -195,7 +262,7 @@ class ObjectArrays:
     def unit_rows(self, index: np.ndarray | None = None) -> np.ndarray:
         """(k, d) float64 unit-norm embeddings of the indexed objects (all when None); a new
         array each call (no normalised copy of the map is kept)."""
-        e = self.embeddings_nd if index is None else self.embeddings_nd[index]
+        e = self.embeddings_nd if index is None else take_rows(self.embeddings_nd, index)
         norms = self.norms_n if index is None else self.norms_n[index]
         return e.astype(np.float64) / np.where(norms > 0, norms, 1.0)[:, None]
 
@@ -249,4 +316,5 @@ class ObjectArrays:
         )
 
 
-__all__ = ["FLOAT32_MAX", "MAX_COORDINATE_M", "ObjectArrays", "chunks", "release_rows"]
+__all__ = ["FLOAT32_MAX", "MAX_COORDINATE_M", "ObjectArrays", "chunks", "map_file",
+           "release_rows", "take_rows"]

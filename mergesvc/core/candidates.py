@@ -20,6 +20,7 @@ from mergesvc.core.affinity import (
     node_affinity,
     reference_distance,
 )
+from mergesvc.core.arrays import take_rows
 from mergesvc.core.config import AffinityConfig, CandidatesConfig, NodeAffinity
 from mergesvc.core.model import ObjectArrays
 from mergesvc.core.search import map_search
@@ -66,8 +67,8 @@ def _map_sample(map_: ObjectArrays, size: int, rng: np.random.Generator
         return idx, rows
     idx = _sample(map_.n, size, rng)
     n_idx = map_.norms_n[idx]
-    rows = {"embeddings": map_.embeddings_nd[idx], "norms": np.where(n_idx > 0, n_idx, 1.0),
-            "uncertainty": map_.uncertainty_s[idx]}
+    rows = {"embeddings": take_rows(map_.embeddings_nd, idx),
+            "norms": np.where(n_idx > 0, n_idx, 1.0), "uncertainty": map_.uncertainty_s[idx]}
     if len(kept) >= _SAMPLES_KEPT:
         kept.clear()
     kept[before] = (idx, rows, rng.bit_generator.state)
@@ -190,7 +191,8 @@ def retrieve(
         exact_cos = np.empty(nodes.shape)
         for lo in range(0, n1, 512):  # (512, k, d) float64 at a time
             blk = nodes[lo:lo + 512]
-            e = map_.embeddings_nd[blk.ravel()].astype(np.float64).reshape(*blk.shape, -1)
+            e = take_rows(map_.embeddings_nd, blk.ravel()).astype(np.float64)
+            e = e.reshape(*blk.shape, -1)
             exact_cos[lo:lo + 512] = np.einsum("nkd,nd->nk", e, q[lo:lo + 512])
         exact_cos /= np.where(n2 > 0, n2, 1.0)
         A_top = _ucos_pairs(sub, map_, exact_cos, nodes)

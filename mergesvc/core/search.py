@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mergesvc.core.arrays import ObjectArrays, chunks, release_rows
+from mergesvc.core.arrays import ObjectArrays, chunks, release_rows, take_rows
 from mergesvc.core.config import CandidatesConfig, SearchKind
 from mergesvc.core.threads import PIN_BELOW_PAIRS
 from mergesvc.errors import InputError
@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 _SEARCH_KEY = "search"  # where map_search keeps a map's index in ObjectArrays.cache
 _QUERY_BLOCK = 256  # queries per product: (256 x 65,536) float32 scores, 64 MB
 _MIN_INDEXED = 256  # fewer map rows are searched exactly (the codes need 16 rows to train)
+# the 8-bit codes' range per dimension: this times the training sample's largest |value|
+_CODE_RANGE = 1.1
 
 
 class MapSearch(Protocol):
@@ -60,6 +62,13 @@ def _held(embeddings_nd: np.ndarray, norms_n: np.ndarray | None) -> tuple[np.nda
     e = np.asarray(embeddings_nd, dtype=np.float32)
     n = np.linalg.norm(e.astype(np.float64), axis=1) if norms_n is None else norms_n
     return e, np.asarray(n)
+
+
+def _grown(a: np.ndarray, used: int, need: int) -> np.ndarray:
+    """`a` with room for `need` rows (half again as many at least), its first `used` kept."""
+    out = np.empty((max(need, len(a) * 3 // 2), *a.shape[1:]), dtype=a.dtype)
+    out[:used] = a[:used]
+    return out
 
 
 def _best_first(rows: np.ndarray, score: np.ndarray, k: int, ordered: bool = True
@@ -100,7 +109,7 @@ class ExactSearch:
         read a mapped map in order)."""
         if len(self._parts) == 1:
             e, n = self._parts[0]
-            return np.asarray(e[rows], dtype=np.float32), n[rows]
+            return np.asarray(take_rows(e, rows), dtype=np.float32), n[rows]
         starts = np.cumsum([0] + [len(e) for e, _ in self._parts])
         part = np.searchsorted(starts, rows, side="right") - 1
         out_e = np.empty((len(rows), self._parts[0][0].shape[1]), dtype=np.float32)
@@ -108,7 +117,7 @@ class ExactSearch:
         for p in np.unique(part):
             sel = part == p
             e, n = self._parts[p]
-            out_e[sel], out_n[sel] = e[rows[sel] - starts[p]], n[rows[sel] - starts[p]]
+            out_e[sel], out_n[sel] = take_rows(e, rows[sel] - starts[p]), n[rows[sel] - starts[p]]
         return out_e, out_n
 
     def drop_pages(self) -> None:
@@ -169,7 +178,7 @@ class IvfSearch:
                  n_lists: int | None = None, n_probe: int | None = None, rerank: int = 2,
                  shortlist: int | None = None, calibrate_k: int = 12,
                  calibrate_queries: int = 512, quantile: float = 0.999, margin: float = 1.5,
-                 train_per_list: int = 32, seed: int = 0) -> None:
+                 train_per_list: int = 32, exact_top: int = 24, seed: int = 0) -> None:
         try:
             import faiss  # a large library: imported only when an index is wanted
         except ImportError as exc:  # pragma: no cover - a declared dependency
@@ -180,6 +189,7 @@ class IvfSearch:
         self.rerank = max(1, rerank)
         self.n_probe = min(n_probe or self.n_lists, self.n_lists)
         self.shortlist = shortlist or 0
+        self.exact_top = max(1, exact_top)
         self._n_built = n  # rows when the depth was set: it grows with the lists
         e, norms = _held(embeddings_nd, norms_n)
         self._exact = ExactSearch(e, norms)  # the rows, re-ranking's and the fallback's
@@ -192,8 +202,13 @@ class IvfSearch:
         rng = np.random.default_rng(seed)
         n_train = min(n, train_per_list * self.n_lists)
         rows = np.sort(rng.choice(n, size=n_train, replace=False))
-        sample = _unit32(e[rows], norms[rows])
-        release_rows(e)  # what the sample's rows mapped of a mapped map
+        sample = _unit32(take_rows(e, rows), norms[rows])
+        # the re-ranking's first pass: 8-bit codes per dimension, scaled by the sample's range
+        self._step = (_CODE_RANGE * np.abs(sample).max(axis=0) / 127).astype(np.float32)
+        self._step[self._step <= 0] = 1.0
+        self._codes = np.empty((n, d), dtype=np.int8)  # filled by _encode
+        self._excess = np.empty(n, dtype=np.float32)  # |what clipping cut off| per row
+        self._n_codes = 0
         cores = os.cpu_count() or 1
         try:
             # the lists' centres: large products, every core
@@ -228,7 +243,7 @@ class IvfSearch:
         rows: they reach further); and the recall of the exact top-k the two give on the
         sample (ties count either way)."""
         rows = np.sort(rng.choice(len(e), size=min(len(e), queries), replace=False))
-        q = _unit32(e[rows], norms[rows])
+        q = _unit32(take_rows(e, rows), norms[rows])
         exact, cos = ExactSearch(e, norms, release=True).search(q, k + 1)
         mine = exact != rows[:, None]
         items = [r[m][:k] for r, m in zip(exact, mine)]
@@ -258,7 +273,10 @@ class IvfSearch:
             need = int(np.quantile(pos, quantile, method="higher")) + 1 if len(pos) else 1
             need = math.ceil(margin * need)
             self.shortlist = int(min(deepest, max(2 * k, -(-need // 32) * 32)))
-        got, got_cos = self.search(q, k + 1)
+        got = self.search(q, k + 1)[0]
+        got_e, got_n = self._exact.rows(got.ravel())  # exact cosines: the codes' are close
+        got_cos = (np.einsum("mkd,md->mk", got_e.reshape(*got.shape, -1), q)
+                   / np.where(got_n > 0, got_n, 1.0).reshape(got.shape))
         held = [min(k, int(np.sum(c[r != row] >= t - 1e-5)))
                 for r, c, row, t in zip(got, got_cos, rows, kth)]
         self.recall = float(np.mean(held)) / k
@@ -270,9 +288,20 @@ class IvfSearch:
         self.n = self._exact.n
 
     def _encode(self, e: np.ndarray, n: np.ndarray) -> None:
-        """Rows' codes into the index, a chunk at a time, each chunk's mapped pages dropped."""
+        """Rows' codes into the index and the 8-bit codes, a chunk at a time, each chunk's
+        mapped pages dropped."""
         for lo in chunks(len(e), 65_536):
-            self.index.add(_unit32(e[lo:lo + 65_536], n[lo:lo + 65_536]))
+            unit = _unit32(e[lo:lo + 65_536], n[lo:lo + 65_536])
+            self.index.add(unit)
+            end = self._n_codes + len(unit)
+            if end > len(self._codes):  # `add`: grow by half again (amortised appends)
+                self._codes = _grown(self._codes, self._n_codes, end)
+                self._excess = _grown(self._excess, self._n_codes, end)
+            lim = 127 * self._step
+            self._codes[self._n_codes:end] = np.rint(np.clip(unit, -lim, lim) / self._step)
+            self._excess[self._n_codes:end] = np.linalg.norm(
+                unit - np.clip(unit, -lim, lim), axis=1)
+            self._n_codes = end
             release_rows(e, lo, lo + 65_536)
 
     def _probe(self, q: np.ndarray, depth: int, k: int) -> np.ndarray:
@@ -306,12 +335,24 @@ class IvfSearch:
         big = len(q) * self.n >= PIN_BELOW_PAIRS
         self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
         found = self._probe(q, depth, k)
-        # exact float32 cosines of what the probe found: sorted rows read the map in order
-        flat = np.unique(found[found >= 0])
-        e, norms = self._exact.rows(flat)
-        pos = np.searchsorted(flat, np.maximum(found, 0))
-        cos = np.einsum("mkd,md->mk", e[pos], q) / np.where(norms > 0, norms, 1.0)[pos]
-        cos = np.where(found >= 0, cos, -np.inf).astype(np.float32)
+        safe = np.maximum(found, 0)
+        # the 8-bit codes' cosines of what the probe found, from memory
+        cos = np.matmul(self._codes[safe].astype(np.float32),
+                        (q * self._step)[:, :, None])[:, :, 0]
+        cos[found < 0] = -np.inf
+        # the best exact_top exactly: the map's rows of every row the codes' error (6 sigma of
+        # the rounding, plus what clipping cut off a row) could lift among them are read
+        top = min(self.exact_top, k, depth)
+        excess = self._excess[safe]
+        best = np.argpartition(-cos, top - 1, axis=1)[:, :top]
+        t = np.take_along_axis(cos, best, axis=1).min(axis=1)
+        slack = (6 / math.sqrt(12)) * np.linalg.norm(q * self._step, axis=1)
+        slack = 2 * slack + np.take_along_axis(excess, best, axis=1).max(axis=1)
+        qi, ci = np.nonzero((cos + excess >= (t - slack)[:, None]) & (found >= 0))
+        rows, inverse = np.unique(found[qi, ci], return_inverse=True)
+        e, norms = self._exact.rows(rows)
+        cos[qi, ci] = (np.einsum("pd,pd->p", e[inverse], q[qi])
+                       / np.where(norms > 0, norms, 1.0)[inverse])
         return _best_first(found, cos, k)
 
 
@@ -325,7 +366,7 @@ def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -
         kind = SearchKind.IVF if big else SearchKind.EXACT
     if kind is SearchKind.IVF and map_.n >= max(2 * cfg.index_min_lists, _MIN_INDEXED):
         return IvfSearch(map_.embeddings_nd, map_.norms_n, n_lists=cfg.index_lists,
-                         n_probe=cfg.index_probe, seed=0)
+                         n_probe=cfg.index_probe, exact_top=2 * cfg.top_k, seed=0)
     return ExactSearch(map_.embeddings_nd, map_.norms_n)
 
 

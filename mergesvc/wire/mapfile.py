@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from mergesvc.core.arrays import ObjectArrays, release_rows
+from mergesvc.core.arrays import ObjectArrays, map_file, release_rows
 from mergesvc.core.model import (
     MAX_EMBEDDING_DIM,
     MAX_ID_LENGTH,
@@ -163,6 +163,7 @@ def load_arrays(path: Path | str, mmap_large: bool = True
         if mapped and int(np.prod(shape)) > 0 and offset % max(dtype.alignment, 1) == 0:
             with open(p, "rb") as f:
                 mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+                map_file(mm, f.fileno())  # scattered rows are read from the file, not mapped
             arr = np.ndarray(shape, dtype=dtype, buffer=mm, offset=offset,
                              order="F" if fortran else "C")
             return arr
