@@ -3,12 +3,15 @@
 `ExactSearch`: chunked float32 products over the map's rows, a running top-k; memory per step
 bounded whatever the map size, exact. `IvfSearch`: an inverted-file index (faiss-cpu, 4-bit
 codes per dimension scanned with SIMD lookups, an eighth of the float32 embeddings) probed for
-a wide shortlist that is then re-ranked with the exact float32 cosines: its answer is the exact
-top-k whenever the true top-k lie in the probed lists and the shortlist. Unless told, the lists
-probed are chosen when the index is built, by the recall of the exact top-k it measures on a
-sample of the map's own rows. Both add rows incrementally (`add`), so a service whose map grows
-keeps one index. `map_search` picks one for a map by the candidates settings and keeps it with
-the map's arrays, built once.
+a wide shortlist, ranked by 8-bit codes per dimension held in memory (a quarter of the
+embeddings); the map's own rows are read (`take_rows`: never kept resident) only for the rows
+the 8-bit codes' error could bring into the best `exact_top`, whose rows and cosines are then
+the exact top whenever they lie in the probed lists and the shortlist; the rest of the answer
+carries the 8-bit codes' cosines (within ~1e-3). Unless told, the lists probed are chosen when
+the index is built, by the recall of the exact top-k it measures on a sample of the map's own
+rows. Both add rows incrementally (`add`), so a service whose map grows keeps one index.
+`map_search` picks one for a map by the candidates settings and keeps it with the map's arrays,
+built once.
 """
 
 from __future__ import annotations
@@ -169,7 +172,8 @@ class ExactSearch:
 class IvfSearch:
     """Inverted-file index over unit rows (faiss IndexIVFPQFastScan: one 4-bit code per
     dimension, inner product) probed for at least `shortlist` rows per query (rerank x k when
-    more), re-ranked by the exact float32 cosines from the map's own embeddings. n_lists:
+    more), ranked by 8-bit codes (per dimension, scaled to the training sample's range) with
+    the best `exact_top` re-ranked by exact float32 cosines from the map's own rows. n_lists:
     sqrt(n), at most 1024. n_probe and shortlist: given, or measured (`_calibrate`): `margin`
     times what finds `quantile` of the exact top-`calibrate_k` of `calibrate_queries` map
     rows."""
