@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mergesvc.bench.soak import HostileKind, SoakPlan, SoakWorld, hostile_payload
+from mergesvc.bench.soak_world import hostile_schedule
 from mergesvc.core.model import Submap
 from mergesvc.errors import MergeError
 from mergesvc.store import CONFLICTS_KEPT
@@ -51,6 +52,8 @@ def test_quick_soak_keeps_every_valid_submap_and_refuses_the_rest(tmp_path: Path
     # hostile: all refused, all answered, none stored
     h = rep["hostile"]
     assert h["sent"] > 5 and len(h["by_kind"]) >= 3
+    # the attacker's quota is the plan's: a loaded machine sends as many as a quiet one
+    assert h["sent"] == h["planned"]
     assert h["answered"] == h["sent"] and h["stored"] == 0
     assert set(h["codes"]) <= {"bad_submap", "oversize"}
     # the robot of another model: every one refused with embedding_dim, nobody else answered
@@ -103,3 +106,17 @@ def test_every_hostile_kind_is_refused_by_the_decoder_or_is_a_key_mismatch() -> 
             assert kind in (HostileKind.KEY_SESSION, HostileKind.EXTRA_LEVELS,
                             HostileKind.OTHER_ROBOT), kind
             assert key != f"submap/{msg.robot_id}/{msg.session_id}"
+
+
+def test_the_hostile_schedule_fixes_the_count_and_spreads_it_over_the_run() -> None:
+    """The expected count of the Poisson stream, whatever the draw, at times over the whole
+    run: the attacker's quota does not depend on the machine nor on the seed's luck."""
+    for seed in range(20):
+        at_s = hostile_schedule(1.32, 10.0, np.random.default_rng(seed))
+        assert len(at_s) == 13
+        assert np.all(np.diff(at_s) >= 0) and at_s[0] >= 0.0 and at_s[-1] < 10.0
+    at_s = hostile_schedule(2.0, 1000.0, np.random.default_rng(0))
+    assert len(at_s) == 2000
+    # uniform over the run: each tenth holds about a tenth (binomial sd 13)
+    assert np.all(np.abs(np.histogram(at_s, bins=10, range=(0, 1000))[0] - 200) < 60)
+    assert len(hostile_schedule(0.0, 10.0, np.random.default_rng(0))) == 0

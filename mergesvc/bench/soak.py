@@ -43,6 +43,7 @@ from mergesvc.bench.soak_world import (
     agent_publisher,
     flood_payloads,
     hostile_payload,
+    hostile_schedule,
     large_submap,
 )
 from mergesvc.errors import MergeError, StoreError
@@ -51,6 +52,10 @@ from mergesvc.wire import Profile, encode_message, keys
 from mergesvc.wire.session import make_zenoh_config
 
 log = logging.getLogger(__name__)
+
+#: How long the attacker may take, once the run's time is up, to send the payloads its schedule
+#: had left (held back by a kill near the end): back to back, so a few seconds are plenty.
+HOSTILE_OVERTIME_S = 10.0
 
 
 def _proc_status_bytes(pid: int, field: str) -> int | None:
@@ -213,20 +218,21 @@ def _robot_loop(walk: RobotWalk, session: Any, plan: SoakPlan, rate_hz: float,
         t_next += float(walk.rng.exponential(1.0 / rate_hz))
 
 
-def _attacker_loop(session: Any, plan: SoakPlan, rate_hz: float, world: SoakWorld,
+def _attacker_loop(session: Any, plan: SoakPlan, at_s: np.ndarray, world: SoakWorld,
                    rng: np.random.Generator, t_start: float, stop: threading.Event,
-                   gate: _Gate, ledger: Ledger) -> None:
+                   abort: threading.Event, gate: _Gate, ledger: Ledger) -> None:
+    """One hostile payload at each of `at_s` (N,) s after `t_start`, none while the gate is
+    held (those due meanwhile go as soon as it opens); once `stop` is set (the run's time is
+    up), those left back to back; `abort` ends it wherever it is."""
     import zenoh
 
     root = keys.fleet_root(plan.fleet)
     kinds = list(HostileKind)
-    n = 0
     victim = RobotWalk(world, "r00", plan.dim, plan.objects_per_submap, plan.step_m,
                        np.random.default_rng([plan.seed, 99]))
-    t_next = t_start + float(rng.exponential(1.0 / rate_hz))
-    while not stop.wait(max(0.0, t_next - time.monotonic())):
-        t_next += float(rng.exponential(1.0 / rate_hz))
-        if not gate.wait_open(stop):
+    for n, at in enumerate(at_s):
+        stop.wait(max(0.0, t_start + float(at) - time.monotonic()))
+        if abort.is_set() or not gate.wait_open(abort):
             return
         with gate.busy:
             robot = HOSTILE_ROBOTS[n % len(HOSTILE_ROBOTS)]
@@ -241,7 +247,6 @@ def _attacker_loop(session: Any, plan: SoakPlan, rate_hz: float, world: SoakWorl
                 ledger.hostile.append((time.time(), kind.value))
             session.put(f"{root}/{suffix}", data,
                         congestion_control=zenoh.CongestionControl.BLOCK)
-            n += 1
 
 
 def _flood_loop(session: Any, plan: SoakPlan, world: SoakWorld, t_start: float,
@@ -377,6 +382,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
         client = make_zenoh_config(mode="client", connect=[endpoint], scouting=False)
         ledger = Ledger()
         stop = threading.Event()
+        abort = threading.Event()  # the attacker's stop: `stop` only makes it hurry
         sampler_stop = threading.Event()
         gate = _Gate()
         sessions: list[Any] = []
@@ -470,13 +476,17 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                     args=(walk, s, plan, rate, switch, t_start, stop, ledger, book, held)))
             valid_rate = sum(rates[: plan.robots])
             hostile_rate = valid_rate * plan.hostile_fraction / (1.0 - plan.hostile_fraction)
-            if hostile_rate > 0:
+            hostile_at_s = hostile_schedule(hostile_rate, plan.duration_s, att_rng)
+            ledger.hostile_planned = len(hostile_at_s)
+            attacker_thread = None
+            if len(hostile_at_s):
                 attacker = zenoh.open(client)
                 sessions.append(attacker)
-                threads.append(threading.Thread(
+                attacker_thread = threading.Thread(
                     target=_attacker_loop, name="soak-attacker", daemon=True,
-                    args=(attacker, plan, hostile_rate, world, att_rng, t_start, stop, gate,
-                          ledger)))
+                    args=(attacker, plan, hostile_at_s, world, att_rng, t_start, stop, abort,
+                          gate, ledger))
+                threads.append(attacker_thread)
             # the episodes of one robot each, on a session of its own
             for on, loop, name in ((plan.flood_variants, _flood_loop, "soak-flood"),
                                    (plan.large_objects, _large_loop, "soak-large")):
@@ -489,7 +499,8 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             kill_at = sorted(float(x) for x in ctl_rng.uniform(0.15, 0.85, plan.restarts)
                              * plan.duration_s)
             echo(f"soak: {plan.robots} robots ({valid_rate:.1f} submaps/s), "
-                 f"{plan.mismatch_robots} of another model, {hostile_rate:.2f} hostile/s, "
+                 f"{plan.mismatch_robots} of another model, {len(hostile_at_s)} hostile "
+                 f"({hostile_rate:.2f}/s), "
                  f"{plan.restarts} kill -9 at {', '.join(f'{t:.0f}' for t in kill_at) or '-'} "
                  f"s of {plan.duration_s:.0f} s; service on {endpoint}")
             for th in threads:
@@ -508,6 +519,11 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             while time.monotonic() - t_start < plan.duration_s:
                 time.sleep(0.2)
             stop.set()
+            # the attacker's quota is the plan's, whatever the load: what a kill near the end
+            # held back goes now, before the answers to it are awaited
+            if attacker_thread is not None:
+                attacker_thread.join(timeout=HOSTILE_OVERTIME_S)
+            abort.set()
             for th in threads[1:]:
                 th.join(timeout=30.0)
             sent_at_end = len(ledger.valid)
@@ -529,6 +545,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
             exit_code = svc.stop()
         finally:
             stop.set()
+            abort.set()
             sampler_stop.set()
             for held in publishers:
                 for ent in held:

@@ -46,6 +46,7 @@ class Ledger:
     valid: dict[tuple[str, str, int], float] = field(default_factory=dict)  # key -> sent at
     mismatch: dict[tuple[str, str, int], float] = field(default_factory=dict)
     hostile: list[tuple[float, str]] = field(default_factory=list)  # (sent at, kind)
+    hostile_planned: int = 0  # the attacker's quota (bench/soak_world.py hostile_schedule)
     errors: dict[str, Counter] = field(default_factory=lambda: defaultdict(Counter))
     factors: dict[str, set[str]] = field(default_factory=lambda: defaultdict(set))
     first_factor_at: dict[tuple[str, str, int], float] = field(default_factory=dict)
@@ -330,7 +331,8 @@ def build_report(plan: SoakPlan, store: Path, ledger: Ledger, samples: list[dict
         "mismatch": {"robots": mismatch_robots, "sent": len(mismatch),
                      "stored": sum(1 for k in row_of if k[0] in mismatch_robots),
                      "answers": {r: errors.get(r, {}) for r in mismatch_robots}},
-        "hostile": {"sent": len(hostile), "by_kind": dict(Counter(k for _, k in hostile)),
+        "hostile": {"planned": ledger.hostile_planned, "sent": len(hostile),
+                    "by_kind": dict(Counter(k for _, k in hostile)),
                     "answered": hostile_answers,
                     "codes": dict(sum((Counter(errors.get(r, {})) for r in HOSTILE_ROBOTS),
                                       Counter())),
@@ -460,8 +462,8 @@ def soak_summary(report: dict[str, Any]) -> str:
         f"{ms(lat['store_delay_p99'])} ms; first factor back p50 "
         f"{ms(report['factors']['answer_ms']['p50'])} ms ({report['factors']['answered_submaps']} "
         f"submaps)",
-        f"hostile: {h['sent']} sent, {h['answered']} answered, {h['stored']} stored; codes "
-        f"{json.dumps(h['codes'], sort_keys=True)}",
+        f"hostile: {h['sent']} sent of {h['planned']} planned, {h['answered']} answered, "
+        f"{h['stored']} stored; codes {json.dumps(h['codes'], sort_keys=True)}",
         f"another model: {m['sent']} sent, {m['stored']} stored, answers "
         f"{json.dumps(m['answers'], sort_keys=True)}; errors to valid robots: "
         f"{json.dumps(v['errors_answered'], sort_keys=True)}",

@@ -1,6 +1,7 @@
 """The soak's traffic: a seeded world the robots wander (`SoakWorld`, `RobotWalk`: keyframe
 submaps with odometry, so sessions overlap and the service finds factors), the attacker's
-hostile payloads (`hostile_payload`: each one the decoder or the service must refuse), and the
+hostile payloads (`hostile_payload`: each one the decoder or the service must refuse) and when
+it sends them (`hostile_schedule`: a number fixed by the plan, not by the machine), and the
 agents' advanced publisher built the same way as fleet/agent.py's (bench may not import fleet).
 """
 
@@ -265,6 +266,16 @@ def flood_payloads(good: Submap, n: int, profile: Profile) -> list[bytes]:
     return out
 
 
+def hostile_schedule(rate_hz: float, duration_s: float, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """Send times (N,) in s from the start of a Poisson stream of `rate_hz` over `duration_s`,
+    N = round(rate_hz * duration_s) (its expected count): fixed here, so that a slow machine
+    sends as many as a fast one. Given their number, a Poisson stream's times are independent
+    and uniform over the span: sorted uniform draws."""
+    n = round(rate_hz * duration_s)
+    return np.sort(rng.uniform(0.0, duration_s, n))
+
+
 def hostile_payload(kind: HostileKind, robot: str, seq: int, good: Submap,
                     other: Submap, max_payload_bytes: int, rng: np.random.Generator
                     ) -> tuple[str, bytes]:
@@ -326,4 +337,5 @@ def agent_publisher(session: Any, key: str, cache_samples: int = CACHE_SAMPLES) 
 
 __all__ = ["CACHE_SAMPLES", "DEFAULT_MAX_PAYLOAD", "FLOOD_ROBOT", "HEARTBEAT_S", "HOSTILE_ROBOTS",
            "HOSTILE_SEQ0", "LARGE_ROBOT", "HostileKind", "RobotWalk", "SoakPlan", "SoakWorld",
-           "agent_publisher", "flood_payloads", "hostile_payload", "large_submap"]
+           "agent_publisher", "flood_payloads", "hostile_payload", "hostile_schedule",
+           "large_submap"]
