@@ -401,6 +401,38 @@ def test_demo_observer_attaches_to_a_session_and_closes_the_view(tmp_path) -> No
     assert_empty_recording(out)
 
 
+def test_a_view_that_joins_late_gets_each_cached_submap_once(submaps, tmp_path) -> None:
+    """Vehicles publish before the view joins: it gets what their publication caches hold,
+    each submap once, though both zenoh-ext's history and the sweep of each publisher's cache
+    bring it (the service's recovering subscription)."""
+    from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
+
+    from mergesvc.view.feed import ZenohFeed
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    with zenoh.open(zenoh_config("router", listen=ep)) as _router, \
+            zenoh.open(zenoh_config("client", connect=ep)) as pub_s, \
+            zenoh.open(zenoh_config("client", connect=ep)) as view_s:
+        pubs = {r: declare_advanced_publisher(  # as an agent's (fleet/agent.py)
+            pub_s, keys.submap_key(ROOT, r, "s0"), cache=CacheConfig(max_samples=1000),
+            sample_miss_detection=MissDetectionConfig(heartbeat=0.5),
+            publisher_detection=True) for r in ROBOTS}
+        for s in submaps:
+            pubs[s.robot_id].put(encode_message(s, Profile.INT8, s.robot_id, s.seq))
+        view = LiveView.open(ViewSink(save=tmp_path / "late.rrd"))
+        feed = ZenohFeed(view, view_s, FLEET, status_period_s=30.0, status_timeout_s=0.2)
+        try:
+            feed.start()
+            assert wait_for(lambda: feed.stats.submaps >= len(submaps), 30.0)
+            time.sleep(1.5)  # a second copy of any would have come by now
+            assert feed.stats.submaps == len(submaps) and feed.stats.undecodable == 0
+        finally:
+            feed.close()
+            view.close()
+            for p in pubs.values():
+                p.undeclare()
+
+
 def test_demo_view_save_records_the_demo(quick_demo: dict) -> None:
     """`mergesvc demo --quick --view-save FILE.rrd` (the session's demo, conftest.py): the demo
     runs as without it (tests/test_cli.py checks its output), and the recording holds every

@@ -1,7 +1,8 @@
 """The live view's feed from the network: what `mergesvc view` hears on a fleet's keys.
 
-    submap/**   every vehicle's submaps (advanced subscriber with history: the vehicles'
-                publication caches give a view that joins late what it missed)
+    submap/**   every vehicle's submaps, each once, with what the vehicles' publication
+                caches hold for a view that joins late or reconnects (the service's own
+                recovering subscription, fleet/zenoh_transport.py)
     factor/**   every factor the service sends, accepted and retracted (each comes once per
                 robot of the factor; the scene keeps one)
     status      the service's queryable, polled: merged keyframe poses, anchor, latency
@@ -22,6 +23,8 @@ from typing import Any
 
 from mergesvc.core.model import Factor, Submap
 from mergesvc.errors import MergeError
+from mergesvc.fleet.transport import Sample
+from mergesvc.fleet.zenoh_transport import ZenohTransport
 from mergesvc.view.live import LiveView
 from mergesvc.wire import Projection, decode_message, keys
 
@@ -57,15 +60,10 @@ class ZenohFeed:
         self._warned: set[str] = set()
 
     def start(self) -> ZenohFeed:
-        from zenoh.ext import HistoryConfig, declare_advanced_subscriber
-
-        s = self.session
+        transport = ZenohTransport(self.session)
         self._entities = [
-            declare_advanced_subscriber(
-                s, keys.all_submaps(self.root), self._on_submap,
-                history=HistoryConfig(detect_late_publishers=True, max_samples=10_000),
-            ),
-            s.declare_subscriber(keys.all_factors(self.root), self._on_factor),
+            transport.subscribe(keys.all_submaps(self.root), self._on_submap, recover=True),
+            transport.subscribe(keys.all_factors(self.root), self._on_factor),
         ]
         self._poller = threading.Thread(target=self._poll, name="mergesvc-view-status",
                                         daemon=True)
@@ -81,7 +79,7 @@ class ZenohFeed:
             self._poller = None
         for ent in self._entities:
             with contextlib.suppress(zenoh.ZError):  # undeclared already, with its session
-                ent.undeclare()
+                ent.close()
         self._entities = []
 
     def __enter__(self) -> ZenohFeed:
@@ -112,22 +110,22 @@ class ZenohFeed:
             self.poll_status()
             self._stop.wait(self.status_period_s)
 
-    def _decode(self, sample: Any) -> Any:
+    def _decode(self, sample: Sample) -> Any:
         try:
-            return decode_message(sample.payload.to_bytes(), self.projections)[1]
+            return decode_message(sample.payload, self.projections)[1]
         except MergeError as exc:
             self.stats.undecodable += 1
-            self._warn(type(exc).__name__, f"undecodable message on {sample.key_expr}: {exc} "
+            self._warn(type(exc).__name__, f"undecodable message on {sample.key}: {exc} "
                        "(compact submaps need --projection)")
             return None
 
-    def _on_submap(self, sample: Any) -> None:
+    def _on_submap(self, sample: Sample) -> None:
         sub = self._decode(sample)
         if isinstance(sub, Submap):
             self.stats.submaps += 1
             self._guard(self.view.on_submap, sub)
 
-    def _on_factor(self, sample: Any) -> None:
+    def _on_factor(self, sample: Sample) -> None:
         factor = self._decode(sample)
         if isinstance(factor, Factor):
             self.stats.factors += 1
