@@ -152,8 +152,13 @@ def test_scattered_rows_of_a_mapped_map_are_copied_without_making_it_resident(
     assert _rss_file_mb() - base < 2, _rss_file_mb() - base
     np.testing.assert_array_equal(got, ref[rows])
     np.testing.assert_array_equal(take_rows(e[:, :7], rows[:5]), ref[rows[:5], :7])  # a view
-    with pytest.raises(IndexError):
-        take_rows(e, np.array([n]))
+    np.testing.assert_array_equal(take_rows(e, -1 - rows[:3]), ref[-1 - rows[:3]])  # as numpy
+    mask = np.zeros(n, dtype=bool)
+    mask[rows[:4]] = True
+    np.testing.assert_array_equal(take_rows(e, mask), ref[mask])
+    for bad in (np.array([n]), np.array([-n - 1]), np.array([0.5])):
+        with pytest.raises(IndexError):
+            take_rows(e, bad)
     assert float(e[rows].sum()) != 0 and _rss_file_mb() - base > 30  # what indexing maps
     del e
     mm.close()

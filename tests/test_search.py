@@ -123,6 +123,36 @@ def test_ivf_best_rows_are_exact_and_the_rest_within_the_codes_error() -> None:
     assert np.mean([len(set(a) & set(b)) / 40 for a, b in zip(rows, ref_rows)]) > 0.95
 
 
+def test_candidates_through_the_index_are_those_of_the_exact_search() -> None:
+    """The candidate stage on an indexed map keeps, per submap object, the same candidates
+    with the same affinities as on the exact search: the index's shortlist carries the 8-bit
+    codes' cosines beyond its best rows, and wide uncertainties lift candidates from far below
+    them into the top_k, so those that could are read exactly."""
+    from mergesvc.core.candidates import retrieve
+    from mergesvc.core.config import match_config
+
+    X, _ = _clustered(20_000, 48, 7, twins=0.4)
+    rng = np.random.default_rng(8)
+    n, m = len(X), 60
+    pos, var = rng.normal(size=(n, 3)), rng.uniform(0.01, 0.6, n)
+    who = rng.choice(n, m, replace=False)
+    Q = X[who] + 0.3 * rng.normal(size=(m, 48)) * np.linalg.norm(X[who], axis=1,
+                                                                keepdims=True) / np.sqrt(48)
+    sub = ObjectArrays([f"s{i}" for i in range(m)], pos[who], Q, rng.uniform(0.01, 0.6, m),
+                       np.ones(m, dtype=np.int64))
+    cfg = match_config(None)
+    got = {}
+    for kind in ("exact", "ivf"):
+        map_ = ObjectArrays([f"m{i}" for i in range(n)], pos, X, var, np.ones(n, dtype=np.int64))
+        cand_cfg = cfg.candidates.model_copy(update={"index": kind})
+        c, _ = retrieve(sub, map_, cand_cfg, cfg.affinity, np.random.default_rng(0))
+        got[kind] = dict(zip(zip(c.rows.tolist(), c.map_nodes.tolist()), c.affinity.tolist()))
+        assert kind == "exact" or isinstance(map_.cache.get("search"), IvfSearch)
+    assert got["ivf"].keys() == got["exact"].keys()
+    np.testing.assert_allclose([got["ivf"][p] for p in got["exact"]], list(got["exact"].values()),
+                               rtol=1e-6)
+
+
 def test_ivf_probes_as_many_lists_as_the_map_needs() -> None:
     """The lists probed are measured on the map, not fixed: tight separate clusters need a few,
     diffuse overlapping ones many; the recall it reports is what brute force finds."""

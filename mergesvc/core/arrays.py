@@ -33,7 +33,7 @@ _CHUNK_ROWS = 16_384
 # the bytes around a page read that the kernel maps with it (fault-around: 16 pages of 4 KB,
 # aligned), and the rows `take_rows` reads before dropping what they mapped
 _FAULT_AROUND = 65_536
-_TAKE_BATCH = 4_096
+_TAKE_BATCH = 512
 
 
 def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
@@ -86,39 +86,49 @@ def _read_only_map(a: np.ndarray) -> mmap.mmap | None:
 
 
 def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """a[rows], a copy, that leaves no page of a read-only memory-mapped array resident. The
-    kernel maps the `_FAULT_AROUND` bytes around any page read, so scattered reads through the
-    mapping would make most of a large file resident: rows of a file noted by `map_file` are
-    read with pread (a few microseconds a row); of another read-only mapping, read `_TAKE_BATCH`
-    at a time in file order, each batch's pages dropped again (tens of microseconds a row)."""
-    rows = np.asarray(rows, dtype=np.int64)
+    """a[rows] (integer rows, negative ones counted from the end, or a boolean mask), a copy
+    that leaves no page of a read-only memory-mapped array resident. The kernel maps the
+    `_FAULT_AROUND` bytes around any page read, so scattered reads through the mapping would
+    make most of a large file resident: rows of a file noted by `map_file` are read with pread
+    (a few microseconds a row); of another read-only mapping, read `_TAKE_BATCH` at a time in
+    file order, each batch's pages dropped again (tens of microseconds a row)."""
+    rows = np.asarray(rows)
+    if rows.dtype == bool:
+        rows = np.flatnonzero(rows)
     base = _read_only_map(a)
-    if base is None or len(rows) == 0 or not a.flags.c_contiguous:
+    if base is None or rows.ndim != 1 or len(rows) == 0 or not a.flags.c_contiguous:
         return a[rows]
-    if rows.min() < 0 or rows.max() >= len(a):
+    if rows.dtype.kind not in "iu":
+        raise IndexError(f"rows must be integers or a mask, got {rows.dtype}")
+    if rows.min() < -len(a) or rows.max() >= len(a):
         raise IndexError(f"rows out of range for {len(a)} rows")
+    rows = np.where(rows < 0, rows + len(a), rows).astype(np.int64)
     out = np.empty((len(rows), *a.shape[1:]), dtype=a.dtype)
-    start = a.ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
-    row_bytes = a.strides[0]
+    origin = np.frombuffer(base, dtype=np.uint8).ctypes.data
     fd = _MAPPED_FILES.get(base)
     if fd is not None:
         view = out.reshape(len(rows), -1).view(np.uint8)
+        start = a.ctypes.data - origin
         for i, r in enumerate(rows.tolist()):
-            if os.preadv(fd, [view[i]], start + r * row_bytes) != row_bytes:
+            if os.preadv(fd, [view[i]], start + r * a.strides[0]) != view.shape[1]:
                 raise OSError("a memory-mapped file was truncated while in use")
         return out
     order = np.argsort(rows, kind="stable")
     for lo in range(0, len(rows), _TAKE_BATCH):
         sel = order[lo:lo + _TAKE_BATCH]
         out[sel] = a[rows[sel]]
-        # the windows each row lies in, merged into runs (rows in order: both ends ascend)
-        first = (start + rows[sel] * row_bytes) // _FAULT_AROUND
-        last = (start + (rows[sel] + 1) * row_bytes - 1) // _FAULT_AROUND
+        # the windows (aligned in the address space) each row lies in, merged into runs (rows
+        # in order: both ends ascend), dropped within the mapping
+        at = a.ctypes.data + rows[sel] * a.strides[0]
+        first, last = at // _FAULT_AROUND, (at + out[0].nbytes - 1) // _FAULT_AROUND
         new_run = np.flatnonzero(first[1:] > last[:-1] + 1) + 1
         for a_w, b_w in zip(first[np.r_[0, new_run]].tolist(),
                             last[np.r_[new_run - 1, len(sel) - 1]].tolist()):
-            at = a_w * _FAULT_AROUND
-            base.madvise(mmap.MADV_DONTNEED, at, min((b_w + 1) * _FAULT_AROUND, len(base)) - at)
+            lo_b = max(a_w * _FAULT_AROUND - origin, 0)
+            lo_b -= lo_b % mmap.PAGESIZE
+            hi_b = min((b_w + 1) * _FAULT_AROUND - origin, len(base))
+            if hi_b > lo_b:
+                base.madvise(mmap.MADV_DONTNEED, lo_b, hi_b - lo_b)
     return out
 
 

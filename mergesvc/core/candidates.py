@@ -112,6 +112,27 @@ def _ucos_pairs(sub: ObjectArrays, map_: ObjectArrays, cos: np.ndarray, nodes: n
     return cos.astype(np.float64) / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0)
 
 
+def _exact_where_it_decides(sub: ObjectArrays, map_: ObjectArrays, q32: np.ndarray,
+                            shortlist: np.ndarray, cos: np.ndarray, err: np.ndarray,
+                            k: int) -> np.ndarray:
+    """The weighted cosines (`_ucos_pairs`) of a shortlist whose cosines are within err of the
+    exact ones, exact wherever that could change the k best per row: the map's rows are read
+    for the entries whose highest possible weighted cosine reaches the k-th highest lowest
+    possible one (the k best by the exact values are then among those read or exact)."""
+    w = _ucos_pairs(sub, map_, np.ones(cos.shape, dtype=np.float32), shortlist)  # > 0
+    k = min(k, cos.shape[1])
+    lowest = np.partition((cos - err) * w, cos.shape[1] - k, axis=1)[:, cos.shape[1] - k]
+    qi, ci = np.nonzero((err > 0) & ((cos + err) * w >= lowest[:, None]))
+    if len(qi):
+        rows, inverse = np.unique(shortlist[qi, ci], return_inverse=True)
+        e = take_rows(map_.embeddings_nd, rows).astype(np.float32)
+        n = map_.norms_n[rows]
+        cos = cos.copy()
+        cos[qi, ci] = (np.einsum("pd,pd->p", e[inverse], q32[qi])
+                       / np.where(n > 0, n, 1.0)[inverse])
+    return _ucos_pairs(sub, map_, cos, shortlist)
+
+
 def retrieve(
     sub: ObjectArrays,
     map_: ObjectArrays,
@@ -132,8 +153,8 @@ def retrieve(
     else:
         search = map_search(map_, cand_cfg, n1)
         # best first only where the nearest is read (the likelihood ratio's model)
-        shortlist, cos = search.search(q32, cand_cfg.prefilter,
-                                       ordered=kind is NodeAffinity.LIKELIHOOD_RATIO)
+        shortlist, cos, err = search.search_bounded(
+            q32, cand_cfg.prefilter, ordered=kind is NodeAffinity.LIKELIHOOD_RATIO)
     sample, sample_rows = _map_sample(map_, cand_cfg.sample, rng)
     D_ref = None
     same = None
@@ -147,7 +168,10 @@ def retrieve(
             kind, sub, map_, rng, cand_cfg.sample, aff_cfg.normalize_embeddings
         )
     if kind is NodeAffinity.UCOS and cos is not None:
-        A = _ucos_pairs(sub, map_, cos, shortlist)  # (n1, shortlist), no second product
+        # (n1, shortlist), no second product; an index's approximate cosines made exact
+        # where they decide the top_k
+        A = (_exact_where_it_decides(sub, map_, q32, shortlist, cos, err, cand_cfg.top_k)
+             if err.any() else _ucos_pairs(sub, map_, cos, shortlist))
     elif same is not None and not (
         is_isotropic(sub.variances_nd) and is_isotropic(map_.variances_nd[np.unique(shortlist)])
     ):

@@ -4,14 +4,15 @@
 bounded whatever the map size, exact. `IvfSearch`: an inverted-file index (faiss-cpu, 4-bit
 codes per dimension scanned with SIMD lookups, an eighth of the float32 embeddings) probed for
 a wide shortlist, ranked by 8-bit codes per dimension held in memory (a quarter of the
-embeddings); the map's own rows are read (`take_rows`: never kept resident) only for the rows
+embeddings). The map's own rows are read (`take_rows`: never kept resident) only for the rows
 the 8-bit codes' error could bring into the best `exact_top`, whose rows and cosines are then
-the exact top whenever they lie in the probed lists and the shortlist; the rest of the answer
-carries the 8-bit codes' cosines (within ~1e-3). Unless told, the lists probed are chosen when
-the index is built, by the recall of the exact top-k it measures on a sample of the map's own
-rows. Both add rows incrementally (`add`), so a service whose map grows keeps one index.
-`map_search` picks one for a map by the candidates settings and keeps it with the map's arrays,
-built once.
+the exact top of what was probed; the rest carry the codes' cosines with a bound on their
+error (`search_bounded`: 6 standard deviations of the rounding, plus what clipping cut off a
+row; a statistical bound), which a caller ranking them otherwise uses to read exactly what
+could change its choice (core/candidates.py). Unless told, the lists probed are chosen when the
+index is built, by the recall of the exact top-k it measures on a sample of the map's own rows.
+Both add rows incrementally (`add`), so a service whose map grows keeps one index. `map_search`
+picks one for a map by the candidates settings and keeps it with the map's arrays, built once.
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ _QUERY_BLOCK = 256  # queries per product: (256 x 65,536) float32 scores, 64 MB
 _MIN_INDEXED = 256  # fewer map rows are searched exactly (the codes need 16 rows to train)
 # the 8-bit codes' range per dimension: this times the training sample's largest |value|
 _CODE_RANGE = 1.1
+# how far an 8-bit code's cosine is taken to be off: this many standard deviations of the
+# rounding (a sum of d independent uniform errors; beyond 6 sigma is vanishingly rare)
+_SIGMAS = 6.0
 
 
 class MapSearch(Protocol):
@@ -46,6 +50,12 @@ class MapSearch(Protocol):
                ) -> tuple[np.ndarray, np.ndarray]:
         """(m, d) unit queries -> ((m, k) map rows, (m, k) cosines), each row best first
         (in any order when not `ordered`)."""
+        ...
+
+    def search_bounded(self, q_unit: np.ndarray, k: int, ordered: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`search`, and (m, k) bounds on how far each cosine may be from the exact one
+        (0: exact)."""
         ...
 
     def add(self, embeddings_nd: np.ndarray, norms_n: np.ndarray | None = None) -> None:
@@ -68,8 +78,8 @@ def _held(embeddings_nd: np.ndarray, norms_n: np.ndarray | None) -> tuple[np.nda
 
 
 def _grown(a: np.ndarray, used: int, need: int) -> np.ndarray:
-    """`a` with room for `need` rows (half again as many at least), its first `used` kept."""
-    out = np.empty((max(need, len(a) * 3 // 2), *a.shape[1:]), dtype=a.dtype)
+    """`a` with room for `need` rows (an eighth more at least), its first `used` kept."""
+    out = np.empty((max(need, len(a) * 9 // 8), *a.shape[1:]), dtype=a.dtype)
     out[:used] = a[:used]
     return out
 
@@ -168,6 +178,11 @@ class ExactSearch:
             offset += len(e)
         return best_rows, best
 
+    def search_bounded(self, q_unit: np.ndarray, k: int, ordered: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        rows, cos = self.search(q_unit, k, ordered)
+        return rows, cos, np.zeros(cos.shape, dtype=np.float32)  # exact
+
 
 class IvfSearch:
     """Inverted-file index over unit rows (faiss IndexIVFPQFastScan: one 4-bit code per
@@ -208,8 +223,10 @@ class IvfSearch:
         rows = np.sort(rng.choice(n, size=n_train, replace=False))
         sample = _unit32(take_rows(e, rows), norms[rows])
         # the re-ranking's first pass: 8-bit codes per dimension, scaled by the sample's range
-        self._step = (_CODE_RANGE * np.abs(sample).max(axis=0) / 127).astype(np.float32)
-        self._step[self._step <= 0] = 1.0
+        # (a unit row's values lie in [-1, 1]: no step beyond 1/127; a dimension the sample
+        # leaves at 0 gets that)
+        step = _CODE_RANGE * np.abs(sample).max(axis=0) / 127
+        self._step = np.where(step > 0, np.minimum(step, 1 / 127), 1 / 127).astype(np.float32)
         self._codes = np.empty((n, d), dtype=np.int8)  # filled by _encode
         self._excess = np.empty(n, dtype=np.float32)  # |what clipping cut off| per row
         self._n_codes = 0
@@ -296,9 +313,8 @@ class IvfSearch:
         mapped pages dropped."""
         for lo in chunks(len(e), 65_536):
             unit = _unit32(e[lo:lo + 65_536], n[lo:lo + 65_536])
-            self.index.add(unit)
             end = self._n_codes + len(unit)
-            if end > len(self._codes):  # `add`: grow by half again (amortised appends)
+            if end > len(self._codes):  # `add`: grow by an eighth (amortised appends)
                 self._codes = _grown(self._codes, self._n_codes, end)
                 self._excess = _grown(self._excess, self._n_codes, end)
             lim = 127 * self._step
@@ -306,6 +322,7 @@ class IvfSearch:
             self._excess[self._n_codes:end] = np.linalg.norm(
                 unit - np.clip(unit, -lim, lim), axis=1)
             self._n_codes = end
+            self.index.add(unit)  # after the codes: the rows it finds have them
             release_rows(e, lo, lo + 65_536)
 
     def _probe(self, q: np.ndarray, depth: int, k: int) -> np.ndarray:
@@ -327,11 +344,16 @@ class IvfSearch:
 
     def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
                ) -> tuple[np.ndarray, np.ndarray]:
+        rows, cos, _ = self.search_bounded(q_unit, k)  # always best first
+        return rows, cos
+
+    def search_bounded(self, q_unit: np.ndarray, k: int, ordered: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = np.ascontiguousarray(q_unit, dtype=np.float32)  # always best first
         block = max(1, _QUERY_BLOCK // 4)
         if len(q) > block:  # bounds the re-ranking's (queries x found x d) gather
-            parts = [self.search(q[lo:lo + block], k) for lo in chunks(len(q), block)]
-            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+            parts = [self.search_bounded(q[lo:lo + block], k) for lo in chunks(len(q), block)]
+            return tuple(np.vstack([p[i] for p in parts]) for i in range(3))  # type: ignore
         k = max(1, min(k, self.n))
         # the lists grow with `add`: the depth measured at build grows with them
         depth = min(self.n, max(self.rerank * k, -(-self.shortlist * self.n // self._n_built)))
@@ -340,24 +362,31 @@ class IvfSearch:
         self._faiss.omp_set_num_threads((os.cpu_count() or 1) if big else 1)
         found = self._probe(q, depth, k)
         safe = np.maximum(found, 0)
-        # the 8-bit codes' cosines of what the probe found, from memory
+        # the 8-bit codes' cosines of what the probe found, from memory, and how far each may
+        # be off: 6 sigma of the rounding (per query) plus what clipping cut off (per row)
         cos = np.matmul(self._codes[safe].astype(np.float32),
                         (q * self._step)[:, :, None])[:, :, 0]
         cos[found < 0] = -np.inf
-        # the best exact_top exactly: the map's rows of every row the codes' error (6 sigma of
-        # the rounding, plus what clipping cut off a row) could lift among them are read
+        err = self._excess[safe] + (_SIGMAS / math.sqrt(12)) * np.linalg.norm(
+            q * self._step, axis=1)[:, None]
+        # the best exact_top exactly: the map's rows of every row whose cosine could be among
+        # them are read (an unread row's cosine is below the lowest the best ones may have)
         top = min(self.exact_top, k, depth)
-        excess = self._excess[safe]
         best = np.argpartition(-cos, top - 1, axis=1)[:, :top]
-        t = np.take_along_axis(cos, best, axis=1).min(axis=1)
-        slack = (6 / math.sqrt(12)) * np.linalg.norm(q * self._step, axis=1)
-        slack = 2 * slack + np.take_along_axis(excess, best, axis=1).max(axis=1)
-        qi, ci = np.nonzero((cos + excess >= (t - slack)[:, None]) & (found >= 0))
-        rows, inverse = np.unique(found[qi, ci], return_inverse=True)
-        e, norms = self._exact.rows(rows)
-        cos[qi, ci] = (np.einsum("pd,pd->p", e[inverse], q[qi])
-                       / np.where(norms > 0, norms, 1.0)[inverse])
-        return _best_first(found, cos, k)
+        floor = np.take_along_axis(cos - err, best, axis=1).min(axis=1)
+        qi, ci = np.nonzero((cos + err >= floor[:, None]) & (found >= 0))
+        cos[qi, ci] = self._exact_cosines(found[qi, ci], q[qi])
+        err[qi, ci] = 0.0
+        cols, cos = _best_first(np.broadcast_to(np.arange(found.shape[1]), found.shape), cos, k)
+        return (np.take_along_axis(found, cols, axis=1), cos,
+                np.take_along_axis(err, cols, axis=1).astype(np.float32))
+
+    def _exact_cosines(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """(p,) exact cosines of map rows (p,) with their queries (p, d), rows read once."""
+        uniq, inverse = np.unique(rows, return_inverse=True)
+        e, norms = self._exact.rows(uniq)
+        return (np.einsum("pd,pd->p", e[inverse], q)
+                / np.where(norms > 0, norms, 1.0)[inverse])
 
 
 def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -> MapSearch:
