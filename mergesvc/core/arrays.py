@@ -34,6 +34,9 @@ _CHUNK_ROWS = 16_384
 # aligned), and the rows `take_rows` reads before dropping what they mapped
 _FAULT_AROUND = 65_536
 _TAKE_BATCH = 512
+# rows of a file closer than this are read in one call (cheaper than a call per row)
+_SPAN_GAP = 32_768
+_SPAN_MAX = 8 << 20
 
 
 def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
@@ -85,6 +88,30 @@ def _read_only_map(a: np.ndarray) -> mmap.mmap | None:
     return None
 
 
+def _pread_rows(fd: int, start: int, stride: int, rows: np.ndarray, order: np.ndarray,
+                out: np.ndarray) -> None:
+    """out[i] = the row rows[i] of the rows at byte `start` of file `fd`, `stride` bytes apart:
+    rows in file order, those closer than `_SPAN_GAP` bytes read in one call of at most
+    `_SPAN_MAX` bytes."""
+    srt = rows[order]
+    flat = out.reshape(len(rows), -1).view(np.uint8)
+    size = flat.shape[1]
+    breaks = np.flatnonzero(np.diff(srt) * stride > _SPAN_GAP + size) + 1
+    for lo, hi in zip(np.r_[0, breaks].tolist(), np.r_[breaks, len(srt)].tolist()):
+        while lo < hi:
+            first = int(srt[lo])
+            cut = lo + int(np.searchsorted(srt[lo:hi], first + max(1, _SPAN_MAX // stride)))
+            last = int(srt[cut - 1])
+            length = (last - first) * stride + size
+            span = os.pread(fd, length, start + first * stride)
+            if len(span) != length:
+                raise OSError("a memory-mapped file was truncated while in use")
+            block = np.ndarray((last - first + 1, size), dtype=np.uint8, buffer=span,
+                               strides=(stride, 1))
+            flat[order[lo:cut]] = block[srt[lo:cut] - first]
+            lo = cut
+
+
 def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """a[rows] (integer rows, negative ones counted from the end, or a boolean mask), a copy
     that leaves no page of a read-only memory-mapped array resident. The kernel maps the
@@ -106,14 +133,10 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     out = np.empty((len(rows), *a.shape[1:]), dtype=a.dtype)
     origin = np.frombuffer(base, dtype=np.uint8).ctypes.data
     fd = _MAPPED_FILES.get(base)
-    if fd is not None:
-        view = out.reshape(len(rows), -1).view(np.uint8)
-        start = a.ctypes.data - origin
-        for i, r in enumerate(rows.tolist()):
-            if os.preadv(fd, [view[i]], start + r * a.strides[0]) != view.shape[1]:
-                raise OSError("a memory-mapped file was truncated while in use")
-        return out
     order = np.argsort(rows, kind="stable")
+    if fd is not None:
+        _pread_rows(fd, a.ctypes.data - origin, a.strides[0], rows, order, out)
+        return out
     for lo in range(0, len(rows), _TAKE_BATCH):
         sel = order[lo:lo + _TAKE_BATCH]
         out[sel] = a[rows[sel]]
