@@ -97,18 +97,28 @@ def _pread_rows(fd: int, start: int, stride: int, rows: np.ndarray, order: np.nd
     flat = out.reshape(len(rows), -1).view(np.uint8)
     size = flat.shape[1]
     breaks = np.flatnonzero(np.diff(srt) * stride > _SPAN_GAP + size) + 1
+    first_row, first_at = srt.tolist(), order.tolist()
     for lo, hi in zip(np.r_[0, breaks].tolist(), np.r_[breaks, len(srt)].tolist()):
+        if hi - lo == 1:  # a row alone (most, when few rows of a large file are asked)
+            if os.preadv(fd, [flat[first_at[lo]]], start + first_row[lo] * stride) != size:
+                raise OSError("a memory-mapped file was truncated while in use")
+            continue
         while lo < hi:
-            first = int(srt[lo])
-            cut = lo + int(np.searchsorted(srt[lo:hi], first + max(1, _SPAN_MAX // stride)))
-            last = int(srt[cut - 1])
+            first = first_row[lo]
+            cut = hi if (first_row[hi - 1] - first) * stride + size <= _SPAN_MAX else \
+                lo + int(np.searchsorted(srt[lo:hi], first + max(1, _SPAN_MAX // stride)))
+            last = first_row[cut - 1]
             length = (last - first) * stride + size
             span = os.pread(fd, length, start + first * stride)
             if len(span) != length:
                 raise OSError("a memory-mapped file was truncated while in use")
             block = np.ndarray((last - first + 1, size), dtype=np.uint8, buffer=span,
                                strides=(stride, 1))
-            flat[order[lo:cut]] = block[srt[lo:cut] - first]
+            if cut - lo <= 16:  # a few rows: cheaper one by one than by an index array
+                for i in range(lo, cut):
+                    flat[first_at[i]] = block[first_row[i] - first]
+            else:
+                flat[order[lo:cut]] = block[srt[lo:cut] - first]
             lo = cut
 
 
