@@ -102,14 +102,17 @@ class Lane:
             # arrays, not the submap's models, go through the pipe (no Python object per value)
             job = MatchJob([(m, q.arrays() if isinstance(q, Submap) else q)
                             for m, q in todo.pairs], self.merger.config.match)
-            threading.Thread(target=self._run, args=(row_id, todo, job), daemon=True,
+            # kept for the worker's plan: the sessions, not the pairs (they hold the decoded
+            # submap, which the worker decodes again from the row)
+            kept = MatchPlan(todo.others, [])
+            threading.Thread(target=self._run, args=(row_id, kept, job), daemon=True,
                              name="mergesvc-lane").start()
         except BaseException:  # the lane free again; the row fails in the worker
             with self._lock:
                 self._busy = None
             raise
         log.info("submap %s seq %s: %d objects, matched against %d sessions in the lane",
-                 me, sub.seq, len(sub.objects), len(todo.pairs))
+                 me, sub.seq, len(sub.objects), len(job.pairs))
         return True
 
     def pop(self, row_id: int) -> tuple[MatchPlan, list[Any]] | None:
