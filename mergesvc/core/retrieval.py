@@ -10,7 +10,8 @@ Score of frame f for a submap with objects i: sum_i max(0, best_i(f) - typical_i
 the cosine of object i to its most similar object of f, typical_i the median of best_i over the
 fleet's frames (a generic object that resembles everything adds nothing). Ties keep the frames'
 order of arrival; a fleet of at most `keep` frames is returned whole (scores still computed).
-Pure numpy; no frame is ever dropped (its row block is replaced when its objects change).
+Pure numpy; no frame is ever dropped (its row block is replaced when its objects change). A
+large submap is scored a block of its objects at a time, so its scores' memory is bounded.
 Memory layout and cost: docs/benchmarks/merge.md, "The fleet index".
 """
 
@@ -21,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mergesvc.errors import InputError
+
+_RANK_BLOCK = 256  # submap objects per product in `rank`: (256, N) float32 scores at a time
 
 
 @dataclass(frozen=True)
@@ -87,8 +90,11 @@ class FleetIndex:
         pick = [i for i, f in enumerate(names) if f != exclude]
         if not pick or not len(q):
             return [FrameScore(names[i], 0.0) for i in pick][:keep]
-        sim = q.astype(np.float32) @ rows.T  # (m, N), float32 as the rows are held
-        best = np.maximum.reduceat(sim, starts, axis=1)[:, pick]  # (m, frames)
+        q32 = q.astype(np.float32)  # float32 as the rows are held
+        best = np.empty((len(q), len(pick)), dtype=np.float32)  # (m, frames)
+        for lo in range(0, len(q), _RANK_BLOCK):  # (block, N) products: bounded whatever m
+            sim = q32[lo:lo + _RANK_BLOCK] @ rows.T
+            best[lo:lo + _RANK_BLOCK] = np.maximum.reduceat(sim, starts, axis=1)[:, pick]
         typical = np.median(best, axis=1, keepdims=True)
         score = np.maximum(best - typical, 0.0).sum(axis=0, dtype=np.float64)
         order = np.argsort(-score, kind="stable")
