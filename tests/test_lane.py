@@ -85,6 +85,8 @@ def test_a_large_submap_does_not_hold_the_others_and_gives_the_workers_answer(
         assert outcomes(fl.of("c"))[0] == "processed"
         assert fl.svc.lane.finished == 2  # a's (no other session yet) and c's
         lane_factor = fl.svc.merger.factor(fl.of("c")[0].factors[0])
+        kept = fl.svc.lane._last  # for a retried plan: the sessions, not c's decoded submap
+        assert kept is not None and kept[1][0].others and kept[1][0].pairs == []
     with MergeService(cfg_at(tmp_path / "w.db", large_submap_objects=0)) as svc:
         svc.ingest(a)
         svc.ingest(big)
