@@ -241,6 +241,60 @@ def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> No
     assert len(calls) == 2 and calls[1] >= 1.25 * calls[0]
 
 
+def test_a_graph_solved_on_restored_scales_calibrates_again_only_once_it_has_grown(
+        monkeypatch) -> None:
+    """A restarted service restores the scales its last calibration left and solves what it
+    restored without calibrating (`calibrating` off): the graph then counts as calibrated at
+    that size, so the next solves do not calibrate it again (and again, re-solving) until it
+    has grown by `every_growth`; with nothing restored the first solve calibrates."""
+    import mergesvc.core.graph as graph_module
+
+    calls: list[int] = []
+    real = graph_module.variance_components
+
+    def counting(graph, values, groups, cal):
+        calls.append(graph.size())
+        return real(graph, values, groups, cal)
+
+    monkeypatch.setattr(graph_module, "variance_components", counting)
+    _, odo, pairs = _world(6, 60, 60, np.ones(6), 1.0)
+
+    def restarted(scales: dict[str, np.ndarray], closures: int) -> PoseGraph:
+        pg = PoseGraph(anchor="a#0", config=GraphConfig(calibration=dict(
+            enabled=True, groups=("odometry",), resolves=2, every_growth=0.25)))
+        for r in (0, 1):
+            for i, D in enumerate(odo[r]):
+                pg.add_factor(f"o{r}-{i}", f"{'ab'[r]}#{i}", f"{'ab'[r]}#{i + 1}", D,
+                              np.diag(DECLARED**2), known_inlier=True, group=f"odometry:{r}")
+        for n in range(closures):
+            i, j, Z = pairs[n]
+            pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
+                          group="closures")
+        for group, s in scales.items():
+            pg.set_noise_scale(group, s)
+        pg.calibrating = False  # as MergeService.restore solves what it restored
+        pg.optimize(marginals=False)
+        pg.calibrating = True
+        return pg
+
+    stored = {"odometry:0": np.full(6, 0.8), "odometry:1": np.full(6, 1.2)}
+    pg = restarted(stored, 20)
+    pg.set_noise_scale("unused", 1.0)  # a change: solved again, now calibrating
+    pg.optimize(marginals=False)
+    assert calls == [] and pg.noise_scales["odometry:0"].tolist() == [0.8] * 6
+    for n in range(20, 60):  # 145 -> 185 factors: more than a quarter more
+        i, j, Z = pairs[n]
+        pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
+                      group="closures")
+    pg.optimize(marginals=False)
+    assert len(calls) >= 1 and calls[0] > 1.2 * 145  # (less what GNC left out)
+    calls.clear()
+    fresh = restarted({}, 20)  # nothing restored: the first solve calibrates
+    fresh.set_noise_scale("unused", 1.0)
+    fresh.optimize(marginals=False)
+    assert len(calls) >= 1
+
+
 def test_scaling_a_covariance_against_its_definition() -> None:
     """scale_covariance(s) against M C M^T with M = L^-1 diag(s) L (L from `decorrelation`),
     for covariances with and without rotation-translation cross terms, one by one and

@@ -119,7 +119,8 @@ class PoseGraph:
         self._recalibrated = False  # the last solve moved a scale: solve again
         self._calibrated_at = 0  # factors in the graph at the last calibration
         self._solved_scales: dict[str, np.ndarray] = {}
-        # False: solve with the scales as they are (a restart solving what it restored)
+        # False: solve with the scales as they are (a restart solving what it restored; the
+        # graph then counts as calibrated at its size, when it holds scales)
         self.calibrating = True
         # runs each optimisation (core/graph_job.py): here, or in another process
         self.optimizer: Optimizer = run_job
@@ -608,6 +609,8 @@ class PoseGraph:
                                       .with_initial(estimate)).values()
         self._recalibrated = False
         n_solved = final.size()
+        if not self.calibrating and self._scales:  # scales given (restored) for this graph
+            self._calibrated_at = max(self._calibrated_at, n_solved)
         if cfg.calibration.enabled and self.calibrating and (
                 n_solved >= (1.0 + cfg.calibration.every_growth) * self._calibrated_at):
             self._calibrated_at = n_solved
