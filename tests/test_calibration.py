@@ -203,9 +203,8 @@ def test_the_pose_graph_calibrates_its_groups() -> None:
     np.testing.assert_allclose(pg.scaled_covariance("c0"), np.diag(CLOSURE_SIGMA**2))
 
 
-def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> None:
-    """A calibration is a pass over the whole graph: solving the same graph again does not
-    repeat it; a quarter more factors (`every_growth`) does."""
+def _counted_calibrations(monkeypatch) -> list[int]:
+    """The graph sizes of the calibrations run from now on (variance_components wrapped)."""
     import mergesvc.core.graph as graph_module
 
     calls: list[int] = []
@@ -216,27 +215,40 @@ def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> No
         return real(graph, values, groups, cal)
 
     monkeypatch.setattr(graph_module, "variance_components", counting)
-    _, odo, pairs = _world(6, 60, 60, np.ones(6), 1.0)
+    return calls
+
+
+def _two_chains(odo, pairs, closures: range, **calibration) -> PoseGraph:
+    """Both robots' odometry (known inliers, a group each) and the closures `closures`."""
     pg = PoseGraph(anchor="a#0", config=GraphConfig(calibration=dict(
-        enabled=True, groups=("odometry",), resolves=0, every_growth=0.25)))
+        enabled=True, groups=("odometry",), **calibration)))
     for r in (0, 1):
         for i, D in enumerate(odo[r]):
             pg.add_factor(f"o{r}-{i}", f"{'ab'[r]}#{i}", f"{'ab'[r]}#{i + 1}", D,
                           np.diag(DECLARED**2), known_inlier=True, group=f"odometry:{r}")
+    _close(pg, pairs, closures)
+    return pg
 
-    def close(lo: int, hi: int) -> None:
-        for n in range(lo, hi):
-            i, j, Z = pairs[n]
-            pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
-                          group="closures")
 
-    close(0, 20)
+def _close(pg: PoseGraph, pairs, closures: range) -> None:
+    for n in closures:
+        i, j, Z = pairs[n]
+        pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
+                      group="closures")
+
+
+def test_calibration_runs_again_only_once_the_graph_has_grown(monkeypatch) -> None:
+    """A calibration is a pass over the whole graph: solving the same graph again does not
+    repeat it; a quarter more factors (`every_growth`) does."""
+    calls = _counted_calibrations(monkeypatch)
+    _, odo, pairs = _world(6, 60, 60, np.ones(6), 1.0)
+    pg = _two_chains(odo, pairs, range(20), resolves=0, every_growth=0.25)
     pg.optimize(marginals=False)
     assert len(calls) == 1
-    close(20, 25)  # 145 -> 150 factors: under a quarter more
+    _close(pg, pairs, range(20, 25))  # 145 -> 150 factors: under a quarter more
     pg.optimize(marginals=False)
     assert len(calls) == 1
-    close(25, 60)  # 185: more than a quarter over the 145 of the last calibration
+    _close(pg, pairs, range(25, 60))  # 185: more than a quarter over the 145 of the last one
     pg.optimize(marginals=False)
     assert len(calls) == 2 and calls[1] >= 1.25 * calls[0]
 
@@ -247,51 +259,27 @@ def test_a_graph_solved_on_restored_scales_calibrates_again_only_once_it_has_gro
     restored without calibrating (`calibrating` off): the graph then counts as calibrated at
     that size, so the next solves do not calibrate it again (and again, re-solving) until it
     has grown by `every_growth`; with nothing restored the first solve calibrates."""
-    import mergesvc.core.graph as graph_module
-
-    calls: list[int] = []
-    real = graph_module.variance_components
-
-    def counting(graph, values, groups, cal):
-        calls.append(graph.size())
-        return real(graph, values, groups, cal)
-
-    monkeypatch.setattr(graph_module, "variance_components", counting)
+    calls = _counted_calibrations(monkeypatch)
     _, odo, pairs = _world(6, 60, 60, np.ones(6), 1.0)
 
-    def restarted(scales: dict[str, np.ndarray], closures: int) -> PoseGraph:
-        pg = PoseGraph(anchor="a#0", config=GraphConfig(calibration=dict(
-            enabled=True, groups=("odometry",), resolves=2, every_growth=0.25)))
-        for r in (0, 1):
-            for i, D in enumerate(odo[r]):
-                pg.add_factor(f"o{r}-{i}", f"{'ab'[r]}#{i}", f"{'ab'[r]}#{i + 1}", D,
-                              np.diag(DECLARED**2), known_inlier=True, group=f"odometry:{r}")
-        for n in range(closures):
-            i, j, Z = pairs[n]
-            pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
-                          group="closures")
+    def restarted(scales: dict[str, np.ndarray]) -> PoseGraph:
+        pg = _two_chains(odo, pairs, range(20), resolves=2, every_growth=0.25)
         for group, s in scales.items():
             pg.set_noise_scale(group, s)
         pg.calibrating = False  # as MergeService.restore solves what it restored
         pg.optimize(marginals=False)
         pg.calibrating = True
+        pg.set_noise_scale("unused", 1.0)  # a change: solved again, now calibrating
+        pg.optimize(marginals=False)
         return pg
 
-    stored = {"odometry:0": np.full(6, 0.8), "odometry:1": np.full(6, 1.2)}
-    pg = restarted(stored, 20)
-    pg.set_noise_scale("unused", 1.0)  # a change: solved again, now calibrating
-    pg.optimize(marginals=False)
+    pg = restarted({"odometry:0": np.full(6, 0.8), "odometry:1": np.full(6, 1.2)})
     assert calls == [] and pg.noise_scales["odometry:0"].tolist() == [0.8] * 6
-    for n in range(20, 60):  # 145 -> 185 factors: more than a quarter more
-        i, j, Z = pairs[n]
-        pg.add_factor(f"c{n}", f"a#{i}", f"b#{j}", Z, np.diag(CLOSURE_SIGMA**2),
-                      group="closures")
+    _close(pg, pairs, range(20, 60))  # 145 -> 185 factors: more than a quarter more
     pg.optimize(marginals=False)
     assert len(calls) >= 1 and calls[0] > 1.2 * 145  # (less what GNC left out)
     calls.clear()
-    fresh = restarted({}, 20)  # nothing restored: the first solve calibrates
-    fresh.set_noise_scale("unused", 1.0)
-    fresh.optimize(marginals=False)
+    restarted({})  # nothing restored: the first solve calibrates
     assert len(calls) >= 1
 
 
