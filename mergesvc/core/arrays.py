@@ -44,17 +44,24 @@ def chunks(n: int, step: int = _CHUNK_ROWS) -> range:
     return range(0, n, step)
 
 
+def _read_only_map(a: np.ndarray) -> mmap.mmap | None:
+    """The read-only mmap an array views, or None (ordinary memory, a writable mapping)."""
+    base: Any = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    if isinstance(base, mmap.mmap) and hasattr(base, "madvise") and memoryview(base).readonly:
+        return base
+    return None
+
+
 def release_rows(a: np.ndarray, lo: int = 0, hi: int | None = None) -> None:
     """Drop the pages that lie wholly within rows lo..hi of a read-only memory-mapped array
     from this process's resident memory; they stay in the page cache and come back on the next
     read. Nothing for an array in ordinary memory, a writable mapping (a copy-on-write map
     would lose its edits) or rows that are not contiguous."""
-    base: Any = a
-    while isinstance(base, np.ndarray) and base.base is not None:
-        base = base.base
+    base = _read_only_map(a)
     hi = len(a) if hi is None else min(hi, len(a))
-    if not isinstance(base, mmap.mmap) or not hasattr(base, "madvise") or hi <= lo \
-            or not memoryview(base).readonly or not a[lo:hi].flags.c_contiguous:
+    if base is None or hi <= lo or not a[lo:hi].flags.c_contiguous:
         return
     rows = a[lo:hi]
     start = rows.ctypes.data - np.frombuffer(base, dtype=np.uint8).ctypes.data
@@ -76,16 +83,6 @@ def map_file(mm: mmap.mmap, fileno: int) -> None:
     fd = os.dup(fileno)
     _MAPPED_FILES[mm] = fd
     weakref.finalize(mm, os.close, fd)
-
-
-def _read_only_map(a: np.ndarray) -> mmap.mmap | None:
-    """The read-only mmap an array views, or None (ordinary memory, a writable mapping)."""
-    base: Any = a
-    while isinstance(base, np.ndarray) and base.base is not None:
-        base = base.base
-    if isinstance(base, mmap.mmap) and hasattr(base, "madvise") and memoryview(base).readonly:
-        return base
-    return None
 
 
 def _pread_rows(fd: int, start: int, stride: int, rows: np.ndarray, order: np.ndarray,

@@ -295,9 +295,8 @@ class IvfSearch:
             need = math.ceil(margin * need)
             self.shortlist = int(min(deepest, max(2 * k, -(-need // 32) * 32)))
         got = self.search(q, k + 1)[0]
-        got_e, got_n = self._exact.rows(got.ravel())  # exact cosines: the codes' are close
-        got_cos = (np.einsum("mkd,md->mk", got_e.reshape(*got.shape, -1), q)
-                   / np.where(got_n > 0, got_n, 1.0).reshape(got.shape))
+        got_cos = self._exact_cosines(  # exact: beyond exact_top the codes' are close only
+            got.ravel(), np.repeat(q, got.shape[1], axis=0)).reshape(got.shape)
         held = [min(k, int(np.sum(c[r != row] >= t - 1e-5)))
                 for r, c, row, t in zip(got, got_cos, rows, kth)]
         self.recall = float(np.mean(held)) / k
