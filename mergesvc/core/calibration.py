@@ -24,8 +24,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.stats import chi2
 
+from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.errors import SolverError
 
 
@@ -149,7 +149,7 @@ def variance_components(
     rng = np.random.default_rng(config.seed)
     Z = rng.standard_normal((A_s.shape[0], config.samples))
     res = Z - A_s @ lu.solve(np.asarray(A_s.T @ Z))  # residuals of pure noise: I - A H^-1 A^T
-    gross = float(chi2.ppf(config.gross_quantile, 6))
+    gross = chi2_quantile(config.gross_quantile, 6)
     out: dict[str, Component] = defaultdict(Component)
     for i, g in enumerate(groups):
         if g is None:

@@ -18,8 +18,8 @@ from collections.abc import Callable, Container, Mapping, Sequence
 import gtsam
 import numpy as np
 from scipy.linalg import eigh
-from scipy.stats import chi2
 
+from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.graph_factor import GraphFactor, levenberg_marquardt
 from mergesvc.core.poses import compose_with_covariance as _compose
@@ -162,7 +162,7 @@ class Folding:
         T_g, C_g = self.measurement(g)
         e = np.asarray(gtsam.Pose3.Logmap(T_g.between(T)), dtype=np.float64)
         d2 = float(e @ np.linalg.solve(C_g + S, e))
-        if d2 >= float(chi2.ppf(config.inlier_probability, 6)):
+        if d2 >= chi2_quantile(config.inlier_probability, 6):
             return None
         return gid, (T, S)
 

@@ -20,7 +20,6 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
 from mergesvc.core.calibration import (
     scale_covariance,
@@ -28,6 +27,7 @@ from mergesvc.core.calibration import (
     updated_scale,
     variance_components,
 )
+from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.core.config import GraphConfig
 from mergesvc.core.connectivity import UnionFind, two_edge_connected
 from mergesvc.core.connectivity import bridges as find_bridges
@@ -547,7 +547,7 @@ class PoseGraph:
         gnc_skipped = False
         if gnc_ran and cfg.least_squares_gate:
             least_squares = self.optimizer(replace(job, what="least-squares")).values()
-            barc = 0.5 * float(chi2.ppf(cfg.inlier_probability, 6))  # GTSAM's cost threshold
+            barc = 0.5 * chi2_quantile(cfg.inlier_probability, 6)  # GTSAM's cost threshold
             gnc_skipped = all(graph.at(m + i).error(least_squares) < barc
                               for i in range(len(facs)) if i not in known)
         if gnc_skipped:

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.core.connectivity import UnionFind
 from mergesvc.core.graph_factor import GraphFactor, levenberg_marquardt
 
@@ -120,7 +120,7 @@ def rigid_test(shape: Mapping[str, gtsam.Pose3], facs: Sequence[GraphFactor],
     values.insert(0, first)
     cost = 2.0 * float(graph.error(levenberg_marquardt(graph, values, "rigid placement")))
     return RigidTest(len(shape), n, cost, bent, DRIFT_DOF,
-                     cost - bent <= float(chi2.ppf(probability, DRIFT_DOF)))
+                     cost - bent <= chi2_quantile(probability, DRIFT_DOF))
 
 
 __all__ = ["DRIFT_DOF", "RigidTest", "chain_shape", "chains", "rigid_test"]

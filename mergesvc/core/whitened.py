@@ -17,7 +17,8 @@ from collections.abc import Sequence
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
+
+from mergesvc.core.chi2 import chi2_quantile
 
 NEES_QUANTILE = 0.99
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -45,7 +46,7 @@ def whitened_stats(errors: Sequence[np.ndarray], covariances: Sequence[np.ndarra
     return {"n": len(e),
             "whitened_rms": [float(x) for x in np.sqrt(np.mean(z * z, axis=0))],
             "nees_median": float(np.median(nees)),
-            "over_99_percent": float(100.0 * np.mean(nees > chi2.ppf(NEES_QUANTILE, 6)))}
+            "over_99_percent": float(100.0 * np.mean(nees > chi2_quantile(NEES_QUANTILE, 6)))}
 
 
 def lag1_correlation(errors: Sequence[np.ndarray], covariances: Sequence[np.ndarray]

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.core.factors import factor_frames
 from mergesvc.core.model import Factor
 from mergesvc.core.pcm import loop_nees, max_clique
@@ -57,7 +57,7 @@ class ClosureSets:
         self.chains = chains
         self._pairs: dict[tuple[str, str], _Pair] = {}
         self._pair_of: dict[str, tuple[str, str]] = {}
-        self._threshold = float(chi2.ppf(config.quantile, 6))
+        self._threshold = chi2_quantile(config.quantile, 6)
 
     def pair_key(self, factor: Factor) -> tuple[str, str]:
         """The pair of sessions a factor belongs to (its consistency set)."""
