@@ -129,6 +129,27 @@ def test_good_odometry_is_kept_rigid_and_drifting_odometry_is_bent(seed: int) ->
     assert merged < 0.5 * odometry
 
 
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_slow_drift_is_bent_where_the_99_percent_level_kept_it_rigid(seed: int) -> None:
+    """c drifts 0.14 deg a step (4 deg over the chain): its closures lower their cost by more
+    than the 0.9 quantile of chi-square(6) (the default level) but less than the 0.99 one. It
+    is bent, closer to the truth than its odometry; a and b, whose odometry is right, stay
+    rigid."""
+    from scipy.stats import chi2
+
+    pg, truth = _world(seed, 0.0025)
+    sol = pg.optimize()
+    by_robot = dict(zip(ROBOTS, sol.rigid_tests))
+    c = by_robot["c"]
+    level = pg.config.rigid_probability
+    assert chi2.ppf(level, DRIFT_DOF) < c.rigid_cost - c.bent_cost < chi2.ppf(0.99, DRIFT_DOF)
+    assert {r: t.rigid for r, t in by_robot.items()} == {"a": True, "b": True, "c": False}
+    odometry = max(float(np.linalg.norm(
+        _odometry_poses(pg, "c")[i].translation()
+        - truth["c"][0].between(truth["c"][i]).translation())) for i in range(N))
+    assert _shape_error(sol, "c", truth["c"]) < 0.65 * odometry
+
+
 def test_the_test_against_a_reference_computation() -> None:
     """The rigid cost is the least-squares placement's summed squared whitened residuals: the
     same as a brute minimisation over the placement with scipy, and the verdict the chi-square

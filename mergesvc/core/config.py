@@ -274,7 +274,7 @@ class GraphConfig(BaseModel):
         "whose odometry's shape its other factors do not contradict is solved held to that "
         "shape (core/rigid.py: a likelihood-ratio test); None: never")
     rigid_probability: float = Field(
-        0.99, gt=0, lt=1, description="a chain is bent only where that lowers its factors' "
+        0.9, gt=0, lt=1, description="a chain is bent only where that lowers its factors' "
         "summed squared whitened residuals by more than this chi-square quantile of 6 degrees "
         "of freedom (a constant drift rate)")
     rigid_shrink: float = Field(
