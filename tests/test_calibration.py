@@ -8,10 +8,13 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
 
 from mergesvc.core.calibration import (
     CalibrationConfig,
     Component,
+    factor_normal_matrix,
     updated_scale,
     variance_components,
 )
@@ -46,7 +49,7 @@ def _world(seed: int, n: int, closures: int, true_scale: np.ndarray, closure_sca
 
 
 def _key(r: int, i: int) -> int:
-    return gtsam.symbol("ab"[r], i)
+    return gtsam.symbol("abc"[r], i)
 
 
 def _graph(truth, odo, pairs, scales: dict[str, np.ndarray]):
@@ -76,14 +79,9 @@ def _initial(truth) -> gtsam.Values:
     return v
 
 
-def test_monte_carlo_redundancy_matches_the_exact_one() -> None:
-    truth, odo, pairs = _world(3, 40, 30, np.ones(6), 1.0)
-    scales = {"o0": np.ones(6), "o1": np.ones(6), "c": np.ones(6)}
-    g, groups = _graph(truth, odo, pairs, scales)
-    est = gtsam.LevenbergMarquardtOptimizer(g, _initial(truth)).optimize()
-    got = variance_components(g, est, groups, CalibrationConfig(samples=256))
-    # the exact redundancy numbers: the diagonal of I - A H^-1 A^T, per group and axis
-    gfg = g.linearize(est)
+def _whitened_jacobian(g: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
+    """The whitened Jacobian A (6 rows a factor, 6 columns a pose) of g at values, dense."""
+    gfg = g.linearize(values)
     cols: dict[int, int] = {}
     blocks = []
     for i in range(g.size()):
@@ -96,6 +94,18 @@ def test_monte_carlo_redundancy_matches_the_exact_one() -> None:
     for i, keys, A in blocks:
         for j, k in enumerate(keys):
             A_full[6 * i:6 * i + 6, cols[k]:cols[k] + 6] = A[:, 6 * j:6 * j + 6]
+    return A_full
+
+
+def test_monte_carlo_redundancy_matches_the_exact_one() -> None:
+    truth, odo, pairs = _world(3, 40, 30, np.ones(6), 1.0)
+    scales = {"o0": np.ones(6), "o1": np.ones(6), "c": np.ones(6)}
+    g, groups = _graph(truth, odo, pairs, scales)
+    est = gtsam.LevenbergMarquardtOptimizer(g, _initial(truth)).optimize()
+    got = variance_components(g, est, groups, CalibrationConfig(samples=256))
+    # the exact redundancy numbers: the diagonal of I - A H^-1 A^T, per group and axis
+    A_full = _whitened_jacobian(g, est)
+    n_cols = A_full.shape[1] // 6
     R = np.eye(len(A_full)) - A_full @ np.linalg.solve(A_full.T @ A_full, A_full.T)
     for name in ("o0", "o1", "c"):
         exact = sum(np.diag(R[6 * i:6 * i + 6, 6 * i:6 * i + 6])
@@ -104,7 +114,53 @@ def test_monte_carlo_redundancy_matches_the_exact_one() -> None:
         np.testing.assert_allclose(got[name].redundancy, exact, rtol=0.15, atol=1.0)
         assert got[name].factors == groups.count(name)
     total = sum(c.redundancy.sum() for c in got.values())
-    assert total == pytest.approx(6 * g.size() - 6 * len(cols), rel=0.05)  # m - n, all told
+    assert total == pytest.approx(6 * g.size() - 6 * n_cols, rel=0.05)  # m - n, all told
+
+
+def _fleet_graph(n: int = 40, closures: int = 60) -> tuple[gtsam.NonlinearFactorGraph,
+                                                             gtsam.Values]:
+    """Three robots' odometry chains of n keyframes 5 m apart (rotations whose lever arms
+    reach 200 m, as a fleet's do) and closures between random keyframes of two of them."""
+    rng = np.random.default_rng(5)
+    g, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.002] * 3 + [0.02] * 3))
+    clo = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.02] * 3 + [0.2] * 3))
+    truth = {}
+    for r in range(3):
+        T = gtsam.Pose3(gtsam.Rot3.Yaw(r), np.array([0.0, 20.0 * r, 0.0]))
+        truth[r] = [T]
+        for i in range(n - 1):
+            D = gtsam.Pose3(gtsam.Rot3.Yaw(0.1 * np.sin(i / 7 + r)), np.array([5.0, 0, 0]))
+            T = T.compose(D)
+            truth[r].append(T)
+            g.add(gtsam.BetweenFactorPose3(_key(r, i), _key(r, i + 1), D, odo))
+        for i, T in enumerate(truth[r]):
+            values.insert(_key(r, i), T)
+    g.add(gtsam.PriorFactorPose3(_key(0, 0), truth[0][0],
+                                 gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    for _ in range(closures):
+        a, b = (int(x) for x in rng.choice(3, 2, replace=False))
+        i, j = (int(x) for x in rng.integers(0, n, 2))
+        g.add(gtsam.BetweenFactorPose3(_key(a, i), _key(b, j), truth[a][i].between(truth[b][j]),
+                                       clo))
+    return g, values
+
+
+def test_the_normal_matrix_is_factored_in_its_fill_reducing_order() -> None:
+    """A fleet's normal matrix H = A^T A factored with its pivots on the diagonal (rows
+    permuted as the columns): half as many nonzeros as with SuperLU's partial pivoting, which
+    leaves the fill-reducing order, and solving as a dense solve does."""
+    A = _whitened_jacobian(*_fleet_graph())
+    H = sp.csc_matrix(A.T @ A)
+    lu = factor_normal_matrix(H)
+    assert np.array_equal(lu.perm_r, lu.perm_c)
+    pivoted = sla.splu(H, permc_spec="MMD_AT_PLUS_A")  # SuperLU's default pivoting
+    assert not np.array_equal(pivoted.perm_r, pivoted.perm_c)
+    assert lu.L.nnz + lu.U.nnz < 0.5 * (pivoted.L.nnz + pivoted.U.nnz)
+    B = np.random.default_rng(0).standard_normal((H.shape[0], 4))
+    np.testing.assert_allclose(lu.solve(B), np.linalg.solve(A.T @ A, B), rtol=1e-6, atol=1e-9)
+    with pytest.raises(RuntimeError):  # singular: what variance_components reports
+        factor_normal_matrix(sp.csc_matrix(np.diag([1.0, 2.0, 0.0])))
 
 
 def test_a_few_iterations_recover_the_true_scales() -> None:

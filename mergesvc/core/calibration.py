@@ -106,6 +106,16 @@ def scale_covariances(Cs: np.ndarray, sigma_scale: np.ndarray) -> np.ndarray:
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
+def factor_normal_matrix(H: sp.csc_matrix) -> sla.SuperLU:
+    """LU of a normal matrix H = A^T A (symmetric positive definite) in a fill-reducing order,
+    each pivot on the diagonal (rows permuted as the columns): what a Cholesky factorisation
+    would keep. SuperLU's default partial pivoting permutes the rows away from that order, and
+    on a fleet's loop-closed pose graph fills the factor several times over
+    (docs/benchmarks/soak.md). RuntimeError when H is singular."""
+    return sla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                    options={"SymmetricMode": True})
+
+
 def variance_components(
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,
@@ -141,9 +151,8 @@ def variance_components(
                          if groups[i] is not None else np.eye(6))
     A_s = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cs))),
                         shape=(6 * graph.size(), 6 * len(cols)))
-    H = (A_s.T @ A_s).tocsc()
     try:
-        lu = sla.splu(H, permc_spec="MMD_AT_PLUS_A")
+        lu = factor_normal_matrix((A_s.T @ A_s).tocsc())
     except RuntimeError as exc:  # singular: a direction no factor fixes
         raise SolverError(f"calibration: the linearised system is singular: {exc}") from exc
     rng = np.random.default_rng(config.seed)
@@ -188,5 +197,5 @@ def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig)
     return np.clip(np.sqrt(var), config.min_scale, config.max_scale)
 
 
-__all__ = ["CalibrationConfig", "Component", "decorrelation", "scale_covariance",
-           "scale_covariances", "updated_scale", "variance_components"]
+__all__ = ["CalibrationConfig", "Component", "decorrelation", "factor_normal_matrix",
+           "scale_covariance", "scale_covariances", "updated_scale", "variance_components"]
