@@ -1,8 +1,9 @@
 """The chi-square quantile, without scipy.stats.
 
-scipy.stats takes most of a second to import, and every process that matches or solves a
-graph starts by importing these modules; scipy.special's inverse incomplete gamma function is
-what scipy.stats.chi2.ppf computes, so the values are the same floats.
+scipy.stats is slow to import, and every process that matches or solves a graph imports the
+modules that need these quantiles (docs/benchmarks/scale.md); scipy.special's inverse
+incomplete gamma function is what scipy.stats.chi2.ppf computes, so the values are the same
+floats (tests/test_chi2.py).
 """
 
 from __future__ import annotations
