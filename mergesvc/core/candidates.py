@@ -23,7 +23,7 @@ from mergesvc.core.affinity import (
 from mergesvc.core.arrays import take_rows
 from mergesvc.core.config import AffinityConfig, CandidatesConfig, NodeAffinity
 from mergesvc.core.model import ObjectArrays
-from mergesvc.core.search import map_search
+from mergesvc.core.search import exact_cosines, map_search
 
 
 @dataclass(frozen=True)
@@ -124,12 +124,9 @@ def _exact_where_it_decides(sub: ObjectArrays, map_: ObjectArrays, q32: np.ndarr
     lowest = np.partition((cos - err) * w, cos.shape[1] - k, axis=1)[:, cos.shape[1] - k]
     qi, ci = np.nonzero((err > 0) & ((cos + err) * w >= lowest[:, None]))
     if len(qi):
-        rows, inverse = np.unique(shortlist[qi, ci], return_inverse=True)
-        e = take_rows(map_.embeddings_nd, rows).astype(np.float32)
-        n = map_.norms_n[rows]
         cos = cos.copy()
-        cos[qi, ci] = (np.einsum("pd,pd->p", e[inverse], q32[qi])
-                       / np.where(n > 0, n, 1.0)[inverse])
+        cos[qi, ci] = exact_cosines(shortlist[qi, ci], q32[qi], lambda r: (
+            take_rows(map_.embeddings_nd, r).astype(np.float32), map_.norms_n[r]))
     return _ucos_pairs(sub, map_, cos, shortlist)
 
 

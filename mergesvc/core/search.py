@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -97,6 +98,16 @@ def _best_first(rows: np.ndarray, score: np.ndarray, k: int, ordered: bool = Tru
         return rows, score
     order = np.argsort(-score, axis=1, kind="stable")
     return np.take_along_axis(rows, order, axis=1), np.take_along_axis(score, order, axis=1)
+
+
+def exact_cosines(rows: np.ndarray, q: np.ndarray,
+                  read: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """(p,) exact cosines of map rows (p,) with their float32 queries (p, d); `read` gives
+    distinct rows' (float32 embeddings, norms), each row read once."""
+    uniq, inverse = np.unique(rows, return_inverse=True)
+    e, norms = read(uniq)
+    return (np.einsum("pd,pd->p", e[inverse], q)
+            / np.where(norms > 0, norms, 1.0)[inverse])
 
 
 class ExactSearch:
@@ -295,8 +306,8 @@ class IvfSearch:
             need = math.ceil(margin * need)
             self.shortlist = int(min(deepest, max(2 * k, -(-need // 32) * 32)))
         got = self.search(q, k + 1)[0]
-        got_cos = self._exact_cosines(  # exact: beyond exact_top the codes' are close only
-            got.ravel(), np.repeat(q, got.shape[1], axis=0)).reshape(got.shape)
+        got_cos = exact_cosines(  # exact: beyond exact_top the codes' are close only
+            got.ravel(), np.repeat(q, got.shape[1], axis=0), self._exact.rows).reshape(got.shape)
         held = [min(k, int(np.sum(c[r != row] >= t - 1e-5)))
                 for r, c, row, t in zip(got, got_cos, rows, kth)]
         self.recall = float(np.mean(held)) / k
@@ -374,18 +385,12 @@ class IvfSearch:
         best = np.argpartition(-cos, top - 1, axis=1)[:, :top]
         floor = np.take_along_axis(cos - err, best, axis=1).min(axis=1)
         qi, ci = np.nonzero((cos + err >= floor[:, None]) & (found >= 0))
-        cos[qi, ci] = self._exact_cosines(found[qi, ci], q[qi])
+        cos[qi, ci] = exact_cosines(found[qi, ci], q[qi], self._exact.rows)
         err[qi, ci] = 0.0
         cols, cos = _best_first(np.broadcast_to(np.arange(found.shape[1]), found.shape), cos, k)
         return (np.take_along_axis(found, cols, axis=1), cos,
                 np.take_along_axis(err, cols, axis=1).astype(np.float32))
 
-    def _exact_cosines(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """(p,) exact cosines of map rows (p,) with their queries (p, d), rows read once."""
-        uniq, inverse = np.unique(rows, return_inverse=True)
-        e, norms = self._exact.rows(uniq)
-        return (np.einsum("pd,pd->p", e[inverse], q)
-                / np.where(norms > 0, norms, 1.0)[inverse])
 
 
 def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -> MapSearch:
@@ -432,5 +437,5 @@ def attach_search(map_: ObjectArrays, search: MapSearch) -> None:
     map_.cache[_SEARCH_KEY] = search
 
 
-__all__ = ["ExactSearch", "IvfSearch", "MapSearch", "attach_search", "make_search",
+__all__ = ["ExactSearch", "IvfSearch", "MapSearch", "attach_search", "exact_cosines", "make_search",
            "map_search", "multiplied_pairs"]
