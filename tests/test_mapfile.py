@@ -17,6 +17,7 @@ from mergesvc.cli import app
 from mergesvc.core.arrays import ObjectArrays
 from mergesvc.core.model import ObjectMap, Submap
 from mergesvc.errors import DecodeError, SchemaError
+from mergesvc.wire import mapfile
 from mergesvc.wire.files import load_model
 from mergesvc.wire.mapfile import (
     file_to_model,
@@ -57,8 +58,15 @@ def test_json_to_binary_and_back_keeps_everything_at_float32(tmp_path: Path) -> 
         np.testing.assert_array_equal(getattr(x, name), getattr(y, name))
 
 
+def _mapping(a: np.ndarray) -> mmap.mmap | None:
+    base = a
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    return base if isinstance(base, mmap.mmap) else None
+
+
 def test_large_members_are_memory_mapped_and_scalar_variances_stored_as_one_column(
-        tmp_path: Path) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     n, d = 1000, 64
     rng = np.random.default_rng(1)
     arr = ObjectArrays([f"m{i}" for i in range(n)], rng.normal(size=(n, 3)),
@@ -67,11 +75,12 @@ def test_large_members_are_memory_mapped_and_scalar_variances_stored_as_one_colu
     save_arrays(tmp_path / "m.npz", arr, {"kind": "map", "robot_id": "a", "session_id": "s"})
     with np.load(tmp_path / "m.npz") as z:  # any numpy reads it
         assert z["variances"].shape == (n,) and z["embeddings"].dtype == np.float32
+    small, _, _ = load_arrays(tmp_path / "m.npz")  # 256 kB: read, not mapped
+    assert _mapping(small.embeddings_nd) is None
+    np.testing.assert_array_equal(small.embeddings_nd, arr.embeddings_nd)
+    monkeypatch.setattr(mapfile, "MAP_FROM_BYTES", n * d * 4)
     got, meta, labels = load_arrays(tmp_path / "m.npz")
-    base = got.embeddings_nd
-    while isinstance(base, np.ndarray) and base.base is not None:
-        base = base.base
-    assert isinstance(base, mmap.mmap) and not got.embeddings_nd.flags.writeable
+    assert _mapping(got.embeddings_nd) is not None and not got.embeddings_nd.flags.writeable
     assert got.isotropic and labels is None and meta["kind"] == "map"
     np.testing.assert_array_equal(got.embeddings_nd, arr.embeddings_nd)
     release_pages(got)  # pages dropped from this process, data still readable

@@ -65,7 +65,7 @@ def match(
 
     def load(path: Path, model: type[ObjectMap]) -> Any:
         if is_binary_map(path):
-            return load_arrays(path)[0]  # memory-mapped: no per-object models
+            return load_arrays(path)[0]  # a large one memory-mapped; no per-object models
         from mergesvc.wire.files import load_model
 
         return load_model(model, path)

@@ -8,8 +8,9 @@ Members (each a .npy; any numpy reads the file with `np.load`):
     labels, label_ends, has_label   the same for the optional labels (absent when none has one)
     position_xyz_m float64 (n, 3); embeddings float32 (n, d); n_obs int64 (n,)
     variances     float64 (n,) one number per object, or (n, d) per dimension
-`load_arrays` maps the embeddings (and per-dimension variances) from the file instead of
-reading them: a large map costs memory only for the rows a match touches. Everything is
+`load_arrays` maps the embeddings (and per-dimension variances) of a large map from the file
+instead of reading them: it costs memory only for the rows a match touches. Members under
+`MAP_FROM_BYTES` are read: mapped, each scattered read of their rows is a system call. Everything is
 checked as the JSON files are (finite, positive variances, unique ids, sizes), in one line.
 """
 
@@ -38,6 +39,8 @@ VERSION = 1
 # a binary map may be larger than a JSON one (MAX_OBJECTS): it is read without a per-object
 # model and memory-mapped
 MAX_BINARY_OBJECTS = 5_000_000
+# members of at least this size are memory-mapped (about 20,000 objects of 384 float32)
+MAP_FROM_BYTES = 32 << 20
 _SUBMAP_FIELDS = ("seq", "stamp", "keyframe", "odometry")
 
 
@@ -146,7 +149,8 @@ def _member_views(path: Path) -> dict[str, tuple[int, np.dtype, tuple[int, ...],
 def load_arrays(path: Path | str, mmap_large: bool = True
                 ) -> tuple[ObjectArrays, dict[str, Any], list[str | None] | None]:
     """Read a binary map file: (arrays, the file fields, labels or None). The embeddings and
-    per-dimension variances are memory-mapped (read-only) when mmap_large. DecodeError /
+    per-dimension variances are memory-mapped (read-only) when mmap_large and they take at
+    least `MAP_FROM_BYTES`. DecodeError /
     SchemaError (one line) on anything a JSON map file would be refused for."""
     p = Path(path)
     try:
@@ -159,6 +163,7 @@ def load_arrays(path: Path | str, mmap_large: bool = True
 
     def read(name: str, mapped: bool = False) -> np.ndarray:
         offset, dtype, shape, fortran = views[name]
+        mapped = mapped and int(np.prod(shape)) * dtype.itemsize >= MAP_FROM_BYTES
         # an unaligned member (a file numpy.savez wrote) is read instead: BLAS needs alignment
         if mapped and int(np.prod(shape)) > 0 and offset % max(dtype.alignment, 1) == 0:
             with open(p, "rb") as f:
