@@ -156,7 +156,7 @@ def read_settings_file(path: Path | str, *, bare_match: BareMatch = ("match",)) 
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"cannot read config {path}: {exc}") from exc
+        raise ConfigError(f"cannot read settings file {path}: {exc}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"settings file {path} must hold a JSON object")
     keys = set(data)
@@ -238,7 +238,7 @@ def _validate(data: Mapping[str, Any]) -> Settings:
 def _config_error(exc: ValidationError) -> ConfigError:
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"])
-    return ConfigError(f"invalid config: {loc}: {err['msg']}")
+    return ConfigError(f"invalid settings: {loc}: {err['msg']}")
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

@@ -4,6 +4,8 @@ trajectory, all against a fleet world's ground truth."""
 
 from __future__ import annotations
 
+import logging
+
 import gtsam
 import numpy as np
 import pytest
@@ -258,7 +260,8 @@ def test_agent_up_must_be_a_direction(up) -> None:
         AgentConfig(robot="auv1", up=up)
 
 
-def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames) -> None:
+def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames, caplog
+                                                                          ) -> None:
     """Over real Zenoh (loopback, scouting off): the service may code factors full (`serve
     --factor-profile full`) or compact; the agent takes both into its graph. The service's
     result of each submap (JSON on result/{robot}) is counted per outcome."""
@@ -310,3 +313,15 @@ def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames
                 "code": code, "detail": "test"}))
             assert wait_for(lambda n=n: sum(ag.stats.results.values()) == 4 + n, 10.0)
             assert ag.local.lost == lost
+        # refused for good: counted, said by default the first time of its code, not again
+        assert ag.stats.submaps_refused == 1 and ag.stats.last_refusal == "processing: test"
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="mergesvc.fleet.agent"):
+            for _ in range(2):  # a submap the service could not read carries no seq
+                rs.put(keys.result_key(root, "auv1"), json.dumps({
+                    "robot": "auv1", "session": None, "seq": None, "outcome": "refused",
+                    "code": "bad_submap", "detail": "no such projection"}))
+            assert wait_for(lambda: ag.stats.submaps_refused == 3, 10.0)
+        said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert said == ["auv1: a submap the service could not read, never to be held: refused "
+                        "(bad_submap: no such projection)"]

@@ -121,6 +121,69 @@ def test_missing_file_and_dimension_mismatch(files: Path, tmp_path: Path) -> Non
     assert r.returncode == 2 and "dimensions differ" in r.stderr
 
 
+@pytest.mark.parametrize("args", [
+    ("match", "--map", "x.json"),  # --submap missing
+    ("matc",),  # no such command
+    ("match", "--map", "a", "--submap", "b", "--solver", "foo"),
+    ("bench", "merge", "--seeds", "0"),
+])
+def test_usage_errors_are_one_line_exit_2(args: tuple[str, ...]) -> None:
+    r = run(*args)
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "--help)" in lines[0]
+
+
+@pytest.mark.parametrize("args", [("example",), ("schemas",),
+                                  ("scenario", "underwater", "--per-size", "1")])
+def test_an_output_folder_that_cannot_be_made_is_one_line_exit_2(tmp_path: Path, args) -> None:
+    taken = tmp_path / "a_file"
+    taken.write_text("")
+    r = run(*args[:2 if args[0] == "scenario" else 1], str(taken), *args[2:])
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"error: cannot use {taken}: File exists"]
+
+
+def test_paper_mode_exact_on_a_large_problem_says_what_to_do(tmp_path: Path) -> None:
+    assert run("example", str(tmp_path)).returncode == 0  # kitti: 23 vs 605 objects
+    r = run("match", "--map", str(tmp_path / "map.json"), "--submap",
+            str(tmp_path / "submap.json"), "--mode", "paper", "--solver", "exact")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "too large for the exact solver" in r.stderr and "--mode verified" in r.stderr
+
+
+def test_errors_say_what_is_wrong_with_the_file(files: Path, tmp_path: Path) -> None:
+    """A map given for a submap, a binary map to a command that reads JSON, a missing binary
+    map: one line that names the file and what it is."""
+    npz = tmp_path / "map.npz"
+    assert run("convert", str(files / "map.json"), str(npz)).returncode == 0
+    cases = {
+        ("match", "--map", str(files / "submap.json"), "--submap", str(files / "submap.json")):
+            "is a submap file, not a map (map and submap swapped?)",
+        ("codec", "encode", str(npz), str(tmp_path / "x.bin")):
+            f"is a binary map file and this reads JSON: `mergesvc convert {npz} OUT.json`",
+        ("match", "--map", str(tmp_path / "none.npz"), "--submap", str(files / "submap.json")):
+            f"cannot read {tmp_path / 'none.npz'}: No such file or directory",
+        ("example", str(tmp_path / "e"), "--family", "reef"):
+            "--family must be one of underwater, kitti, not 'reef'",
+    }
+    for args, text in cases.items():
+        r = run(*args)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
+        assert text in r.stderr, (args, r.stderr)
+
+
+def test_version() -> None:
+    r = run("--version")
+    assert r.returncode == 0 and r.stdout.startswith("mergesvc ")
+
+
+def test_help_keeps_bracketed_text() -> None:
+    """Help texts are plain, not markup: `mergesvc[view]` is what to install."""
+    r = run("view", "--help")
+    assert r.returncode == 0 and "mergesvc[view]" in " ".join(r.stdout.split())
+
+
 def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     repo = Path(__file__).resolve().parents[1]
     assert run("schemas", str(repo / "schemas"), "--check").returncode == 0
@@ -358,7 +421,7 @@ def test_settings_file_env_and_flags_on_match(files: Path, tmp_path: Path) -> No
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"candidates": {"top_k": 0}}))
     r = run(*args, "--settings", str(bad))
-    assert r.returncode == 1 and r.stderr.startswith("error: invalid config: candidates.top_k")
+    assert r.returncode == 1 and r.stderr.startswith("error: invalid settings: candidates.top_k")
 
 
 def test_config_dump_prints_the_resolved_tree(tmp_path: Path) -> None:

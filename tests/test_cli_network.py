@@ -5,6 +5,7 @@ Real processes and real Zenoh sessions on 127.0.0.1; every wait is bounded."""
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -52,7 +53,20 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
     dead = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
     bad_config = tmp / "bad.json5"
     bad_config.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:1"] ')
+    # a service without the fleet's projection: it refuses every compact submap for good
+    proj = tmp / "proj.npz"
+    made = CliRunner().invoke(app, ["projection", "make", str(proj), "--survey", "underwater",
+                                    "--samples", "300"])
+    assert made.exit_code == 0, made.output
+    refusing = f"tcp/127.0.0.1:{free_port()}"
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
+    service = subprocess.Popen([*CLI, "serve", "--store", ":memory:", "--listen", refusing,
+                                "--seconds", "120"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, env=clean)
     commands = {
+        "agent_refused": ["agent", "--robot", "auv1", "--laps", "1", "--profile", "compact",
+                          "--projection", str(proj), "--connect", refusing,
+                          "--connect-timeout", "60", "--time-scale", "0", "--linger", "3"],
         "serve_busy": ["serve", "--store", ":memory:", "--listen", busy, "--seconds", "30"],
         "agent_dead": ["agent", "--robot", "auv1", "--laps", "1", "--connect", dead,
                        "--connect-timeout", "1"],
@@ -66,7 +80,6 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
                                     "tcp/127.0.0.1:99999", "--seconds", "30"],
         "bridge_bad_config": ["link", "bridge", "--config", str(bad_config), "--seconds", "30"],
     }
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
     procs = {name: subprocess.Popen([*CLI, *args], stdout=subprocess.PIPE,
                                     stderr=subprocess.PIPE, text=True, env=clean)
              for name, args in commands.items()}
@@ -76,7 +89,7 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
             stdout, stderr = p.communicate(timeout=180)
             out[name] = subprocess.CompletedProcess(commands[name], p.returncode, stdout, stderr)
     finally:
-        for p in procs.values():
+        for p in (*procs.values(), service):
             if p.poll() is None:
                 p.kill()
                 p.wait(timeout=10)
@@ -103,6 +116,20 @@ def test_demo_on_a_busy_port_fails_before_starting_anything(busy: str, tmp_path:
     assert r.stdout == "" and r.stderr.strip() == (
         f"error: {busy} is in use: pick another --listen, or stop the process that holds it")
     assert not (tmp_path / "settings.json").exists()
+
+
+def test_an_agent_whose_every_submap_is_refused_says_so_and_fails(runs) -> None:
+    """Refused for good (here: coded with a projection the service lacks) is said on stderr
+    the first time, counted in the summary, and fails the run when it was every submap."""
+    r = runs["agent_refused"]
+    assert r.returncode == EXIT_FAILED, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["submaps_sent"] > 0 and summary["results"] == {
+        "refused": summary["submaps_sent"]} == {"refused": summary["submaps_refused"]}
+    warned, error = r.stderr.strip().splitlines()[-2:]
+    assert "WARNING" in warned and "could not read, never to be held" in warned
+    assert error.startswith("error: the service refused every submap sent") and \
+        "which this decoder does not have" in error
 
 
 def test_agent_gives_up_on_a_dead_endpoint(runs) -> None:
@@ -198,3 +225,19 @@ def test_a_config_file_zenoh_cannot_read_is_a_config_error(tmp_path: Path) -> No
         make_zenoh_config(config_file=str(bad))
     with pytest.raises(ConfigError, match="No such file"):
         make_zenoh_config(config_file=str(tmp_path / "missing.json5"))
+
+
+def test_the_default_router_is_for_processes_that_neither_connect_nor_listen() -> None:
+    """`view --mode peer --listen E` is reached at E; only without either flag does a command
+    try the default router."""
+    from mergesvc.cli.options import DEFAULT_ENDPOINT, ZenohMode, zenoh_config
+
+    def connect(**kw) -> list[str]:
+        conf = zenoh_config(kw.get("mode", ZenohMode.PEER), kw.get("connect"), kw.get("listen"),
+                            None, default_connect=(DEFAULT_ENDPOINT,))
+        return json.loads(conf.get_json("connect/endpoints"))
+
+    assert connect(listen=["tcp/127.0.0.1:7500"]) == []
+    assert connect() == [DEFAULT_ENDPOINT]
+    assert connect(connect=["tcp/127.0.0.1:7501"], listen=["tcp/127.0.0.1:7500"]) == [
+        "tcp/127.0.0.1:7501"]

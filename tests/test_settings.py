@@ -599,10 +599,10 @@ def test_bare_keys_never_name_a_section() -> None:
         ('{"match": {}, "mode": "paper"}', "unknown section(s) mode"),
         ('{"matching": {}}', "unknown section(s) matching"),
         ('{"service": {"fleeet": "x"}}', "service.fleeet"),
-        ('{"candidates": {"top_k": 0}}', "invalid config: candidates.top_k"),
-        ('{"match": {"candidates": {"top_k": 0}}}', "invalid config: match.candidates.top_k"),
+        ('{"candidates": {"top_k": 0}}', "invalid settings: candidates.top_k"),
+        ('{"match": {"candidates": {"top_k": 0}}}', "invalid settings: match.candidates.top_k"),
         ("[]", "must hold a JSON object"),
-        ("{nope", "cannot read config"),
+        ("{nope", "cannot read settings file"),
     ],
 )
 def test_a_bad_file_is_a_config_error(tmp_path: Path, content: str, message: str) -> None:
@@ -610,7 +610,7 @@ def test_a_bad_file_is_a_config_error(tmp_path: Path, content: str, message: str
     f.write_text(content)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         load_settings(f, environ={})
-    with pytest.raises(ConfigError, match="cannot read config"):
+    with pytest.raises(ConfigError, match="cannot read settings file"):
         read_settings_file(tmp_path / "absent.json")
 
 
@@ -638,7 +638,7 @@ def test_the_short_form_is_the_match_section() -> None:
         ({"MERGESVC_CANDIDATES__TOPK": "1"}, "match.candidates has no 'topk'"),
         ({"MERGESVC_CANDIDATES__TOP_K": "3", "MERGESVC_MATCH__CANDIDATES__TOP_K": "4"},
          "both set match.candidates.top_k"),
-        ({"MERGESVC_MATCH__SOLVER__NAME": "nope"}, "invalid config: match.solver.name"),
+        ({"MERGESVC_MATCH__SOLVER__NAME": "nope"}, "invalid settings: match.solver.name"),
     ],
 )
 def test_an_unknown_or_bad_variable_is_a_config_error(
@@ -905,7 +905,12 @@ SETTINGS_HELP = {
 def test_settings_help_says_what_the_command_reads(command: tuple[str, ...]) -> None:
     r = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
-    line = next(x for x in r.output.splitlines() if x.lstrip("│ ").startswith("--settings"))
+    lines = r.output.splitlines()
+    at = next(i for i, x in enumerate(lines) if x.lstrip().startswith("--settings"))
+    # the option's help, however it is wrapped: up to the next option
+    end = next((i for i in range(at + 1, len(lines))
+                if lines[i].startswith("  -") or not lines[i].startswith("   ")), len(lines))
+    line = " ".join(x.strip() for x in lines[at:end])
     for words in SETTINGS_HELP[command]:
         assert words in line, (command, line)
     # only the commands that take a bare MatchConfig file say so

@@ -11,6 +11,7 @@ settings tree is resolved) are in `options`.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import re
 import sys
@@ -19,31 +20,63 @@ from typing import Annotated
 import typer
 
 from mergesvc.cli import bench, files, fleet, projection, solver, view
-from mergesvc.cli.errors import show_tracebacks
+from mergesvc.cli.errors import EXIT_BAD_INPUT, fail, show_tracebacks
+from mergesvc.errors import InputError
 
 __all__ = ["app", "hoist_verbose", "main"]
 
-class _PlainTopHelp(typer.core.TyperGroup):
-    """`mergesvc --help` in plain text: rich's help renderer alone costs ~0.3 s of start-up
-    (every command's own --help keeps it)."""
+class _Tree(typer.core.TyperGroup):
+    """The command tree. `mergesvc --help` in plain text: rich's help renderer alone costs
+    ~0.3 s of start-up (every command's own --help keeps it). A usage error (a missing or
+    unknown option, an unknown command) and an OSError no command turned into its own message
+    (a folder that cannot be made, a file that cannot be written) are one line and exit 2."""
 
     def format_help(self, ctx, formatter) -> None:  # type: ignore[no-untyped-def]
         super(typer.core.TyperGroup, self).format_help(ctx, formatter)
 
+    def invoke(self, ctx):  # type: ignore[no-untyped-def]
+        try:
+            return super().invoke(ctx)
+        except _USAGE_ERROR as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":  # a group's help, asked for
+                raise
+            where = exc.ctx.command_path if exc.ctx is not None else "mergesvc"
+            fail(InputError(f"{exc.format_message()} (see {where} --help)"), EXIT_BAD_INPUT)
+        except OSError as exc:
+            fail(exc, EXIT_BAD_INPUT)
+
+
+# the click typer builds on (its own copy in recent typer, the click package before)
+_CLICK = typer.core.TyperGroup.__mro__[1].__module__.rsplit(".", 1)[0]
+_USAGE_ERROR = importlib.import_module(f"{_CLICK}.exceptions").UsageError
 
 app = typer.Typer(
-    cls=_PlainTopHelp,
+    cls=_Tree,
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # help texts are plain: "pip install 'mergesvc[view]'" stays
     help="mergesvc: merge multi-robot object maps by semantic graph matching.",
 )
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"mergesvc {version('mergesvc')}")
+        except PackageNotFoundError:  # run from a source tree that was never installed
+            typer.echo("mergesvc (not installed: no version)")
+        raise typer.Exit()
 
 
 @app.callback()
 def _main(
     verbose: Annotated[int, typer.Option(
         "--verbose", "-v", count=True, help="more logs; -vv: debug, and tracebacks of errors")] = 0,
+    _: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
+                                    help="print the version and exit")] = False,
 ) -> None:
     logging.basicConfig(
         level=logging.WARNING - 10 * min(verbose, 2),

@@ -21,6 +21,7 @@ from mergesvc.cli.errors import exit_on_error
 from mergesvc.cli.options import (
     TrajectoryFile,
     check_trajectory,
+    command_group,
     resolve_settings,
     settings_file,
     write_settings_beside,
@@ -30,7 +31,7 @@ from mergesvc.core.names import NodeAffinity
 if TYPE_CHECKING:
     from mergesvc.settings import Settings
 
-app = typer.Typer(no_args_is_help=True, help="benchmarks")
+app = command_group("benchmarks")
 
 # --settings of each benchmark: what it reads (a bare MatchConfig file is `match` here too)
 BenchSettings = settings_file(
@@ -458,10 +459,10 @@ def bench_cost(
         help="write cost against factors accepted as a PNG here")] = None,
     settings: CostBenchSettings = None,
 ) -> None:
-    """The service's cost per submap against the factors it has accepted (issue 14: flat
+    """The service's cost per submap against the factors it has accepted (target: flat
     within 2x to 2,000 factors): one seeded pool fleet, session after session, in-process
     through a real MergeService twice: the graph solved once per batch (the worker under a
-    backlog) and after every submap (before issue 14); median and p90 ms per submap per
+    backlog) and after every submap (the baseline); median and p90 ms per submap per
     bucket of factors, median [min-max] over runs."""
     from rich.progress import Progress
 

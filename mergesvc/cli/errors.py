@@ -49,8 +49,11 @@ def show_tracebacks(on: bool) -> None:
 
 
 def message(exc: BaseException) -> str:
-    """The error's line: its text, and for a TransportError what to do about it."""
+    """The error's line: its text, and for a TransportError what to do about it; an OSError
+    about a file names it ("cannot use PATH: File exists")."""
     msg = one_line(exc)
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        msg = f"cannot use {exc.filename}: {exc.strerror}"
     if isinstance(exc, TransportError):
         msg = f"{msg}: {TRANSPORT_ADVICE[exc.fault]}"
     return msg

@@ -17,21 +17,22 @@ from mergesvc.cli.options import (
     TrajectoryFile,
     bare_match_for,
     check_trajectory,
+    command_group,
     deprecated_config,
     given,
     resolve_settings,
     settings_file,
 )
 from mergesvc.core.names import MatchMode, NodeAffinity, SolverName
-from mergesvc.errors import InputError, MergeError
+from mergesvc.errors import InputError, MergeError, SolverError, one_line
 from mergesvc.wire.names import Profile
 
 if TYPE_CHECKING:
     from mergesvc.core.model import MatchResult
 
-codec_app = typer.Typer(no_args_is_help=True, help="the wire codec")
-scenario_app = typer.Typer(no_args_is_help=True, help="seeded worlds with ground truth")
-uncertainty_app = typer.Typer(no_args_is_help=True, help="the learned image-uncertainty head")
+codec_app = command_group("the wire codec")
+scenario_app = command_group("seeded worlds with ground truth")
+uncertainty_app = command_group("the learned image-uncertainty head")
 
 # --settings of each command here: what it reads
 MatchSettings = settings_file("`match`", bare="MatchConfig")
@@ -87,13 +88,21 @@ def match(
             cfg = resolve_settings(settings, {"match": flags}).match
         map_ = load(map_path, ObjectMap)
         sub = load(submap_path, Submap)
-        outcome = run_match(map_, sub, cfg)
+        try:
+            outcome = run_match(map_, sub, cfg)
+        except SolverError as exc:
+            if cfg.mode is not MatchMode.PAPER:
+                raise
+            # paper mode's solver runs on every submap x map pair: a flag choice, not a fault
+            raise InputError(f"{one_line(exc)}: paper mode solves over every pair; use "
+                             "--mode verified, or another --solver") from exc
     result = outcome.result
     if as_json:
         typer.echo(json.dumps(match_json(result)))
         return
     state = "accepted" if result.accepted else "rejected"
-    typer.echo(f"{state} ({result.reason.value}): {len(result.matches)} matches")
+    n = len(result.matches)
+    typer.echo(f"{state} ({result.reason.value}): {n} match{'' if n == 1 else 'es'}")
     for m in result.matches:
         typer.echo(f"  {m.submap_object:>12} -> {m.map_object:<12} score {m.score:.3f}")
     if result.accepted and result.transform is not None:
@@ -149,6 +158,9 @@ def example(
     """Write a seeded example map, submap and their ground truth."""
     from mergesvc.sim import Family, make_scenario
 
+    if family not in {f.value for f in Family}:
+        fail(InputError(f"--family must be one of {', '.join(f.value for f in Family)}, not "
+                        f"{family!r}"), EXIT_BAD_INPUT)
     with exit_on_error(ValueError):
         sc = make_scenario(Family(family), seed)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -31,6 +31,7 @@ from mergesvc.cli.options import (
     ZenohConfigFile,
     ZenohMode,
     bare_match_for,
+    command_group,
     given,
     resolve_settings,
     settings_env,
@@ -40,13 +41,13 @@ from mergesvc.cli.options import (
     zenoh_connect,
     zenoh_mode,
 )
-from mergesvc.errors import ConfigError
+from mergesvc.errors import ConfigError, MergeError
 from mergesvc.wire.names import Profile
 
 if TYPE_CHECKING:
     from mergesvc.core.tracking import Frame
 
-link_app = typer.Typer(no_args_is_help=True, help="the acoustic link simulator")
+link_app = command_group("the acoustic link simulator")
 
 
 class FactorProfile(str, Enum):
@@ -156,13 +157,15 @@ def serve(
 def export(
     ctx: typer.Context,
     out: Annotated[Path, typer.Option(help="folder for graph.g2o, graph_nodes.json, "
-                                            "export.json and the TUM trajectories")],
+                                            "export.json, factors.json, map.json and the TUM "
+                                            "trajectories")],
     store: Annotated[
         Path | None, typer.Option(help="the service's SQLite file [default: the setting "
                                        "service.store]")
     ] = None,
     projection: Annotated[
-        list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
+        list[Path] | None, typer.Option(help="fleet projection(s): needed when the store "
+                                             "holds compact submaps (serve's --projection)")
     ] = None,
     settings: ExportSettings = None,
 ) -> None:
@@ -172,7 +175,7 @@ def export(
 
     Settings: the `service` section, as serve reads it.
 
-    Writes graph.g2o, graph_nodes.json (id -> robot/session#k), export.json, trajectories/.
+    Writes graph.g2o, graph_nodes.json (node ids), export.json, factors.json, map.json and TUMs.
 
     Prints one line per file written."""
     from mergesvc.fleet.export import export_store
@@ -267,7 +270,12 @@ def agent(
                            "bytes_sent": stats.bytes_sent,
                            "submaps_resent": stats.submaps_resent,
                            "submaps_given_up": stats.submaps_given_up,
+                           "submaps_refused": stats.submaps_refused,
+                           "results": stats.results,
                            "factors_received": stats.factors_received}))
+    if stats.submaps_sent and stats.submaps_refused >= stats.submaps_sent:
+        fail(MergeError(f"the service refused every submap sent ({stats.submaps_sent}), the "
+                        f"last for {stats.last_refusal}"), EXIT_FAILED)
 
 
 def demo(

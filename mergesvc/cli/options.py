@@ -46,6 +46,7 @@ __all__ = [
     "ZenohMode",
     "bare_match_for",
     "check_trajectory",
+    "command_group",
     "deprecated_config",
     "given",
     "resolve_settings",
@@ -94,6 +95,12 @@ class SettingsCommand(str, Enum):
 # own settings, every other command with the `match` section.
 _BARE_MATCH: dict[SettingsCommand, tuple[str, ...]] = {SettingsCommand.SERVE: ("service", "match")}
 
+
+
+def command_group(help: str) -> typer.Typer:
+    """A group of subcommands (`mergesvc bench ...`): its help when called bare; help texts
+    plain, not rich markup (so "pip install 'mergesvc[view]'" and "[default: ...]" stay)."""
+    return typer.Typer(no_args_is_help=True, rich_markup_mode=None, help=help)
 
 def bare_match_for(command: SettingsCommand | None) -> tuple[tuple[str, ...], ...]:
     """Where `command` puts a bare MatchConfig file (`None`: every place a command may put it,
@@ -163,8 +170,10 @@ def zenoh_config(
     connect_timeout: float | None = None,
 ) -> zenoh.Config:
     """The Zenoh flags as a `zenoh.Config` (raises ConfigError, InputError for a malformed
-    endpoint). `default_connect` applies when no --connect is given; `scouting=None` means
-    scouting stays on unless a --config file is given (what serve and agent have always done);
+    endpoint). `default_connect` applies when neither --connect nor --listen is given (a
+    process that listens is reached by the others: a peer viewer needs no router);
+    `scouting=None` means scouting stays on unless a --config file is given (what serve and
+    agent have always done);
     `connect_timeout=None` (not typed) means DEFAULT_CONNECT_TIMEOUT_S for a client or peer
     without a --config file, else the file's (or Zenoh's) own."""
     from mergesvc.wire.session import make_zenoh_config
@@ -174,7 +183,7 @@ def zenoh_config(
     return make_zenoh_config(
         config_file=str(config) if config else None,
         mode=mode.value if mode is not None else None,
-        connect=tuple(connect or default_connect),
+        connect=tuple(connect or (() if listen else default_connect)),
         listen=tuple(listen or ()),
         scouting=config is None if scouting is None else scouting,
         connect_timeout_s=connect_timeout,

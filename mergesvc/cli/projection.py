@@ -12,13 +12,13 @@ import typer
 
 from mergesvc.cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, exit_on_error, fail
 from mergesvc.cli.files import CodecSettingsFile
-from mergesvc.cli.options import resolve_settings
+from mergesvc.cli.options import command_group, resolve_settings
 from mergesvc.errors import InputError, MergeError
 
 if TYPE_CHECKING:
     import numpy as np
 
-projection_app = typer.Typer(no_args_is_help=True, help="the fleet's projection (compact profile)")
+projection_app = command_group("the fleet's projection (compact profile)")
 
 
 def _embeddings_of(path: Path) -> np.ndarray:

@@ -11,9 +11,14 @@ from typing import Annotated
 import typer
 
 from mergesvc.cli.errors import exit_on_error
-from mergesvc.cli.options import resolve_settings, settings_file, write_settings_beside
+from mergesvc.cli.options import (
+    command_group,
+    resolve_settings,
+    settings_file,
+    write_settings_beside,
+)
 
-solver_app = typer.Typer(no_args_is_help=True, help="the neural graph-matching solver (NGM)")
+solver_app = command_group("the neural graph-matching solver (NGM)")
 
 SolverSettings = settings_file(
     "`match` (how the training problems are formulated)", bare="MatchConfig")

@@ -221,7 +221,7 @@ def match_config(
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
-        raise ConfigError(f"invalid config: {loc}: {err['msg']}") from exc
+        raise ConfigError(f"invalid settings: {loc}: {err['msg']}") from exc
 
 
 class GraphConfig(BaseModel):

@@ -37,6 +37,8 @@ class AgentStats:
     results: dict[str, int] = field(default_factory=dict)  # the service's results per outcome
     submaps_resent: int = 0  # sent again after a "not now" refusal
     submaps_given_up: int = 0  # refused "not now" after every retry
+    submaps_refused: int = 0  # refused for good or failed: the service will never hold them
+    last_refusal: str = ""  # the last of those: "code: detail"
 
 
 def decode_factor(data: bytes) -> Factor:
@@ -118,12 +120,24 @@ class Agent:
                Outcome.NO_MATCH: f"no match ({getattr(res.reason, 'value', res.reason)})"}.get(
             res.outcome, f"{res.outcome.value} ({res.code.value if res.code else ''}: "
                          f"{res.detail})")
-        log.info("%s: submap %s/%s: %s", self.config.robot, res.session, res.seq, why)
+        which = (f"submap {res.session}/{res.seq}" if res.seq is not None else
+                 "a submap the service could not read")
         key = (res.session or self.config.session, res.seq)
         if res.outcome is Outcome.REFUSED and res.code in RETRY_CODES and res.seq is not None:
+            log.info("%s: %s: %s", self.config.robot, which, why)
             self._retry(key)
         elif res.outcome in (Outcome.REFUSED, Outcome.FAILED):
+            code = res.code.value if res.code else res.outcome.value
+            with self._lock:
+                self.stats.submaps_refused += 1
+                first = not self.stats.last_refusal.startswith(f"{code}:")
+                self.stats.last_refusal = f"{code}: {res.detail}"
+            # the first refusal of its kind is said by default (the operator must act)
+            (log.warning if first else log.info)("%s: %s, never to be held: %s",
+                                                  self.config.robot, which, why)
             self._lost(key)
+        else:
+            log.info("%s: %s: %s", self.config.robot, which, why)
 
     def _lost(self, key: tuple[str, int | None]) -> None:
         """A submap the service will never hold: the next submap's odometry bridges it."""

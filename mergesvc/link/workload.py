@@ -130,6 +130,11 @@ def sweep_link(
     return rows
 
 
+def _seconds(x: float) -> str:
+    """A latency column: "-" where nothing was delivered to measure."""
+    return f"{x:>8.1f}" if math.isfinite(x) else f"{'-':>8}"
+
+
 def format_sweep_table(rows: Sequence[SweepRow]) -> str:
     """Fixed-width text table of a sweep (one line per rate x SNR)."""
     header = (
@@ -142,7 +147,7 @@ def format_sweep_table(rows: Sequence[SweepRow]) -> str:
             f"{r.rate.value:>4} {r.snr_db:>7.2f} {r.frame_error_prob:>6.3f} "
             f"{r.messages_offered:>7} "
             f"{r.messages_delivered:>6} {r.messages_lost:>5} {r.delivery_ratio:>6.3f} "
-            f"{r.latency_p50_s:>8.1f} {r.latency_p90_s:>8.1f} {r.goodput_bps:>11.2f} "
+            f"{_seconds(r.latency_p50_s)} {_seconds(r.latency_p90_s)} {r.goodput_bps:>11.2f} "
             f"{r.fragments_retransmitted:>6} {r.bytes_on_air / 1000:>8.1f}"
         )
     return "\n".join(lines)

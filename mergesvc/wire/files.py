@@ -65,14 +65,34 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
         data = p.read_bytes()
     except OSError as exc:
         raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    _not_binary(p, data[:2])
     try:
         loaded = parse_model(model, data, what=str(p))
+    except SchemaError:
+        other = Submap if model is ObjectMap else ObjectMap if model is Submap else None
+        if other is not None:  # a map given for a submap or the other way round: say so
+            try:
+                parse_model(other, data)
+            except (SchemaError, DecodeError):
+                pass
+            else:
+                names = {ObjectMap: "map", Submap: "submap"}
+                raise SchemaError(f"{p} is a {names[other]} file, not a {names[model]} "
+                                  "(map and submap swapped?)") from None
+        raise
     except RecursionError as exc:  # the json module's own limit on nesting
         raise DecodeError(f"{p} is not usable JSON: nested too deeply") from exc
     except ValueError as exc:  # not JSON or pydantic errors (parse_model maps those): the
         # json module's refusal of integers beyond Python's digit limit (4300 digits)
         raise DecodeError(f"{p} is not usable JSON: {_json_limit(exc)}") from exc
     return _check_arrays(loaded, str(p))
+
+
+def _not_binary(path: Path, head: bytes) -> None:
+    """DecodeError when a JSON file's first bytes are a zip's (a binary map file)."""
+    if head == b"PK":
+        raise DecodeError(f"{path} is a binary map file and this reads JSON: `mergesvc "
+                          f"convert {path} OUT.json` writes it as JSON")
 
 
 def _check_arrays(loaded: ObjectMap, what: str) -> ObjectMap:
@@ -96,7 +116,9 @@ def _read_json_model(path: Path) -> AnyMessage:
     try:
         if path.stat().st_size > MAX_FILE_BYTES:
             raise SchemaError(f"{path}: larger than {MAX_FILE_BYTES} bytes")
-        raw = json.loads(path.read_bytes())
+        data = path.read_bytes()
+        _not_binary(path, data[:2])
+        raw = json.loads(data)
     except OSError as exc:
         raise DecodeError(f"cannot read {path}: {exc.strerror or exc}") from exc
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
