@@ -173,6 +173,16 @@ def test_errors_say_what_is_wrong_with_the_file(files: Path, tmp_path: Path) -> 
         assert text in r.stderr, (args, r.stderr)
 
 
+def test_a_check_of_a_folder_that_is_not_there_says_so(tmp_path: Path) -> None:
+    for args in (("schemas", str(tmp_path / "none"), "--check"),
+                 ("codec", "golden", "--out", str(tmp_path / "none"), "--check")):
+        r = run(*args)
+        assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+            f"error: no {'schema folder' if args[0] == 'schemas' else 'golden vectors'} at "
+            f"{tmp_path / 'none'}: give the folder to check (the repository's "
+            f"{'schemas/' if args[0] == 'schemas' else 'tests/golden'})"]
+
+
 def test_version() -> None:
     r = run("--version")
     assert r.returncode == 0 and r.stdout.startswith("mergesvc ")

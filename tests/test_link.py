@@ -600,3 +600,12 @@ def test_public_names_are_exported() -> None:
         and name != "log"
     }
     assert public <= set(link.__all__)
+
+
+def test_the_sweep_table_says_dash_where_nothing_was_delivered() -> None:
+    """No delivered message, no latency to print: '-', not nan."""
+    from mergesvc.link.workload import SweepRow
+
+    row = SweepRow(ModemRate(5), 2.0, 1.0, 10, 0, 10, 0.0, float("nan"), float("nan"), 0.0, 0, 0)
+    line = format_sweep_table([row]).splitlines()[-1]
+    assert "nan" not in line and line.split()[7:9] == ["-", "-"]

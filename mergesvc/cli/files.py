@@ -184,6 +184,9 @@ def schemas(
     from mergesvc.core.model import json_schemas
     from mergesvc.fleet.replies import reply_schemas
 
+    if check and not out_dir.is_dir():
+        fail(InputError(f"no schema folder at {out_dir}: give the folder to check (the "
+                        "repository's schemas/)"), EXIT_BAD_INPUT)
     stale = []
     for name, schema in (json_schemas() | reply_schemas()).items():
         text = json.dumps(schema, indent=2, sort_keys=True) + "\n"
@@ -293,6 +296,9 @@ def codec_golden(
     profile as NAME.bin with the decoded NAME.json (docs/wire.md)."""
     from mergesvc.wire.golden import check_golden, write_golden
 
+    if check and not out.is_dir():
+        fail(InputError(f"no golden vectors at {out}: give the folder to check (the "
+                        "repository's tests/golden)"), EXIT_BAD_INPUT)
     with exit_on_error():
         if check:
             stale = check_golden(out)
