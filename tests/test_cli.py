@@ -109,6 +109,22 @@ def test_bad_input_is_one_line_exit_2(files: Path, tmp_path: Path, content: str)
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize(("field", "at", "value"), [
+    ("embedding", 0, "0.1"), ("position", 1, True), ("variance", None, "0.2")])
+def test_numbers_written_as_text_or_booleans_are_refused(files: Path, tmp_path: Path, field,
+                                                         at, value) -> None:
+    """As the published schema refuses them (a number in quotes is not silently read)."""
+    doc = json.loads((files / "submap.json").read_text())
+    if at is None:
+        doc["objects"][0][field] = value
+    else:
+        doc["objects"][0][field][at] = value
+    (tmp_path / "s.json").write_text(json.dumps(doc))
+    r = run("match", "--map", str(files / "map.json"), "--submap", str(tmp_path / "s.json"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert f"objects.0.{field}" in r.stderr and "valid number" in r.stderr
+
+
 def test_missing_file_and_dimension_mismatch(files: Path, tmp_path: Path) -> None:
     r = run("match", "--map", str(tmp_path / "nope.json"), "--submap", str(files / "map.json"))
     assert r.returncode == 2 and "Traceback" not in r.stderr

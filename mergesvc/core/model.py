@@ -18,6 +18,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PrivateAttr,
+    Strict,
     ValidationError,
     field_validator,
     model_validator,
@@ -64,7 +65,9 @@ def _in_array_branch(extra: dict[str, Any]) -> Any:
 _NONZERO3_SCHEMA = _in_array_branch({"not": {"const": [0, 0, 0]}})
 
 Identifier = Annotated[str, Field(min_length=1, max_length=MAX_ID_LENGTH)]
-Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+# numbers of an object are numbers: "0.1" and true are refused, as the schemas refuse them
+Number = Annotated[float, Strict()]
+Coordinate = Annotated[float, Strict(), Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
 
 
 def _check_version(v: Any) -> int:
@@ -88,8 +91,8 @@ class ObjectNode(BaseModel):
     id: Identifier
     position: tuple[Coordinate, Coordinate, Coordinate] = Field(
         description="object centre [x, y, z] in metres")
-    embedding: list[float] = Field(min_length=1, max_length=MAX_EMBEDDING_DIM)
-    variance: Annotated[float, Field(gt=0)] | list[Annotated[float, Field(gt=0)]] = Field(
+    embedding: list[Number] = Field(min_length=1, max_length=MAX_EMBEDDING_DIM)
+    variance: Annotated[Number, Field(gt=0)] | list[Annotated[Number, Field(gt=0)]] = Field(
         description="per-dimension variance of the embedding, or one number if isotropic"
     )
     n_obs: int = Field(default=1, ge=1, description="observations fused into this object")
