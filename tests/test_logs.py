@@ -62,6 +62,7 @@ def test_a_log_round_trips_with_its_gravity(world, tmp_path) -> None:
     ("up_body", [0.0, float("nan"), 1.0], "up_body"),
     ("up_body", [0.0, 1.0], "up_body"),
     ("position_body_m", [1.0, float("inf"), 0.0], "position_body_m"),
+    ("pose", "bad", r"not an observation record .*stamp_s, pose \{translation"),
 ])
 def test_bad_lines_are_refused_with_the_line_named(world, tmp_path, field, value,
                                                    message) -> None:
@@ -69,8 +70,8 @@ def test_bad_lines_are_refused_with_the_line_named(world, tmp_path, field, value
     write_observation_log(world["auv1"][:3], path)
     lines = path.read_text().splitlines()
     rec = json.loads(lines[1])
-    if field == "up_body":
-        rec["up_body"] = value
+    if field in ("up_body", "pose"):
+        rec[field] = value
     else:
         rec["detections"][0][field] = value
     lines[1] = json.dumps(rec)

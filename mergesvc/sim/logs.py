@@ -108,7 +108,12 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
             except RecursionError as exc:  # json recurses once per nesting level
                 raise DecodeError(f"{path}:{k}: JSON nested too deeply") from exc
             # OverflowError: an integer too large for a float (a 400-digit number)
-            except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            except (KeyError, TypeError) as exc:  # a field missing or of another shape
+                raise SchemaError(f"{path}:{k}: not an observation record ({type(exc).__name__}:"
+                                  f" {exc}): a line holds stamp_s, pose {{translation, "
+                                  "quaternion_wxyz}, detections [...] (README: observation logs)"
+                                  ) from exc
+            except (ValueError, OverflowError) as exc:
                 raise SchemaError(f"{path}:{k}: {type(exc).__name__}: {exc}") from exc
             except MergeError as exc:  # tracking.py's InputError for bad values
                 raise SchemaError(f"{path}:{k}: {exc}") from exc
