@@ -259,7 +259,8 @@ def test_codec_golden_check_command(tmp_path: Path) -> None:
     r = subprocess.run([*cli, "--out", str(GOLDEN), "--check"], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0, r.stderr
-    r = subprocess.run([*cli, "--out", str(tmp_path / "none"), "--check"], capture_output=True,
+    (tmp_path / "empty").mkdir()
+    r = subprocess.run([*cli, "--out", str(tmp_path / "empty"), "--check"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 1
     assert r.stderr.count("\n") == 1 and "out of date" in r.stderr
