@@ -313,15 +313,21 @@ def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames
                 "code": code, "detail": "test"}))
             assert wait_for(lambda n=n: sum(ag.stats.results.values()) == 4 + n, 10.0)
             assert ag.local.lost == lost
-        # refused for good: counted, said by default the first time of its code, not again
+        # refused for good: counted once a submap, said by default the first time of a code
         assert ag.stats.submaps_refused == 1 and ag.stats.last_refusal == "processing: test"
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="mergesvc.fleet.agent"):
-            for _ in range(2):  # a submap the service could not read carries no seq
+            for session, seq, code in ((None, None, "bad_submap"), ("s0", 0, "conflict"),
+                                       (None, None, "bad_submap"), ("s0", 0, "conflict")):
+                # a submap the service could not read carries no seq: each counts
                 rs.put(keys.result_key(root, "auv1"), json.dumps({
-                    "robot": "auv1", "session": None, "seq": None, "outcome": "refused",
-                    "code": "bad_submap", "detail": "no such projection"}))
-            assert wait_for(lambda: ag.stats.submaps_refused == 3, 10.0)
+                    "robot": "auv1", "session": session, "seq": seq, "outcome": "refused",
+                    "code": code, "detail": "no"}))
+            assert wait_for(lambda: ag.stats.results.get("refused") == 5, 10.0)
+        assert ag.stats.submaps_refused == 3  # seq 0 once, the two unread ones
         said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
-        assert said == ["auv1: a submap the service could not read, never to be held: refused "
-                        "(bad_submap: no such projection)"]
+        assert said == [
+            "auv1: a submap refused for good, not sent again; the service said: bad_submap: no",
+            "auv1: submap s0/0 refused for good, not sent again; the service said: conflict: "
+            "no"]
+        assert not ag.stats.all_refused()  # one was processed

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import types
@@ -201,7 +202,7 @@ def test_a_check_of_a_folder_that_is_not_there_says_so(tmp_path: Path) -> None:
 
 def test_version() -> None:
     r = run("--version")
-    assert r.returncode == 0 and r.stdout.startswith("mergesvc ")
+    assert r.returncode == 0 and re.fullmatch(r"mergesvc \d+\.\d+\S*\n", r.stdout), r.stdout
 
 
 def test_help_keeps_bracketed_text() -> None:

@@ -127,9 +127,11 @@ def test_an_agent_whose_every_submap_is_refused_says_so_and_fails(runs) -> None:
     assert summary["submaps_sent"] > 0 and summary["results"] == {
         "refused": summary["submaps_sent"]} == {"refused": summary["submaps_refused"]}
     warned, error = r.stderr.strip().splitlines()[-2:]
-    assert "WARNING" in warned and "could not read, never to be held" in warned
-    assert error.startswith("error: the service refused every submap sent") and \
-        "which this decoder does not have" in error
+    assert "WARNING" in warned and "refused for good, not sent again; the service said: " \
+        "bad_submap" in warned
+    assert error.startswith(f"error: the service held none of the {summary['submaps_sent']} "
+                            "submaps sent; it said: bad_submap") and \
+        "give the command that decodes it that projection file (--projection)" in error
 
 
 def test_agent_gives_up_on_a_dead_endpoint(runs) -> None:
@@ -227,9 +229,9 @@ def test_a_config_file_zenoh_cannot_read_is_a_config_error(tmp_path: Path) -> No
         make_zenoh_config(config_file=str(tmp_path / "missing.json5"))
 
 
-def test_the_default_router_is_for_processes_that_neither_connect_nor_listen() -> None:
-    """`view --mode peer --listen E` is reached at E; only without either flag does a command
-    try the default router."""
+def test_a_listening_peer_needs_no_default_router() -> None:
+    """`view --mode peer --listen E` is reached at E; a client, or a command without
+    --listen, tries the default router."""
     from mergesvc.cli.options import DEFAULT_ENDPOINT, ZenohMode, zenoh_config
 
     def connect(**kw) -> list[str]:
@@ -238,6 +240,8 @@ def test_the_default_router_is_for_processes_that_neither_connect_nor_listen() -
         return json.loads(conf.get_json("connect/endpoints"))
 
     assert connect(listen=["tcp/127.0.0.1:7500"]) == []
+    assert connect(mode=ZenohMode.ROUTER, listen=["tcp/127.0.0.1:7500"]) == []
+    assert connect(mode=ZenohMode.CLIENT, listen=["tcp/127.0.0.1:7500"]) == [DEFAULT_ENDPOINT]
     assert connect() == [DEFAULT_ENDPOINT]
     assert connect(connect=["tcp/127.0.0.1:7501"], listen=["tcp/127.0.0.1:7500"]) == [
         "tcp/127.0.0.1:7501"]

@@ -3,7 +3,7 @@ from small to a million-object map and from 2-object to 10,000-object submaps, w
 its default thread count and at one thread, interleaved in the same run.
 
 The parent builds each world (sim/scale.py) and writes its map and submaps as binary map files;
-one child process per map size loads them (the map memory-mapped, as `match` does) and
+one child process per map size loads them as `match` does (a map from 32 MB memory-mapped) and
 matches, so its peak RSS is the map's and the matching's alone. Each map is prepared first,
 untimed and reported apart (what a map keeps: the KD-tree, its index).
 """

@@ -11,10 +11,12 @@ settings tree is resolved) are in `options`.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import re
 import sys
+from collections.abc import Iterator
 from typing import Annotated
 
 import typer
@@ -26,24 +28,43 @@ from mergesvc.errors import InputError
 __all__ = ["app", "hoist_verbose", "main"]
 
 class _Tree(typer.core.TyperGroup):
-    """The command tree. `mergesvc --help` in plain text: rich's help renderer alone costs
-    ~0.3 s of start-up (every command's own --help keeps it). A usage error (a missing or
-    unknown option, an unknown command) and an OSError no command turned into its own message
-    (a folder that cannot be made, a file that cannot be written) are one line and exit 2."""
+    """The command tree, its help in plain text (as every command's: rich's renderer alone
+    costs ~0.3 s of start-up). A usage error (a missing or unknown option, an unknown
+    command, a bad choice) is one line and exit 2, and so is a file or folder a command could
+    not use and did not name in a message of its own (one that exists in a folder's place, a
+    folder missing or not writable); a group called bare prints its help (exit 2)."""
 
     def format_help(self, ctx, formatter) -> None:  # type: ignore[no-untyped-def]
         super(typer.core.TyperGroup, self).format_help(ctx, formatter)
 
+    def parse_args(self, ctx, args):  # type: ignore[no-untyped-def]
+        with _one_line_errors():
+            return super().parse_args(ctx, args)
+
     def invoke(self, ctx):  # type: ignore[no-untyped-def]
-        try:
+        with _one_line_errors():
             return super().invoke(ctx)
-        except _USAGE_ERROR as exc:
-            if type(exc).__name__ == "NoArgsIsHelpError":  # a group's help, asked for
-                raise
-            where = exc.ctx.command_path if exc.ctx is not None else "mergesvc"
-            fail(InputError(f"{exc.format_message()} (see {where} --help)"), EXIT_BAD_INPUT)
-        except OSError as exc:
-            fail(exc, EXIT_BAD_INPUT)
+
+
+# what a user's file or folder can do to a command (not a full disk, not a broken pipe)
+_PATH_ERRORS = (FileExistsError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
+                PermissionError)
+
+
+@contextlib.contextmanager
+def _one_line_errors() -> Iterator[None]:
+    try:
+        yield
+    except _USAGE_ERROR as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group called bare: its help
+            typer.echo(exc.ctx.get_help())
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+        where = exc.ctx.command_path if exc.ctx is not None else "mergesvc"
+        fail(InputError(f"{exc.format_message()} (see {where} --help)"), EXIT_BAD_INPUT)
+    except _PATH_ERRORS as exc:
+        if exc.filename is None:
+            raise
+        fail(exc, EXIT_BAD_INPUT)
 
 
 # the click typer builds on (its own copy in recent typer, the click package before)

@@ -53,7 +53,8 @@ def message(exc: BaseException) -> str:
     about a file names it ("cannot use PATH: File exists")."""
     msg = one_line(exc)
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
-        msg = f"cannot use {exc.filename}: {exc.strerror}"
+        two = f" -> {exc.filename2}" if exc.filename2 is not None else ""
+        msg = f"cannot use {exc.filename}{two}: {exc.strerror}"
     if isinstance(exc, TransportError):
         msg = f"{msg}: {TRANSPORT_ADVICE[exc.fault]}"
     return msg

@@ -24,7 +24,7 @@ from mergesvc.cli.options import (
     settings_file,
 )
 from mergesvc.core.names import MatchMode, NodeAffinity, SolverName
-from mergesvc.errors import InputError, MergeError, SolverError, one_line
+from mergesvc.errors import InputError, MergeError, one_line
 from mergesvc.wire.names import Profile
 
 if TYPE_CHECKING:
@@ -62,6 +62,7 @@ def match(
     Settings: the `match` section (mergesvc config --dump --section match)."""
     from mergesvc.core.model import ObjectMap, Submap
     from mergesvc.core.pipeline import match as run_match
+    from mergesvc.core.solvers.bnb_state import TooLargeError
     from mergesvc.wire.mapfile import is_binary_map, load_arrays
 
     def load(path: Path, model: type[ObjectMap]) -> Any:
@@ -90,7 +91,7 @@ def match(
         sub = load(submap_path, Submap)
         try:
             outcome = run_match(map_, sub, cfg)
-        except SolverError as exc:
+        except TooLargeError as exc:
             if cfg.mode is not MatchMode.PAPER:
                 raise
             # paper mode's solver runs on every submap x map pair: a flag choice, not a fault

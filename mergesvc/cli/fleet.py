@@ -273,9 +273,9 @@ def agent(
                            "submaps_refused": stats.submaps_refused,
                            "results": stats.results,
                            "factors_received": stats.factors_received}))
-    if stats.submaps_sent and stats.submaps_refused >= stats.submaps_sent:
-        fail(MergeError(f"the service refused every submap sent ({stats.submaps_sent}), the "
-                        f"last for {stats.last_refusal}"), EXIT_FAILED)
+    if stats.all_refused():
+        fail(MergeError(f"the service held none of the {stats.submaps_sent} submaps sent; "
+                        f"it said: {stats.last_refusal or 'busy until given up'}"), EXIT_FAILED)
 
 
 def demo(

@@ -170,8 +170,8 @@ def zenoh_config(
     connect_timeout: float | None = None,
 ) -> zenoh.Config:
     """The Zenoh flags as a `zenoh.Config` (raises ConfigError, InputError for a malformed
-    endpoint). `default_connect` applies when neither --connect nor --listen is given (a
-    process that listens is reached by the others: a peer viewer needs no router);
+    endpoint). `default_connect` applies without --connect, unless a peer or router is
+    given --listen (it is reached there: a peer viewer needs no router);
     `scouting=None` means scouting stays on unless a --config file is given (what serve and
     agent have always done);
     `connect_timeout=None` (not typed) means DEFAULT_CONNECT_TIMEOUT_S for a client or peer
@@ -183,7 +183,8 @@ def zenoh_config(
     return make_zenoh_config(
         config_file=str(config) if config else None,
         mode=mode.value if mode is not None else None,
-        connect=tuple(connect or (() if listen else default_connect)),
+        connect=tuple(connect or (() if listen and mode in (ZenohMode.PEER, ZenohMode.ROUTER)
+                                  else default_connect)),
         listen=tuple(listen or ()),
         scouting=config is None if scouting is None else scouting,
         connect_timeout_s=connect_timeout,

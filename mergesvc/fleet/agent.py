@@ -37,8 +37,15 @@ class AgentStats:
     results: dict[str, int] = field(default_factory=dict)  # the service's results per outcome
     submaps_resent: int = 0  # sent again after a "not now" refusal
     submaps_given_up: int = 0  # refused "not now" after every retry
-    submaps_refused: int = 0  # refused for good or failed: the service will never hold them
+    submaps_refused: int = 0  # refused for good or failed at the service: not sent again
     last_refusal: str = ""  # the last of those: "code: detail"
+
+    def all_refused(self) -> bool:
+        """Every submap sent was refused for good, failed or given up, and none was
+        processed or found no match."""
+        answered = self.results.get("processed", 0) + self.results.get("no_match", 0)
+        return (not answered and self.submaps_sent > 0
+                and self.submaps_refused + self.submaps_given_up >= self.submaps_sent)
 
 
 def decode_factor(data: bytes) -> Factor:
@@ -100,6 +107,8 @@ class Agent:
         self._sent: OrderedDict[tuple[str, int], tuple[bytes, int | None]] = OrderedDict()
         self._keep = cache_samples
         self._attempts: dict[tuple[str, int], int] = {}
+        self._refused: set[tuple[str, int | None]] = set()  # refused for good or failed
+        self._warned: set[str] = set()  # the refusal codes said at warning level
         self._timers: set[threading.Timer] = set()
         self._closed = False
         self._results = (None if result_key is None
@@ -120,8 +129,7 @@ class Agent:
                Outcome.NO_MATCH: f"no match ({getattr(res.reason, 'value', res.reason)})"}.get(
             res.outcome, f"{res.outcome.value} ({res.code.value if res.code else ''}: "
                          f"{res.detail})")
-        which = (f"submap {res.session}/{res.seq}" if res.seq is not None else
-                 "a submap the service could not read")
+        which = f"submap {res.session}/{res.seq}" if res.seq is not None else "a submap"
         key = (res.session or self.config.session, res.seq)
         if res.outcome is Outcome.REFUSED and res.code in RETRY_CODES and res.seq is not None:
             log.info("%s: %s: %s", self.config.robot, which, why)
@@ -129,12 +137,17 @@ class Agent:
         elif res.outcome in (Outcome.REFUSED, Outcome.FAILED):
             code = res.code.value if res.code else res.outcome.value
             with self._lock:
-                self.stats.submaps_refused += 1
-                first = not self.stats.last_refusal.startswith(f"{code}:")
+                if res.seq is None or key not in self._refused:  # a submap counts once
+                    self._refused.add(key)
+                    self.stats.submaps_refused += 1
+                first = code not in self._warned
+                self._warned.add(code)
                 self.stats.last_refusal = f"{code}: {res.detail}"
-            # the first refusal of its kind is said by default (the operator must act)
-            (log.warning if first else log.info)("%s: %s, never to be held: %s",
-                                                  self.config.robot, which, why)
+            # the first of each code is said by default: the operator must act
+            (log.warning if first else log.info)(
+                "%s: %s %s, not sent again; the service said: %s: %s", self.config.robot,
+                which, "refused for good" if res.outcome is Outcome.REFUSED else
+                "failed at the service", code, res.detail)
             self._lost(key)
         else:
             log.info("%s: %s: %s", self.config.robot, which, why)

@@ -69,16 +69,14 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
     try:
         loaded = parse_model(model, data, what=str(p))
     except SchemaError:
-        other = Submap if model is ObjectMap else ObjectMap if model is Submap else None
-        if other is not None:  # a map given for a submap or the other way round: say so
+        if model is ObjectMap:  # a submap given as a map (a map is a valid submap)
             try:
-                parse_model(other, data)
+                parse_model(Submap, data)
             except (SchemaError, DecodeError):
                 pass
             else:
-                names = {ObjectMap: "map", Submap: "submap"}
-                raise SchemaError(f"{p} is a {names[other]} file, not a {names[model]} "
-                                  "(map and submap swapped?)") from None
+                raise SchemaError(f"{p} is a submap file, not a map (map and submap "
+                                  "swapped?)") from None
         raise
     except RecursionError as exc:  # the json module's own limit on nesting
         raise DecodeError(f"{p} is not usable JSON: nested too deeply") from exc

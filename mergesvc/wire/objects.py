@@ -283,7 +283,7 @@ def _find_projection(pid: str, projections: Mapping[str, Projection], what: str)
         have = ", ".join(sorted(projections)) or "none"
         raise DecodeError(
             f"{what} was coded with projection {pid}, which this decoder does not have "
-            f"(have: {have}); pass its projection file (--projection)"
+            f"(have: {have}): give the command that decodes it that projection file (--projection)"
         )
     return projections[pid]
 

@@ -28,6 +28,10 @@ REL_TOL = 1e-10
 _MAX_BLOCK_ENTRIES = 4_000_000
 
 
+class TooLargeError(SolverError):
+    """The problem's tables would exceed `_MAX_BLOCK_ENTRIES`: no exact search on it."""
+
+
 def prunes(bound: float, best: float) -> bool:
     """True when a subtree with upper bound `bound` cannot beat the incumbent value `best`."""
     if best == -math.inf:
@@ -60,7 +64,7 @@ class Tables:
         counts = np.bincount(rows, minlength=n1) if n1 else np.zeros(0, dtype=np.int64)
         kmax = max(int(counts.max()) if n1 else 0, 1)
         if n1 * n1 * kmax * kmax > _MAX_BLOCK_ENTRIES:
-            raise SolverError(
+            raise TooLargeError(
                 f"problem too large for the exact solver ({n1} rows, up to {kmax} candidates)"
             )
         self.n1, self.kmax = n1, kmax
