@@ -6,6 +6,7 @@ service's own process nothing else would run)."""
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -86,6 +87,27 @@ def test_a_dead_child_is_a_solver_error_and_the_next_job_starts_another() -> Non
             child(broken)
         assert child(jobs[0]).poses.shape == (len(jobs[0].initial_keys), 4, 4)
         assert child.starts == 2
+    finally:
+        child.close()
+
+
+def test_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent() -> None:
+    """SIGINT (a terminal's Ctrl-C reaches the whole group) is the parent's to act on: the
+    child neither dies nor prints a KeyboardInterrupt traceback, and answers the next job."""
+    import os
+    import signal
+
+    g = hard_graph(6, 1)
+    jobs = recorded(g)
+    g.optimize(marginals=False)
+    child = ProcessOptimizer()
+    try:
+        first = child(jobs[0])
+        os.kill(child._proc.pid, signal.SIGINT)
+        time.sleep(0.3)
+        assert child._proc.poll() is None
+        np.testing.assert_allclose(child(jobs[0]).poses, first.poses)
+        assert child.starts == 1
     finally:
         child.close()
 

@@ -129,6 +129,7 @@ def serve(
     import threading
 
     from mergesvc.fleet.service import MergeService
+    from mergesvc.store.lock import held_store
     from mergesvc.wire import Projection
     from mergesvc.wire.session import open_session
 
@@ -144,7 +145,8 @@ def serve(
         cfg = cfg.service
         zconf = zenoh_config(mode, connect, listen, config, connect_timeout=connect_timeout)
         projections = [Projection.load(p) for p in projection or []]
-        with open_session(zconf) as session, MergeService(cfg, session, projections) as svc, \
+        with held_store(cfg.store), open_session(zconf) as session, \
+                MergeService(cfg, session, projections) as svc, \
                 _ros2_bridge(ros2, session, cfg.fleet, ros2_domain, ros2_namespace, service=svc):
             typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
                        f"store {cfg.store}")
@@ -335,19 +337,20 @@ def demo(
     if s:
         typer.echo(f"submaps sent {s['submaps_sent']} ({s['bytes_on_wire']} bytes, "
                    f"{s['bytes_per_submap']:.0f} per submap); processed {s['submaps_processed']}")
-        typer.echo(f"factors accepted {s['factors_accepted']}, retracted "
-                   f"{s['factors_retracted']}; correspondences right {s['correspondences_right']},"
+        typer.echo(f"factors accepted {s['factors_accepted']} (of them retracted since "
+                   f"{s['factors_retracted']}); correspondences right {s['correspondences_right']},"
                    f" wrong {s['correspondences_wrong']} (precision "
                    f"{s['precision'] if s['precision'] is None else round(s['precision'], 3)})")
         for r, a in s["alignment"].items():
             after = ("not aligned" if a["after_m"] is None else
                      f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
-            typer.echo(f"  {r} frame in {s['anchor']}: before {a['before_m']:.2f} m / "
+            typer.echo(f"  {r} start (keyframe 0, no alignment) in {s['anchor']}: before "
+                       f"{a['before_m']:.2f} m / "
                        f"{a['before_deg']:.1f} deg, after {after}")
         lat = ", ".join(f"{k} {v:.0f}" for k, v in (s["latency_ms"] or {}).items()
                         if isinstance(v, (int, float)))
         typer.echo(f"service latency per submap (ms): {lat or '-'}; figure {s['figure']}; "
-                   f"{s['elapsed_s']:.0f} s")
+                   f"demo took {s['elapsed_s']:.0f} s")
     if s.get("exports"):
         files = [Path(p) for p in s["exports"]]
         top = files[0].parent

@@ -248,6 +248,9 @@ def main() -> None:
     # the pipe is a private copy of fd 1; fd 1 itself goes to stderr, so nothing GTSAM prints
     # can corrupt it
     _die_with_parent(int(sys.argv[1]) if len(sys.argv) > 1 else None)
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides (it closes
+    # the pipe, or its death ends the child); no KeyboardInterrupt traceback here
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if len(sys.argv) > 2 and int(sys.argv[2]):
         os.nice(int(sys.argv[2]))
     pipe = os.fdopen(os.dup(1), "wb")

@@ -300,7 +300,8 @@ class Store(FactorRecords):
         # Raised after the commit, so the conflict is on record.
         raise SubmapConflictError(
             f"submap {frame}#{seq} was stored before with different content "
-            f"(sha256 {stored_digest[:12]} vs {digest[:12]}); kept the first, logged the conflict"
+            f"(sha256 {stored_digest[:12]} vs {digest[:12]}); kept the first, logged the "
+            "conflict (a restarted vehicle sends a new --session)"
         )
 
     def mark_processed(self, submap_row_id: int, status: str, detail: str = "") -> None:
