@@ -44,8 +44,9 @@ def held_store(path: Path | str) -> Iterator[None]:
         raise StoreError(f"folder {folder} {what} ({exc.strerror}): the store {path} needs "
                          "it; pick another --store") from exc
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        with contextlib.suppress(OSError):  # the pid is for the message only (a full disk)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
         with contextlib.suppress(OSError):
