@@ -67,6 +67,9 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
         "agent_refused": ["agent", "--robot", "auv1", "--laps", "1", "--profile", "compact",
                           "--projection", str(proj), "--connect", refusing,
                           "--connect-timeout", "60", "--time-scale", "0", "--linger", "3"],
+        # a router and no service: nobody answers the agent's submaps
+        "agent_unanswered": ["agent", "--robot", "auv2", "--laps", "1", "--connect", busy,
+                             "--time-scale", "0", "--linger", "1"],
         "serve_busy": ["serve", "--store", ":memory:", "--listen", busy, "--seconds", "30"],
         "agent_dead": ["agent", "--robot", "auv1", "--laps", "1", "--connect", dead,
                        "--connect-timeout", "1"],
@@ -132,6 +135,15 @@ def test_an_agent_whose_every_submap_is_refused_says_so_and_fails(runs) -> None:
     assert error.startswith(f"error: the service held none of the {summary['submaps_sent']} "
                             "submaps sent; it said: bad_submap") and \
         "give the command that decodes it that projection file (--projection)" in error
+
+
+def test_an_agent_nobody_answers_says_so(runs) -> None:
+    r = runs["agent_unanswered"]
+    assert r.returncode == 0, r.stderr
+    sent = json.loads(r.stdout)["submaps_sent"]
+    assert sent > 0 and r.stderr.strip().splitlines()[-1] == (
+        f"warning: none of the {sent} submaps sent got an answer from a service within "
+        "--linger 1 s: is one running on fleet fleet0?")
 
 
 def test_agent_gives_up_on_a_dead_endpoint(runs) -> None:

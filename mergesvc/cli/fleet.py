@@ -275,6 +275,10 @@ def agent(
                            "submaps_refused": stats.submaps_refused,
                            "results": stats.results,
                            "factors_received": stats.factors_received}))
+    if stats.submaps_sent and not stats.results and not acoustic:
+        typer.echo(f"warning: none of the {stats.submaps_sent} submaps sent got an answer from "
+                   f"a service within --linger {linger:g} s: is one running on fleet "
+                   f"{acfg.fleet}?", err=True)
     if stats.all_refused():
         fail(MergeError(f"the service held none of the {stats.submaps_sent} submaps sent; "
                         f"it said: {stats.last_refusal or 'busy until given up'}"), EXIT_FAILED)
