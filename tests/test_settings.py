@@ -374,6 +374,7 @@ def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
     monkeypatch.setattr(zenoh, "open", _nothing)
     monkeypatch.setattr(signal, "signal", lambda *_a: None)
     monkeypatch.setattr(mergesvc.fleet.service, "MergeService", lambda cfg, *_a: _reach(cfg))
+    monkeypatch.chdir(tmp)  # the default store (and its lock) of each case its own
     return _invoke(["serve", "--seconds", "0", *settings])
 
 
