@@ -138,3 +138,13 @@ def test_scale_reports_cost_per_submap_by_fleet_size(tmp_path: Path) -> None:
                                     str(tmp_path / "f.png")])
     assert both.exit_code == 2 and "--figure" in both.output
     assert not (tmp_path / "f.png").exists()
+
+
+def test_axes_that_carry_no_error_are_not_judged() -> None:
+    """Through the acoustic link the planar pool's roll, pitch and depth come out ~2e-3
+    whitened (the compact codec's rounding of the odometry): no error to judge, as exact."""
+    from mergesvc.bench.merge import ODOMETRY_BAND, _band
+
+    got = _band([[2e-3, 1.9e-3, 1.0, 0.9, 1.1, 2e-5]], ODOMETRY_BAND)
+    assert got["met"] and got["lowest"] == 0.9 and got["exact_axes"] == 3
+    assert not _band([[2e-3, 0.05, 1.0, 0.9, 1.1, 2e-5]], ODOMETRY_BAND)["met"]
