@@ -257,3 +257,31 @@ def test_a_listening_peer_needs_no_default_router() -> None:
     assert connect() == [DEFAULT_ENDPOINT]
     assert connect(connect=["tcp/127.0.0.1:7501"], listen=["tcp/127.0.0.1:7500"]) == [
         "tcp/127.0.0.1:7501"]
+
+
+def test_an_agent_stopped_by_sigterm_or_ctrl_c_says_what_it_did(busy: str, tmp_path: Path
+                                                                ) -> None:
+    """Stopped mid-mission, a vehicle prints its summary (what it sent, `stopped`), exit 0."""
+    import signal
+
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        log = tmp_path / f"agent{sig}.log"
+        with log.open("w") as err:
+            p = subprocess.Popen([*CLI, "-v", "agent", "--robot", "auv3", "--connect", busy,
+                                  "--time-scale", "0.2", "--linger", "30"],
+                                 stdout=subprocess.PIPE, stderr=err, text=True, env=clean)
+        try:
+            deadline = time.monotonic() + 90
+            while "auv3: submap 0 " not in log.read_text() and time.monotonic() < deadline:
+                assert p.poll() is None, log.read_text()
+                time.sleep(0.2)
+            p.send_signal(sig)
+            out, _ = p.communicate(timeout=30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=10)
+        assert p.returncode == 0, log.read_text()
+        summary = json.loads(out)
+        assert summary["stopped"] and summary["submaps_sent"] >= 1

@@ -235,6 +235,9 @@ def agent(
     """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
 
     Settings: the `agent` section."""
+    import signal
+    import threading
+
     from mergesvc.fleet.agent import AgentRun, run_agent
 
     if profile is Profile.COMPACT and projection is None:
@@ -266,7 +269,10 @@ def agent(
                 ros_session = ros.enter_context(open_session(zconf))
                 ros.enter_context(_ros2_bridge(True, ros_session, acfg.fleet, ros2_domain,
                                                ros2_namespace, robot=robot, root=root))
-            stats = run_agent(run, zconf, frames)
+            stop = threading.Event()  # SIGTERM or Ctrl-C: stop, then say what was done
+            signal.signal(signal.SIGTERM, lambda *_: stop.set())
+            signal.signal(signal.SIGINT, lambda *_: stop.set())
+            stats = run_agent(run, zconf, frames, stop)
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
                            "bytes_sent": stats.bytes_sent,
@@ -274,8 +280,9 @@ def agent(
                            "submaps_given_up": stats.submaps_given_up,
                            "submaps_refused": stats.submaps_refused,
                            "results": stats.results,
-                           "factors_received": stats.factors_received}))
-    if stats.submaps_sent and not stats.results and not acoustic:
+                           "factors_received": stats.factors_received,
+                           "stopped": stop.is_set()}))
+    if stats.submaps_sent and not stats.results and not acoustic and not stop.is_set():
         typer.echo(f"warning: none of the {stats.submaps_sent} submaps sent got an answer from "
                    f"a service within --linger {linger:g} s: is one running on fleet "
                    f"{acfg.fleet}?", err=True)

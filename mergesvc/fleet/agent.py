@@ -219,8 +219,8 @@ class Agent:
                 break
             if time_scale > 0:
                 delay = start + fr.stamp_s * time_scale - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+                if delay > 0 and (stop.wait(delay) if stop is not None else time.sleep(delay)):
+                    break  # stopped while waiting for the frame's time
             with self._lock:
                 cut = self.local.add_frame(fr)
                 sub = self.local.cut_submap(self.stats.submaps_sent, fr.stamp_s) if cut else None
@@ -280,9 +280,11 @@ class AgentRun:
     config: AgentConfig | None = None  # the agent settings; None: defaults for this robot
 
 
-def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> AgentStats:
+def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame],
+              stop: threading.Event | None = None) -> AgentStats:
     """Build the vehicle (codec, keys), open a Zenoh session with `zenoh_config`, run `frames`
-    through an `Agent`, linger for factors, close. Raises MergeError (ConfigError for the
+    through an `Agent`, linger for factors, close; `stop` set ends the run and the lingering
+    early (what was done is counted). Raises MergeError (ConfigError for the
     compact profile without a projection, TransportError when the session cannot open),
     ValueError/OSError for unreadable input."""
     from mergesvc.wire.session import open_session
@@ -307,8 +309,8 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame]) -> Agen
         factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),
         result_key=keys.result_key(root, run.robot),
     ) as ag:
-        stats = ag.run(frames, time_scale=run.time_scale)
-        time.sleep(run.linger_s)
+        stats = ag.run(frames, time_scale=run.time_scale, stop=stop)
+        (stop or threading.Event()).wait(run.linger_s)
     return stats
 
 
