@@ -16,6 +16,7 @@ setting is ignored with one warning. The rules in full: docs/architecture.md, "S
 from __future__ import annotations
 
 import copy
+import difflib
 import json
 import logging
 import types
@@ -238,7 +239,22 @@ def _validate(data: Mapping[str, Any]) -> Settings:
 def _config_error(exc: ValidationError) -> ConfigError:
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"])
-    return ConfigError(f"invalid settings: {loc}: {err['msg']}")
+    hint = ""
+    if err["type"] == "extra_forbidden":  # a misspelt key: the nearest one there is
+        near = difflib.get_close_matches(str(err["loc"][-1]), _keys_at(err["loc"][:-1]), 1)
+        hint = f" (did you mean {near[0]}?)" if near else " (no such setting)"
+    return ConfigError(f"invalid settings: {loc}: {err['msg']}{hint}")
+
+
+def _keys_at(path: Sequence[Any]) -> list[str]:
+    """The setting names under `path` of the settings tree ([] where it is not a section)."""
+    model: Any = Settings
+    for part in path:
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        model = field.annotation
+    return list(getattr(model, "model_fields", {}))
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

@@ -379,7 +379,8 @@ def via_serve(monkeypatch, tmp, pair, settings: list[str]) -> ServiceConfig:
 
 
 def via_agent(monkeypatch, tmp, pair, settings: list[str]) -> Any:
-    monkeypatch.setattr(mergesvc.fleet.agent, "run_agent", lambda run, _z, _f: _reach(run))
+    monkeypatch.setattr(signal, "signal", lambda *_a: None)
+    monkeypatch.setattr(mergesvc.fleet.agent, "run_agent", lambda run, *_a: _reach(run))
     return _invoke(["agent", "--robot", "auv1", *settings])
 
 
@@ -599,7 +600,11 @@ def test_bare_keys_never_name_a_section() -> None:
     [
         ('{"match": {}, "mode": "paper"}', "unknown section(s) mode"),
         ('{"matching": {}}', "unknown section(s) matching"),
-        ('{"service": {"fleeet": "x"}}', "service.fleeet"),
+        ('{"service": {"fleeet": "x"}}', "service.fleeet: Extra inputs are not permitted "
+         "(did you mean fleet"),
+        ('{"match": {"candidates": {"topk": 3}}}', "match.candidates.topk: .* (did you mean "
+         "top_k"),
+        ('{"service": {"zzz": 1}}', "service.zzz: .* (no such setting)"),
         ('{"candidates": {"top_k": 0}}', "invalid settings: candidates.top_k"),
         ('{"match": {"candidates": {"top_k": 0}}}', "invalid settings: match.candidates.top_k"),
         ("[]", "must hold a JSON object"),
