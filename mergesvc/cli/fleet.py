@@ -348,8 +348,8 @@ def demo(
     if s:
         typer.echo(f"submaps sent {s['submaps_sent']} ({s['bytes_on_wire']} bytes, "
                    f"{s['bytes_per_submap']:.0f} per submap); processed {s['submaps_processed']}")
-        typer.echo(f"factors accepted {s['factors_accepted']} (of them retracted since "
-                   f"{s['factors_retracted']}); correspondences right {s['correspondences_right']},"
+        typer.echo(f"factors accepted {s['factors_accepted']} ({s['factors_retracted']} of "
+                   f"them retracted since); correspondences right {s['correspondences_right']},"
                    f" wrong {s['correspondences_wrong']} (precision "
                    f"{s['precision'] if s['precision'] is None else round(s['precision'], 3)})")
         for r, a in s["alignment"].items():
