@@ -174,6 +174,13 @@ def example(
     )
 
 
+def _folder_to_check(folder: Path, what: str, ours: str) -> None:
+    """Exit 2 (one line) when a --check's folder is not there: nothing to compare with."""
+    if not folder.is_dir():
+        fail(InputError(f"no {what} at {folder}: give the folder to check (the repository's "
+                        f"{ours})"), EXIT_BAD_INPUT)
+
+
 def schemas(
     out_dir: Annotated[Path, typer.Argument(help="folder for the JSON Schema files")] = Path(
         "schemas"
@@ -185,9 +192,8 @@ def schemas(
     from mergesvc.core.model import json_schemas
     from mergesvc.fleet.replies import reply_schemas
 
-    if check and not out_dir.is_dir():
-        fail(InputError(f"no schema folder at {out_dir}: give the folder to check (the "
-                        "repository's schemas/)"), EXIT_BAD_INPUT)
+    if check:
+        _folder_to_check(out_dir, "schema folder", "schemas/")
     stale = []
     for name, schema in (json_schemas() | reply_schemas()).items():
         text = json.dumps(schema, indent=2, sort_keys=True) + "\n"
@@ -297,9 +303,8 @@ def codec_golden(
     profile as NAME.bin with the decoded NAME.json (docs/wire.md)."""
     from mergesvc.wire.golden import check_golden, write_golden
 
-    if check and not out.is_dir():
-        fail(InputError(f"no golden vectors at {out}: give the folder to check (the "
-                        "repository's tests/golden)"), EXIT_BAD_INPUT)
+    if check:
+        _folder_to_check(out, "golden vectors", "tests/golden")
     with exit_on_error():
         if check:
             stale = check_golden(out)

@@ -36,6 +36,7 @@ from mergesvc.cli.options import (
     resolve_settings,
     settings_env,
     settings_file,
+    stop_on_signals,
     write_settings_beside,
     zenoh_config,
     zenoh_connect,
@@ -125,9 +126,6 @@ def serve(
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
 
     Settings: the `service` section (a bare MatchConfig file is its `service.match`)."""
-    import signal
-    import threading
-
     from mergesvc.fleet.service import MergeService
     from mergesvc.store.lock import held_store
     from mergesvc.wire import Projection
@@ -135,9 +133,7 @@ def serve(
 
     if mode is ZenohMode.ROUTER and not listen and not config:
         listen = [DEFAULT_ENDPOINT]
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop = stop_on_signals()
     with exit_on_error(ValueError, OSError):
         flags = given(ctx, fleet=fleet, store=str(store), factor_profile=factor_profile)
         cfg = resolve_settings(settings, {"service": flags},
@@ -235,9 +231,6 @@ def agent(
     """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
 
     Settings: the `agent` section."""
-    import signal
-    import threading
-
     from mergesvc.fleet.agent import AgentRun, run_agent
 
     if profile is Profile.COMPACT and projection is None:
@@ -269,9 +262,7 @@ def agent(
                 ros_session = ros.enter_context(open_session(zconf))
                 ros.enter_context(_ros2_bridge(True, ros_session, acfg.fleet, ros2_domain,
                                                ros2_namespace, robot=robot, root=root))
-            stop = threading.Event()  # SIGTERM or Ctrl-C: stop, then say what was done
-            signal.signal(signal.SIGTERM, lambda *_: stop.set())
-            signal.signal(signal.SIGINT, lambda *_: stop.set())
+            stop = stop_on_signals()  # then say what was done
             stats = run_agent(run, zconf, frames, stop)
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
@@ -356,8 +347,7 @@ def demo(
             after = ("not aligned" if a["after_m"] is None else
                      f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
             typer.echo(f"  {r} start (keyframe 0, no alignment) in {s['anchor']}: before "
-                       f"{a['before_m']:.2f} m / "
-                       f"{a['before_deg']:.1f} deg, after {after}")
+                       f"{a['before_m']:.2f} m / {a['before_deg']:.1f} deg, after {after}")
         lat = ", ".join(f"{k} {v:.0f}" for k, v in (s["latency_ms"] or {}).items()
                         if isinstance(v, (int, float)))
         typer.echo(f"service latency per submap (ms): {lat or '-'}; figure {s['figure']}; "

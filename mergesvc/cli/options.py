@@ -17,6 +17,8 @@ hidden, deprecated aliases of `--settings` (`deprecated_config`).
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from enum import Enum
@@ -52,6 +54,7 @@ __all__ = [
     "resolve_settings",
     "settings_env",
     "settings_file",
+    "stop_on_signals",
     "write_settings_beside",
     "zenoh_config",
     "zenoh_connect",
@@ -96,11 +99,19 @@ class SettingsCommand(str, Enum):
 _BARE_MATCH: dict[SettingsCommand, tuple[str, ...]] = {SettingsCommand.SERVE: ("service", "match")}
 
 
-
 def command_group(help: str) -> typer.Typer:
     """A group of subcommands (`mergesvc bench ...`): its help when called bare; help texts
     plain, not rich markup (so "pip install 'mergesvc[view]'" and "[default: ...]" stay)."""
     return typer.Typer(no_args_is_help=True, rich_markup_mode=None, help=help)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event SIGTERM or Ctrl-C sets: a long-running command stops and says what it did."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    return stop
+
 
 def bare_match_for(command: SettingsCommand | None) -> tuple[tuple[str, ...], ...]:
     """Where `command` puts a bare MatchConfig file (`None`: every place a command may put it,

@@ -18,6 +18,7 @@ from mergesvc.cli.options import (
     Listen,
     ZenohConfigFile,
     ZenohMode,
+    stop_on_signals,
     zenoh_config,
     zenoh_mode,
 )
@@ -58,16 +59,11 @@ def view(
     Zenoh client of tcp/127.0.0.1:7447 unless told otherwise.
 
     Needs pip install 'mergesvc[view]'. Prints one JSON line of counts when it stops."""
-    import signal
-    import threading
-
     from mergesvc.view import LiveView, ViewSink, ZenohFeed
     from mergesvc.wire import Projection
     from mergesvc.wire.session import open_session
 
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stop = stop_on_signals()
     with exit_on_error(ValueError, OSError):
         projections = [Projection.load(p) for p in projection or []]
         zconf = zenoh_config(mode, connect, listen, config,

@@ -392,7 +392,6 @@ class IvfSearch:
                 np.take_along_axis(err, cols, axis=1).astype(np.float32))
 
 
-
 def make_search(map_: ObjectArrays, cfg: CandidatesConfig, n_queries: int = 1) -> MapSearch:
     """The search `cfg.index` asks for over this map (auto: exact below index_min_objects
     map objects, and below index_min_pairs query x map pairs; the IVF index above)."""

@@ -58,6 +58,11 @@ log = logging.getLogger(__name__)
 CONFLICTS_KEPT = 8  # conflicting variants of one submap key on record (their hashes)
 
 
+def is_memory(path: str) -> bool:
+    """A store path SQLite keeps in memory (no file)."""
+    return path == ":memory:" or path.startswith("file::memory:")
+
+
 class Store(FactorRecords):
     """The service's SQLite store. `Store(":memory:")` for tests; use as a context manager.
 
@@ -77,7 +82,7 @@ class Store(FactorRecords):
         self.synchronous = Synchronous(synchronous)
         self._clock = clock
         self._lock = threading.RLock()
-        self._memory = self.path == ":memory:" or self.path.startswith("file::memory:")
+        self._memory = is_memory(self.path)
         self._busy_timeout_s = busy_timeout_s
         self._reader_uri = (None if self._memory
                             else Path(self.path).resolve().as_uri() + "?mode=ro")
@@ -576,4 +581,4 @@ def _size(path: str) -> int:
         return 0
 
 
-__all__ = ["CONFLICTS_KEPT", "Store"]
+__all__ = ["CONFLICTS_KEPT", "Store", "is_memory"]

@@ -16,10 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from mergesvc.errors import StoreError
-
-
-def _is_memory(path: str) -> bool:
-    return path == ":memory:" or path.startswith("file::memory:")
+from mergesvc.store.database import is_memory
 
 
 @contextlib.contextmanager
@@ -27,7 +24,7 @@ def held_store(path: Path | str) -> Iterator[None]:
     """Hold `path`'s lock for the block; StoreError (one line, what to do) when another process
     holds it or the folder cannot take the store."""
     path = str(path)
-    if _is_memory(path):
+    if is_memory(path):
         yield
         return
     folder = Path(path).resolve().parent

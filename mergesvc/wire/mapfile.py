@@ -10,8 +10,9 @@ Members (each a .npy; any numpy reads the file with `np.load`):
     variances     float64 (n,) one number per object, or (n, d) per dimension
 `load_arrays` maps the embeddings (and per-dimension variances) of a large map from the file
 instead of reading them: it costs memory only for the rows a match touches. Members under
-`MAP_FROM_BYTES` are read: mapped, each scattered read of their rows is a system call. Everything is
-checked as the JSON files are (finite, positive variances, unique ids, sizes), in one line.
+`MAP_FROM_BYTES` are read (mapped, each scattered row read would be a system call).
+Everything is checked as the JSON files are (finite, positive variances, unique ids, sizes),
+in one line.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from mergesvc.errors import DecodeError, InputError, MergeError, SchemaError, on
 FORMAT = "mergesvc-map"
 VERSION = 1
 # a binary map may be larger than a JSON one (MAX_OBJECTS): it is read without a per-object
-# model and memory-mapped
+# model, memory-mapped when large
 MAX_BINARY_OBJECTS = 5_000_000
 # members of at least this size are memory-mapped (about 20,000 objects of 384 float32)
 MAP_FROM_BYTES = 32 << 20
@@ -150,8 +151,8 @@ def load_arrays(path: Path | str, mmap_large: bool = True
                 ) -> tuple[ObjectArrays, dict[str, Any], list[str | None] | None]:
     """Read a binary map file: (arrays, the file fields, labels or None). The embeddings and
     per-dimension variances are memory-mapped (read-only) when mmap_large and they take at
-    least `MAP_FROM_BYTES`. DecodeError /
-    SchemaError (one line) on anything a JSON map file would be refused for."""
+    least `MAP_FROM_BYTES`. DecodeError / SchemaError (one line) on anything a JSON map file
+    would be refused for."""
     p = Path(path)
     try:
         views = _member_views(p)
