@@ -25,7 +25,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
 
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.errors import ConfigError
@@ -40,16 +40,24 @@ log = logging.getLogger(__name__)
 
 ENV_PREFIX = "MERGESVC_"
 SETTINGS_ENV = "MERGESVC_SETTINGS"
+FLAGS = "flags"  # the command line's layer (`load_settings` overrides)
 # Variables already warned about as "not a setting" (one warning per process and name).
 _WARNED: set[str] = set()
 
 # AgentConfig without the vehicle's name: that is `mergesvc agent --robot`, one per process,
-# not a setting a fleet shares. Built from AgentConfig's fields, so a field added there is here.
+# not a setting a fleet shares. Built from AgentConfig's fields and their validators, so a field
+# or a check added there is here.
 AgentSettings = create_model(
     "AgentSettings",
     __config__=ConfigDict(extra="forbid"),
     __doc__="The `agent` section: AgentConfig (fleet/agent.py) without `robot` (--robot).",
     __module__=__name__,
+    __validators__={
+        name: field_validator(*(f for f in dec.info.fields if f != "robot"),
+                              mode=dec.info.mode)(classmethod(dec.func.__func__))
+        for name, dec in AgentConfig.__pydantic_decorators__.field_validators.items()
+        if set(dec.info.fields) - {"robot"}
+    },
     **{
         name: (info.annotation, copy.copy(info))
         for name, info in AgentConfig.model_fields.items()
@@ -106,7 +114,8 @@ class Settings(BaseModel):
         try:
             return AgentConfig.model_validate({**fields, "robot": robot})
         except ValidationError as exc:
-            raise _config_error(exc) from exc
+            # the section's own values were checked when it was loaded
+            raise _config_error(exc, "--robot") from exc
 
     def merged(self, overrides: Mapping[str, Any]) -> Settings:
         """These settings with `overrides` (nested dicts by section) merged in and checked."""
@@ -142,12 +151,23 @@ def load_settings(
     ("service", "match"), or several paths). Raises ConfigError."""
     if path is None and environ.get(SETTINGS_ENV):
         path = environ[SETTINGS_ENV]
-    data = Settings().model_dump()
+    # (where a value came from, the values), later ones win: an error names its source
+    layers: list[tuple[str, Mapping[str, Any]]] = []
     if path is not None:
-        _merge(data, read_settings_file(path, bare_match=bare_match))
-    _merge(data, env_overrides(environ))
-    _merge(data, overrides or {})
-    return _validate(data)
+        layers.append((f"settings file {path}", read_settings_file(path, bare_match=bare_match)))
+    found = _env_found(environ)
+    layers.append(("", _env_tree(found)))
+    layers.append((FLAGS, overrides or {}))
+    data = Settings().model_dump()
+    for _, values in layers:
+        _merge(data, values)
+    try:
+        return Settings.model_validate(data)
+    except ValidationError as exc:
+        loc = exc.errors()[0]["loc"]
+        source = next((label or _env_name(found, loc) for label, values in reversed(layers)
+                       if _sets(values, loc)), None)
+        raise _config_error(exc, source) from exc
 
 
 def read_settings_file(path: Path | str, *, bare_match: BareMatch = ("match",)) -> dict[str, Any]:
@@ -183,7 +203,15 @@ def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
     neither a section nor a MatchConfig field (the short form) is not a setting: ignored, with
     one warning per process and name. Raises ConfigError for an unknown field under a section
     (a typo), or one setting named twice (short and long form)."""
-    found: dict[tuple[str, ...], tuple[int, str, Any]] = {}
+    return _env_tree(_env_found(environ))
+
+
+_EnvFound = dict[tuple[str, ...], tuple[int, str, Any]]  # path -> (long form, name, value)
+
+
+def _env_found(environ: Mapping[str, str]) -> _EnvFound:
+    """env_overrides' settings by path, each with the variable that set it."""
+    found: _EnvFound = {}
     ignored: list[str] = []
     for key, raw in environ.items():
         if not key.startswith(ENV_PREFIX) or key == SETTINGS_ENV:
@@ -200,11 +228,34 @@ def env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
             raise ConfigError(f"{found[path][1]} and {key} both set {'.'.join(path)}")
         found[path] = (0 if short else 1, key, _env_value(raw, leaf))
     _warn_ignored(ignored)
+    return found
+
+
+def _env_tree(found: _EnvFound) -> dict[str, Any]:
     out: dict[str, Any] = {}
     # a section given whole (a JSON object) first, its fields after; the short form first
     for path, (_, _, value) in sorted(found.items(), key=lambda kv: (len(kv[0]), kv[1][0])):
         _merge(out, _nest(path, value))
     return out
+
+
+def _env_name(found: _EnvFound, loc: Sequence[Any]) -> str:
+    """The variable that set the value at `loc` (the longest path leading to it)."""
+    names = [(len(path), name) for path, (_, name, _) in found.items()
+             if tuple(loc[:len(path)]) == path]
+    return max(names)[1] if names else "the environment"
+
+
+def _sets(values: Mapping[str, Any], loc: Sequence[Any]) -> bool:
+    """Whether nested `values` set the value at `loc` (or a whole list or section holding it)."""
+    node: Any = values
+    for part in loc:
+        if not isinstance(node, Mapping):
+            return True
+        if part not in node:
+            return False
+        node = node[part]
+    return True
 
 
 # ------------------------------------------------------------------ helpers
@@ -236,14 +287,33 @@ def _validate(data: Mapping[str, Any]) -> Settings:
         raise _config_error(exc) from exc
 
 
-def _config_error(exc: ValidationError) -> ConfigError:
+class SettingsError(ConfigError):
+    """Settings refused; `from_flag`: the value at fault came from a command-line flag (bad
+    input, where a file's or a variable's is a configuration error)."""
+
+    def __init__(self, message: str, *, from_flag: bool = False) -> None:
+        super().__init__(message)
+        self.from_flag = from_flag
+
+
+def _config_error(exc: ValidationError, source: str | None = None) -> SettingsError:
+    """The first error, one line: where, what, the nearest key to a misspelt one, and
+    `source` (the file, variable or flag that set the value; FLAGS: the flag named as the
+    setting is) when known."""
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"])
+    msg = err["msg"].removeprefix("Value error, ")
     hint = ""
     if err["type"] == "extra_forbidden":  # a misspelt key: the nearest one there is
         near = difflib.get_close_matches(str(err["loc"][-1]), _keys_at(err["loc"][:-1]), 1)
         hint = f" (did you mean {near[0]}?)" if near else " (no such setting)"
-    return ConfigError(f"invalid settings: {loc}: {err['msg']}{hint}")
+    from_flag = source == FLAGS or (source or "").startswith("--")
+    if source == FLAGS:
+        where = err["loc"][1] if len(err["loc"]) > 1 else None
+        source = "--" + where.replace("_", "-") if isinstance(where, str) else "a flag"
+    if source:
+        hint += f" (set by {source})"
+    return SettingsError(f"invalid settings: {loc}: {msg}{hint}", from_flag=from_flag)
 
 
 def _keys_at(path: Sequence[Any]) -> list[str]:
@@ -329,6 +399,7 @@ __all__ = [
     "AgentSettings",
     "BareMatch",
     "Settings",
+    "SettingsError",
     "env_overrides",
     "load_settings",
     "read_settings_file",

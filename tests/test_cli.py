@@ -541,3 +541,56 @@ def test_demo_refuses_a_listen_value_that_is_no_endpoint(tmp_path: Path) -> None
     r = CliRunner().invoke(app, ["demo", "--out", str(tmp_path), "--listen", "127.0.0.1:7447"])
     assert r.exit_code == 2 and "not a Zenoh endpoint" in r.output
     assert not (tmp_path / "settings.json").exists()  # refused before anything started
+
+
+def test_progress_lines_say_what_changed_and_never_stop_the_work(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A line per period when the text changed, after the elapsed time; a line that fails is
+    skipped; 0 prints nothing. Ticks are waited for, not timed: the test asserts no clock."""
+    import threading
+
+    from mergesvc.cli.options import progress_lines
+
+    said: list[int] = []
+    ticks = threading.Semaphore(0)
+
+    def line() -> str:
+        said.append(len(said))
+        ticks.release()
+        if len(said) == 2:
+            raise RuntimeError("the status query failed")
+        return f"count {min(len(said), 4)}"  # 1, (fails), 3, 4, 4, ...
+
+    with progress_lines(0.01, line):
+        for _ in range(7):
+            assert ticks.acquire(timeout=30)
+    err = capsys.readouterr().err.splitlines()
+    assert [e.split("] ", 1)[1] for e in err] == ["count 1", "count 3", "count 4"]
+    assert all(re.fullmatch(r"\[ +\d+ s\] count \d", e) for e in err)
+    with progress_lines(0, line):
+        pass
+    assert capsys.readouterr().err == ""
+
+
+def test_progress_line_texts() -> None:
+    """The service's line reads the status reply it answers queries with; the agent's its
+    counts."""
+    from mergesvc.fleet.agent import AgentStats
+    from mergesvc.fleet.config import ServiceConfig
+    from mergesvc.fleet.replies import status_line
+    from mergesvc.fleet.service import MergeService
+    from mergesvc.fleet.transport import InProcessTransport
+
+    with MergeService(ServiceConfig(store=":memory:"), InProcessTransport()) as svc:
+        status = svc.status(False, False)
+    status["results"]["refused"] = {"bad_submap": 2, "busy": 1}
+    status["robots_alive"] = ["auv1", "auv2"]
+    assert status_line(status) == (
+        "submaps 0 received, 0 merged, 0 without a match, 3 refused, 0 queued; factors 0 in "
+        "force, 0 retracted; robots alive: auv1, auv2")
+    status["solve"] = {**status["solve"], "ok": False, "error": "indeterminant system"}
+    assert status_line(status).endswith("; pose graph failing: indeterminant system")
+    stats = AgentStats(frames=40, submaps_sent=2, bytes_sent=900, factors_received=1,
+                       results={"processed": 1, "no_match": 1})
+    assert stats.line() == ("40 frames, 2 submaps sent (900 bytes), answers: 1 no match, "
+                            "1 processed, factors in: 1")

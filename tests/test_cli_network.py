@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -60,9 +61,11 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
     assert made.exit_code == 0, made.output
     refusing = f"tcp/127.0.0.1:{free_port()}"
     clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
-    service = subprocess.Popen([*CLI, "serve", "--store", ":memory:", "--listen", refusing,
-                                "--seconds", "120"], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, env=clean)
+    service_log = tmp / "service.err"
+    with service_log.open("w") as err:
+        service = subprocess.Popen([*CLI, "serve", "--store", ":memory:", "--listen", refusing,
+                                    "--seconds", "120", "--progress", "0.5"],
+                                   stdout=subprocess.DEVNULL, stderr=err, env=clean)
     commands = {
         "agent_refused": ["agent", "--robot", "auv1", "--laps", "1", "--profile", "compact",
                           "--projection", str(proj), "--connect", refusing,
@@ -97,6 +100,7 @@ def runs(busy: str, silent: str, tmp_path_factory) -> dict[str, subprocess.Compl
                 p.kill()
                 p.wait(timeout=10)
     out["dead"] = dead  # type: ignore[assignment]
+    out["service_log"] = service_log  # type: ignore[assignment]
     return out
 
 
@@ -135,6 +139,16 @@ def test_an_agent_whose_every_submap_is_refused_says_so_and_fails(runs) -> None:
     assert error.startswith(f"error: the service held none of the {summary['submaps_sent']} "
                             "submaps sent; it said: bad_submap") and \
         "give the command that decodes it that projection file (--projection)" in error
+
+
+def test_a_service_says_how_it_is_going(runs) -> None:
+    """Progress at the default verbosity: a line on stderr when the counts change."""
+    lines = runs["service_log"].read_text().splitlines()
+    sent = json.loads(runs["agent_refused"].stdout)["submaps_sent"]
+    assert any(re.fullmatch(rf"\[ +\d+ s\] submaps {sent} received, 0 merged, 0 without a "
+                            rf"match, {sent} refused, 0 queued; factors 0 in force, 0 "
+                            r"retracted; robots alive: .*", line) for line in lines), lines
+    assert len(lines) == len(set(lines))  # a line only when something changed
 
 
 def test_an_agent_nobody_answers_says_so(runs) -> None:
@@ -269,13 +283,17 @@ def test_an_agent_stopped_by_ctrl_c_says_what_it_did(busy: str, tmp_path: Path
         log = tmp_path / f"agent{sig}.log"
         with log.open("w") as err:
             p = subprocess.Popen([*CLI, "-v", "agent", "--robot", "auv3", "--connect", busy,
-                                  "--time-scale", "0.2", "--linger", "30"],
+                                  "--time-scale", "0.2", "--linger", "30", "--progress", "0.2"],
                                  stdout=subprocess.PIPE, stderr=err, text=True, env=clean)
         try:
             deadline = time.monotonic() + 90
-            while "auv3: submap 0 " not in log.read_text() and time.monotonic() < deadline:
+            # its progress lines (at -v as at the default) count the submaps as they go out
+            sent = re.compile(r"\[ +\d+ s\] \d+ frames, [1-9]\d* submaps sent \(\d+ "
+                              r"bytes\), answers: none yet, factors in: 0")
+            while not sent.search(log.read_text()) and time.monotonic() < deadline:
                 assert p.poll() is None, log.read_text()
                 time.sleep(0.2)
+            assert sent.search(log.read_text()), log.read_text()
             p.send_signal(sig)
             out, _ = p.communicate(timeout=30)
         finally:

@@ -63,6 +63,7 @@ from mergesvc.settings import (
     SETTINGS_ENV,
     AgentSettings,
     Settings,
+    SettingsError,
     _model_of,
     env_overrides,
     load_settings,
@@ -567,6 +568,49 @@ def test_a_bad_flag_value_is_bad_input_as_before(monkeypatch: pytest.MonkeyPatch
     assert r.exit_code == 2 and "robot" in r.output
 
 
+@pytest.mark.parametrize(("args", "message"), [
+    (["agent", "--robot", "auv/1"], "invalid robot 'auv/1': may not contain '/' (set by --robot)"),
+    (["agent", "--robot", "a", "--session", "s//1"], "empty key chunk (set by --session)"),
+    (["agent", "--robot", "a", "--fleet", "f*"], "invalid fleet 'f*'"),
+    (["serve", "--fleet", "a b", "--store", ":memory:"], "(set by --fleet)"),
+    (["serve", "--seconds", "-1", "--store", ":memory:"], "--seconds"),
+    (["agent", "--robot", "a", "--linger", "-1"], "--linger"),
+])
+def test_a_name_no_key_can_hold_is_refused_before_connecting(
+    monkeypatch: pytest.MonkeyPatch, args: list[str], message: str
+) -> None:
+    """One rule for robot, session and fleet names (the keys'), applied to the settings: a
+    vehicle named 'auv/1' is told so at once (exit 2), not after it connects."""
+    import zenoh
+
+    monkeypatch.setattr(zenoh, "open", _nothing)  # connecting would fail the test
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert message in r.output and len(r.output.strip().splitlines()) == 1, r.output
+
+
+def test_names_are_checked_as_keys_check_them() -> None:
+    from mergesvc.wire.keys import KeyNameError, check_name, submap_key
+
+    for robot in ("auv/1", "a*", "", "x?y"):
+        with pytest.raises(ValueError, match="robot"):
+            AgentConfig(robot=robot)
+        with pytest.raises(KeyNameError):
+            submap_key("mergesvc/v1/f", robot, "s0")
+    for fleet in ("a b", "a/b", "", "x" * 65):
+        with pytest.raises(ValueError, match="fleet"):
+            ServiceConfig(fleet=fleet)
+        with pytest.raises(ValueError, match="fleet"):
+            AgentSettings(fleet=fleet)
+        with pytest.raises(KeyNameError):
+            check_name("fleet", fleet)
+    # what the keys take, the settings take: a key that worked before still works
+    assert AgentConfig(robot="auv 1", session="day1/dive2").session == "day1/dive2"
+    with pytest.raises(ValueError, match="up must be"):  # every check of AgentConfig's
+        AgentSettings(up=(0.0, 0.0, 0.0))
+    assert submap_key("mergesvc/v1/f", "auv 1", "day1/dive2").endswith("auv 1/day1/dive2")
+
+
 # ------------------------------------------------------------------ the file
 
 
@@ -652,6 +696,29 @@ def test_an_unknown_or_bad_variable_is_a_config_error(
 ) -> None:
     with pytest.raises(ConfigError, match=message):
         load_settings(environ=environ)
+
+
+def test_a_refused_value_names_where_it_was_set(tmp_path: Path) -> None:
+    """The file, the variable (a field's or a whole section's) or the flag: the one whose value
+    stood. A flag that replaces a file's bad value is no error."""
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"service": {"fleet": "x y"}}))
+    with pytest.raises(ConfigError, match=rf"fleet 'x y'.* \(set by settings file {f}\)$"):
+        load_settings(f, environ={})
+    for name, value in (("MERGESVC_SERVICE__FLEET", "a b"),
+                        ("MERGESVC_SERVICE", '{"fleet": "a b"}')):
+        with pytest.raises(ConfigError, match=rf"fleet 'a b'.* \(set by {name}\)$"):
+            load_settings(f, environ={name: value})
+    with pytest.raises(ConfigError, match=r"top_k: .* \(set by MERGESVC_CANDIDATES__TOP_K\)$"):
+        load_settings(environ={"MERGESVC_CANDIDATES__TOP_K": "0"})
+    with pytest.raises(SettingsError, match=r"fleet 'q r'.* \(set by --fleet\)$") as err:
+        load_settings(f, environ={}, overrides={"service": {"fleet": "q r"}})
+    assert err.value.from_flag
+    fixed = load_settings(f, environ={}, overrides={"service": {"fleet": "qr"}})
+    assert fixed.service.fleet == "qr"
+    with pytest.raises(SettingsError) as err:
+        load_settings(f, environ={"MERGESVC_SERVICE__FLEET": "a b"})
+    assert not err.value.from_flag
 
 
 def test_other_variables_are_not_settings() -> None:

@@ -27,12 +27,14 @@ from mergesvc.cli.options import (
     LinkKind,
     Listen,
     Mode,
+    Progress,
     SettingsCommand,
     ZenohConfigFile,
     ZenohMode,
     bare_match_for,
     command_group,
     given,
+    progress_lines,
     resolve_settings,
     settings_env,
     settings_file,
@@ -113,7 +115,8 @@ def serve(
         list[Path] | None, typer.Option(help="fleet projection(s) for compact submaps")
     ] = None,
     settings: ServeSettings = None,
-    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+    seconds: Annotated[float | None, typer.Option(min=0.0, help="stop after this long")] = None,
+    progress: Progress = 10.0,
     ros2: Ros2 = False,
     ros2_domain: Ros2Domain = 0,
     ros2_namespace: Ros2Namespace = "/mergesvc",
@@ -126,6 +129,7 @@ def serve(
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.
 
     Settings: the `service` section (a bare MatchConfig file is its `service.match`)."""
+    from mergesvc.fleet.replies import status_line
     from mergesvc.fleet.service import MergeService
     from mergesvc.store.lock import held_store
     from mergesvc.wire import Projection
@@ -147,8 +151,10 @@ def serve(
             typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
                        f"store {cfg.store}")
             start = time.monotonic()
-            while not stop.is_set() and (seconds is None or time.monotonic() - start < seconds):
-                stop.wait(0.2)
+            with progress_lines(progress, lambda: status_line(svc.status(False, False))):
+                while not stop.is_set() and (seconds is None
+                                             or time.monotonic() - start < seconds):
+                    stop.wait(0.2)
             typer.echo(json.dumps(svc.status()["submaps"]))
 
 
@@ -216,13 +222,16 @@ def agent(
         Profile.INT8
     ),
     projection: Annotated[Path | None, typer.Option(help="fleet projection (compact)")] = None,
-    time_scale: Annotated[float, typer.Option(help="wall s per simulated s; 0: no pacing")] = 0.0,
+    time_scale: Annotated[
+        float, typer.Option(min=0.0, help="wall s per simulated s; 0: no pacing")] = 0.0,
     acoustic: Annotated[bool, typer.Option(help="publish on the acoustic vehicle side")] = False,
     mode: AgentMode = ZenohMode.CLIENT,
     connect: Connect = None,
     config: ZenohConfigFile = None,
     connect_timeout: ConnectTimeout = None,
-    linger: Annotated[float, typer.Option(help="s to stay up after the run (factors)")] = 2.0,
+    linger: Annotated[
+        float, typer.Option(min=0.0, help="s to stay up after the run (factors)")] = 2.0,
+    progress: Progress = 10.0,
     settings: AgentSettingsFile = None,
     ros2: Ros2 = False,
     ros2_domain: Ros2Domain = 0,
@@ -231,7 +240,7 @@ def agent(
     """A vehicle: local map (tracker + ISAM2), submaps out, factors in.
 
     Settings: the `agent` section."""
-    from mergesvc.fleet.agent import AgentRun, run_agent
+    from mergesvc.fleet.agent import AgentRun, AgentStats, run_agent
 
     if profile is Profile.COMPACT and projection is None:
         raise typer.BadParameter("--profile compact needs --projection")
@@ -263,7 +272,9 @@ def agent(
                 ros.enter_context(_ros2_bridge(True, ros_session, acfg.fleet, ros2_domain,
                                                ros2_namespace, robot=robot, root=root))
             stop = stop_on_signals()  # then say what was done
-            stats = run_agent(run, zconf, frames, stop)
+            stats = AgentStats()
+            with progress_lines(progress, stats.line):
+                run_agent(run, zconf, frames, stop, stats)
     typer.echo(json.dumps({"robot": robot, "frames": stats.frames,
                            "submaps_sent": stats.submaps_sent,
                            "bytes_sent": stats.bytes_sent,
@@ -404,7 +415,7 @@ def link_bridge(
     listen: Listen = None,
     config: ZenohConfigFile = None,
     connect_timeout: ConnectTimeout = None,
-    seconds: Annotated[float | None, typer.Option(help="stop after this long")] = None,
+    seconds: Annotated[float | None, typer.Option(min=0.0, help="stop after this long")] = None,
 ) -> None:
     """Bridge the vehicle side of the key space to the topside through the simulated modem."""
     from mergesvc.link import (

@@ -19,7 +19,8 @@ from __future__ import annotations
 import os
 import signal
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
@@ -28,7 +29,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from mergesvc.cli.errors import EXIT_BAD_INPUT, fail
-from mergesvc.errors import ConfigError, InputError
+from mergesvc.errors import InputError
 
 if TYPE_CHECKING:
     import zenoh
@@ -42,6 +43,7 @@ __all__ = [
     "LinkKind",
     "Listen",
     "Mode",
+    "Progress",
     "SettingsCommand",
     "TrajectoryFile",
     "ZenohConfigFile",
@@ -51,6 +53,7 @@ __all__ = [
     "command_group",
     "deprecated_config",
     "given",
+    "progress_lines",
     "resolve_settings",
     "settings_env",
     "settings_file",
@@ -111,6 +114,42 @@ def stop_on_signals() -> threading.Event:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     return stop
+
+
+Progress = Annotated[float, typer.Option(
+    min=0.0, help="seconds between two progress lines on stderr (a line only when something "
+    "changed); 0: none")]
+
+
+@contextmanager
+def progress_lines(every_s: float, line: Callable[[], str]) -> Iterator[None]:
+    """While the block runs, `line()` on stderr every `every_s` seconds (after the elapsed
+    time), when it differs from the last one printed; none for `every_s` 0. A `line()` that
+    fails is skipped: progress never stops the work."""
+    if every_s <= 0:
+        yield
+        return
+    done = threading.Event()
+    start = time.monotonic()
+
+    def loop() -> None:
+        last = ""
+        while not done.wait(every_s):
+            try:
+                text = line()
+            except Exception:
+                continue
+            if text != last:
+                typer.echo(f"[{time.monotonic() - start:6.0f} s] {text}", err=True)
+                last = text
+
+    thread = threading.Thread(target=loop, name="progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
 
 
 def bare_match_for(command: SettingsCommand | None) -> tuple[tuple[str, ...], ...]:
@@ -236,14 +275,13 @@ def resolve_settings(
     `bare_match`: where a bare MatchConfig file goes (`bare_match_for(command)`). A bad file or
     variable is a ConfigError (exit 1 under exit_on_error); a flag the settings refuse is bad
     input (exit 2), as when the command checked it itself."""
-    from mergesvc.settings import load_settings
+    from mergesvc.settings import SettingsError, load_settings
 
-    settings = load_settings(path, environ=os.environ, bare_match=bare_match)
-    if not flags:
-        return settings
     try:
-        return settings.merged(flags)
-    except ConfigError as exc:
+        return load_settings(path, environ=os.environ, overrides=flags, bare_match=bare_match)
+    except SettingsError as exc:
+        if not exc.from_flag:
+            raise
         fail(exc, EXIT_BAD_INPUT)
 
 

@@ -48,10 +48,10 @@ def view(
     web_port: Annotated[int, typer.Option(help="port of the web viewer's page")] = 9090,
     grpc_port: Annotated[int, typer.Option(help="port of the viewer's gRPC stream")] = 9876,
     duration: Annotated[
-        float | None, typer.Option(help="stop after this many seconds (default: at Ctrl-C)")
+        float | None, typer.Option(min=0.0, help="stop after this many s (default: at Ctrl-C)")
     ] = None,
     status_period: Annotated[
-        float, typer.Option(help="seconds between two status queries (merged poses)")
+        float, typer.Option(min=0.01, help="seconds between two status queries (merged poses)")
     ] = 1.0,
 ) -> None:
     """Show a fleet's merged map live in Rerun: trajectories (odometry and merged), objects

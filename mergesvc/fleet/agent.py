@@ -40,6 +40,12 @@ class AgentStats:
     submaps_refused: int = 0  # refused for good or failed at the service: not sent again
     last_refusal: str = ""  # the last of those: "code: detail"
 
+    def line(self) -> str:
+        """What was done so far, as one progress line."""
+        answers = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in sorted(self.results.items()))
+        return (f"{self.frames} frames, {self.submaps_sent} submaps sent ({self.bytes_sent} "
+                f"bytes), answers: {answers or 'none yet'}, factors in: {self.factors_received}")
+
     def all_refused(self) -> bool:
         """Every submap sent was refused for good, failed or given up, and none was
         processed or found no match."""
@@ -85,13 +91,14 @@ class Agent:
         alive_key: str,
         cache_samples: int = 10_000,
         result_key: str | None = None,
+        stats: AgentStats | None = None,
     ) -> None:
         import zenoh
         from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
 
         self.config = config
         self.local = LocalMap(config)
-        self.stats = AgentStats()
+        self.stats = AgentStats() if stats is None else stats
         self._encode, self._decode = encode, decode_factor
         self._lock = threading.Lock()
         self._session = session
@@ -281,10 +288,12 @@ class AgentRun:
 
 
 def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame],
-              stop: threading.Event | None = None) -> AgentStats:
+              stop: threading.Event | None = None, stats: AgentStats | None = None
+              ) -> AgentStats:
     """Build the vehicle (codec, keys), open a Zenoh session with `zenoh_config`, run `frames`
     through an `Agent`, linger for factors, close; `stop` set ends the run and the lingering
-    early (what was done is counted). Raises MergeError (ConfigError for the
+    early (what was done is counted, in `stats` when given: a caller may read it meanwhile).
+    Raises MergeError (ConfigError for the
     compact profile without a projection, TransportError when the session cannot open),
     ValueError/OSError for unreadable input."""
     from mergesvc.wire.session import open_session
@@ -307,7 +316,7 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame],
         acfg, session, encode, decode_factor,
         submap_key=keys.submap_key(root, run.robot, run.session),
         factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),
-        result_key=keys.result_key(root, run.robot),
+        result_key=keys.result_key(root, run.robot), stats=stats,
     ) as ag:
         stats = ag.run(frames, time_scale=run.time_scale, stop=stop)
         (stop or threading.Event()).wait(run.linger_s)

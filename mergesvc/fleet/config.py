@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mergesvc.core.calibration import CalibrationConfig
 from mergesvc.core.config import GraphConfig, MatchConfig
+from mergesvc.wire.keys import check_name
 from mergesvc.wire.names import Profile
 
 
@@ -201,6 +202,11 @@ class ServiceConfig(BaseModel):
                 raise ValueError(f"odometry_bounds[{robot!r}]: six finite standard deviations "
                                  f"above 0, got {list(sigmas)}")
         return v
+
+    @field_validator("fleet")
+    @classmethod
+    def _fleet(cls, v: str) -> str:
+        return check_name("fleet", v)
 
     @field_validator("factor_profile")
     @classmethod

@@ -11,13 +11,14 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.odometry import chain_covariance, step_covariance
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import InputError
+from mergesvc.wire.keys import check_name
 
 X = gtsam.symbol_shorthand.X  # vehicle poses
 L = gtsam.symbol_shorthand.L  # landmarks (tracked objects)
@@ -52,6 +53,11 @@ class AgentConfig(BaseModel):
         "service fits inter-robot factors about gravity (4-DoF) instead of guessing the tilt "
         "from a few nearly coplanar objects. None: not known, nothing declared",
     )
+
+    @field_validator("robot", "session", "fleet")
+    @classmethod
+    def _key_names(cls, v: str, info: ValidationInfo) -> str:
+        return check_name(info.field_name, v)
 
     @field_validator("up")
     @classmethod

@@ -256,6 +256,20 @@ class StatusReply(BaseModel):
         return _check_version(v)
 
 
+def status_line(status: dict[str, Any]) -> str:
+    """A StatusReply (as `MergeService.status` returns it) as one progress line: submaps,
+    factors, the robots alive and the store's problems, no poses."""
+    sub, fac, res = status["submaps"], status["factors"], status["results"]
+    refused, no_match = sum(res["refused"].values()), sum(res["no_match"].values())
+    alive = ", ".join(status["robots_alive"]) or "none"
+    line = (f"submaps {sub['received']} received, {res['processed']} merged, {no_match} "
+            f"without a match, {refused} refused, {sub['queued']} queued; factors "
+            f"{fac['active']} in force, {fac['retracted']} retracted; robots alive: {alive}")
+    if not status["solve"]["ok"]:
+        line += f"; pose graph failing: {status['solve']['error']}"
+    return line
+
+
 def reply_schemas() -> dict[str, dict[str, Any]]:
     """JSON Schema (2020-12) of what the service sends as JSON, keyed by file name under
     schemas/ (query errors: error_message.schema.json)."""
@@ -287,4 +301,5 @@ __all__ = [
     "SubmapCounts",
     "SubmapResult",
     "reply_schemas",
+    "status_line",
 ]

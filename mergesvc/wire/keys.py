@@ -31,9 +31,13 @@ MSGPACK_ENCODING = "application/msgpack"
 JSON_ENCODING = "application/json"
 
 
+class KeyNameError(ConfigError, ValueError):
+    """A name that cannot be a key's (a ValueError too, so a settings validator reports it)."""
+
+
 def _name(value: str, what: str) -> str:
     if not isinstance(value, str) or not _NAME.match(value):
-        raise ConfigError(f"invalid {what} {value!r}: use 1-64 of A-Z a-z 0-9 _ . -")
+        raise KeyNameError(f"invalid {what} {value!r}: use 1-64 of A-Z a-z 0-9 _ . -")
     return value
 
 
@@ -46,18 +50,28 @@ def _root(root: str) -> str:
 def _chunks(value: str, what: str, *, one: bool) -> str:
     """`value` as one key chunk (`one`), or as chunks joined by '/' (sessions, factor ids)."""
     if not isinstance(value, str) or not value:
-        raise ConfigError(f"invalid {what} {value!r}: must be a non-empty string")
+        raise KeyNameError(f"invalid {what} {value!r}: must be a non-empty string")
     if one and "/" in value:
-        raise ConfigError(f"invalid {what} {value!r}: may not contain '/'")
+        raise KeyNameError(f"invalid {what} {value!r}: may not contain '/'")
     if "" in value.split("/"):
-        raise ConfigError(f"invalid {what} {value!r}: empty key chunk")
+        raise KeyNameError(f"invalid {what} {value!r}: empty key chunk")
     if _RESERVED & set(value):
-        raise ConfigError(f"invalid {what} {value!r}: may not contain * $ ? #")
+        raise KeyNameError(f"invalid {what} {value!r}: may not contain * $ ? #")
     return value
 
 
 def _robot(robot: str) -> str:
     return _chunks(robot, "robot", one=True)
+
+
+def check_name(what: str, value: str) -> str:
+    """`value` if it can be the fleet, robot or session (`what`) of a key, else KeyNameError:
+    the rule every key built here applies, for settings to apply before anything connects."""
+    if what == "fleet":
+        return _name(value, what)
+    if what in ("robot", "session"):
+        return _chunks(value, what, one=what == "robot")
+    raise ValueError(f"not a key name: {what!r}")
 
 
 def fleet_root(fleet: str) -> str:
@@ -195,6 +209,7 @@ __all__ = [
     "JSON_ENCODING",
     "MSGPACK_ENCODING",
     "ROOT",
+    "KeyNameError",
     "advanced_publisher_source",
     "advanced_publishers",
     "alive_key",
@@ -205,6 +220,7 @@ __all__ = [
     "all_results",
     "all_submaps",
     "all_under",
+    "check_name",
     "error_key",
     "factor_key",
     "fleet_root",
