@@ -195,6 +195,41 @@ def test_two_factors_to_one_other_keyframe_correct_the_own_trajectory(frames, ro
         .model_copy(update={"status": FactorStatus.RETRACTED}))
 
 
+def test_a_factor_on_a_keyframe_not_reached_yet_is_held_until_then(frames) -> None:
+    """A vehicle restarted on its session is told of its earlier factors at once, some on
+    keyframes it has not reached again yet: each is held, added when the map reaches its
+    keyframe (the same correction as when both came late), or dropped when retracted first."""
+    fr, other = frames["auv1"], frames["auv2"]
+    truth = np.stack([f.T_true for f in fr])
+    cfg = AgentConfig(robot="auv1", odometry_sigma=(0.02, 0.05))
+    ref, subs = build_submaps(cfg, fr)
+    before = ate_rmse(ref.own_poses(), truth)
+    k1, k2 = subs[0].keyframe, subs[-1].keyframe
+    cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
+
+    def factor(fid: str, k: int) -> Factor:
+        return _factor(fid, "auv1", k, np.linalg.inv(truth[k]) @ other[5].T_true, 5, cov)
+
+    for f in (factor("f1", k1), factor("f2", k2)):
+        ref.add_inter_robot(f)
+    lm = LocalMap(cfg)
+    for f in fr[:k1 + 1]:
+        lm.add_frame(f)
+    assert "first estimate" in lm.add_inter_robot(factor("f1", k1))
+    assert "held until then" in lm.add_inter_robot(factor("f2", k2))
+    assert "held until then" in lm.add_inter_robot(factor("f3", k2 - 1))
+    assert "it was held" in lm.add_inter_robot(
+        factor("f3", k2 - 1).model_copy(update={"status": FactorStatus.RETRACTED}))
+    lines: list[str] = []
+    for f in fr[k1 + 1:]:
+        lm.add_frame(f)
+        lines += [(lm.frames_seen - 1, line) for line in lm.add_held()]
+    assert [(k, line.split(":")[0]) for k, line in lines] == [(k2, "factor f2")]
+    assert f"from my keyframe {k2}" in lines[0][1] and "moved max" in lines[0][1]
+    np.testing.assert_allclose(lm.own_poses()[:, :3, 3], ref.own_poses()[:, :3, 3], atol=0.02)
+    assert ate_rmse(lm.own_poses(), truth) < 0.85 * before
+
+
 def test_the_inverse_side_gives_the_same_correction(frames) -> None:
     """A factor received as robot_b (T_a_b inverted, covariance through the adjoint) corrects
     the trajectory exactly as the same factor received as robot_a."""
@@ -293,6 +328,9 @@ def test_the_agent_takes_factors_of_either_profile_and_counts_its_results(frames
         for f, profile in zip(factors, (Profile.FULL, Profile.COMPACT), strict=True):
             rs.put(keys.factor_key(root, "auv1", f.factor_id),
                    encode_message(f, profile, "mergesvc", 1))
+        # another vehicle's (or run's) session under this robot's name: not this one's result
+        rs.put(keys.result_key(root, "auv1"), json.dumps({
+            "robot": "auv1", "session": "s1", "seq": 0, "outcome": "processed", "factors": []}))
         for outcome in ("no_match", "processed", "no_match"):
             doc = {"robot": "auv1", "session": "s0", "seq": 0, "outcome": outcome,
                    "reason": "too_few_matches" if outcome == "no_match" else None,

@@ -129,6 +129,10 @@ class Agent:
             self.stats.bad_messages += 1
             log.warning("%s: ignoring a bad result message: %s", self.config.robot, exc)
             return
+        if res.session is not None and res.session != self.config.session:
+            # another session of this robot's name (another vehicle, or an earlier run)
+            log.debug("%s: a result for session %s, not mine", self.config.robot, res.session)
+            return
         with self._lock:
             self.stats.results[res.outcome.value] = self.stats.results.get(
                 res.outcome.value, 0) + 1
@@ -231,6 +235,14 @@ class Agent:
             with self._lock:
                 cut = self.local.add_frame(fr)
                 sub = self.local.cut_submap(self.stats.submaps_sent, fr.stamp_s) if cut else None
+                try:  # a factor the local graph cannot take is dropped, as on arrival
+                    held = self.local.add_held()
+                except Exception:  # noqa: BLE001
+                    log.exception("%s: dropping a held factor the local map could not take",
+                                  self.config.robot)
+                    held = []
+            for line in held:
+                log.info("%s: %s", self.config.robot, line)
             self.stats.frames += 1
             if sub is not None:
                 self.publish(sub)

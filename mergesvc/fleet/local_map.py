@@ -20,6 +20,7 @@ from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import InputError
 from mergesvc.wire.keys import check_name
 
+MAX_HELD = 10_000  # factors on own keyframes not reached yet, held at most
 X = gtsam.symbol_shorthand.X  # vehicle poses
 L = gtsam.symbol_shorthand.L  # landmarks (tracked objects)
 F = gtsam.symbol_shorthand.F  # other robots' keyframes, from inter-robot factors
@@ -108,6 +109,9 @@ class LocalMap:
     # submap's odometry starts from the last keyframe before them, so its chain stays joined
     lost: set[int] = field(default_factory=set)
     _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
+    # factor id -> a factor on an own keyframe not reached yet (a restart on the same session
+    # is told of its earlier factors at once): added when the keyframe is (`add_held`)
+    _held: dict[str, Factor] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.tracker = ObjectTracker(self.config.tracking)
@@ -254,15 +258,22 @@ class LocalMap:
         if me_a == me_b:
             return f"factor {fid}: not between this session and another: ignored"
         if factor.status == FactorStatus.RETRACTED:
+            if self._held.pop(fid, None) is not None:
+                return f"factor {fid} retracted: it was held, not yet in the graph"
             return self._retract(factor)
         old = self._received.get(fid)
         if old is not None and _same(old.factor, factor):
             return f"factor {fid}: already in the graph: ignored"
         own_k = (factor.keyframe_a if me_a else factor.keyframe_b) or 0
         other_k = (factor.keyframe_b if me_a else factor.keyframe_a) or 0
+        self._held.pop(fid, None)
         if own_k >= self.frames_seen:
-            raise InputError(f"factor {fid} ties own keyframe {own_k}, this map has "
-                             f"{self.frames_seen} poses")
+            if len(self._held) >= MAX_HELD:
+                raise InputError(f"factor {fid} ties own keyframe {own_k}, this map has "
+                                 f"{self.frames_seen} poses and holds {MAX_HELD} such factors")
+            self._held[fid] = factor
+            return (f"factor {fid}: ties my keyframe {own_k}, not reached yet ("
+                    f"{self.frames_seen} poses): held until then")
         other = (str(FrameId(factor.robot_b, factor.session_b) if me_a
                      else FrameId(factor.robot_a, factor.session_a)), other_k)
         T_ab = _pose_of(factor)
@@ -298,6 +309,15 @@ class LocalMap:
                 f"keyframe {own_k}" + (" (first estimate)" if first else "")
                 + ("; replaced the earlier version" if old is not None else "")
                 + "; " + _moved(before, self.own_poses(after_est)))
+
+    def add_held(self) -> list[str]:
+        """Add the held factors whose own keyframe this map has reached now, in the order
+        they came; their log lines."""
+        mine = (self.config.robot, self.config.session)
+        due = [f for f in self._held.values()
+               if ((f.keyframe_a if (f.robot_a, f.session_a) == mine else f.keyframe_b) or 0)
+               < self.frames_seen]
+        return [self.add_inter_robot(f) for f in due]
 
     def _retract(self, factor: Factor) -> str:
         rec = self._received.pop(factor.factor_id, None)
