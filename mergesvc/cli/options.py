@@ -137,7 +137,7 @@ def progress_lines(every_s: float, line: Callable[[], str]) -> Iterator[None]:
         while not done.wait(every_s):
             try:
                 text = line()
-            except Exception:
+            except Exception:  # a progress line is never worth the work's failure
                 continue
             if text != last:
                 typer.echo(f"[{time.monotonic() - start:6.0f} s] {text}", err=True)

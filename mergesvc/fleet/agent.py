@@ -237,7 +237,7 @@ class Agent:
                 sub = self.local.cut_submap(self.stats.submaps_sent, fr.stamp_s) if cut else None
                 try:  # a factor the local graph cannot take is dropped, as on arrival
                     held = self.local.add_held()
-                except Exception:  # noqa: BLE001
+                except Exception:
                     log.exception("%s: dropping a held factor the local map could not take",
                                   self.config.robot)
                     held = []
