@@ -1,6 +1,6 @@
 """One service per store file (store/lock.py): a second holder is refused in one line naming
 the first's pid; the lock is free again once released; a store path that cannot take a store
-says why."""
+says why. One fleet per store (Store.claim_fleet)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from mergesvc.errors import StoreError
+from mergesvc.errors import ConfigError, StoreError
 from mergesvc.store.lock import held_store
 
 
@@ -48,3 +48,26 @@ def test_serve_on_a_store_another_service_holds_fails_in_one_line(tmp_path: Path
     assert r.returncode == 1 and r.stderr.strip().splitlines() == [
         f"error: store {store} is in use by another service (pid {os.getpid()}): stop it or "
         "pick another --store"]
+
+
+def test_a_store_belongs_to_the_fleet_that_first_served_it(tmp_path: Path) -> None:
+    """Another fleet's service on it is refused before it reads anything (its sessions and
+    frame are not that fleet's); the same fleet, restarted, is served."""
+    from mergesvc.fleet.config import ServiceConfig
+    from mergesvc.fleet.service import MergeService
+
+    store = tmp_path / "merge.db"
+    with MergeService(ServiceConfig(fleet="reef", store=str(store)), None):
+        pass
+    with pytest.raises(ConfigError, match=f"store {store} belongs to fleet reef, not wreck: "
+                       "serve --fleet reef, or pick another --store for fleet wreck"):
+        MergeService(ServiceConfig(fleet="wreck", store=str(store)), None).start()
+    with MergeService(ServiceConfig(fleet="reef", store=str(store)), None) as svc:
+        assert svc.store.meta("fleet") == "reef"
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
+    r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "serve", "--store", str(store),
+                        "--fleet", "wreck", "--listen", "tcp/127.0.0.1:0", "--seconds", "5"],
+                       capture_output=True, text=True, timeout=120, env=clean)
+    assert r.returncode == 1 and r.stderr.strip().splitlines() == [
+        f"error: store {store} belongs to fleet reef, not wreck: serve --fleet reef, or pick "
+        "another --store for fleet wreck"], r.stderr

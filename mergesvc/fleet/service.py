@@ -42,7 +42,7 @@ from mergesvc.fleet.replies import Outcome, RefusalCode, SubmapResult
 from mergesvc.fleet.sessions import Sessions
 from mergesvc.fleet.solve_process import optimizer, trim_heap
 from mergesvc.fleet.transport import Query, Reply, Transport
-from mergesvc.store import META_ANCHOR, AckLedger, Store
+from mergesvc.store import META_ANCHOR, AckLedger, Store, is_memory
 from mergesvc.wire import Profile, Projection, decode_message, encode_message, keys
 
 log = logging.getLogger(__name__)
@@ -72,8 +72,7 @@ class MergeService:
         self.clock = clock
         self.stats = ServiceStats()
         self.store = Store(config.store)
-        memory = config.store == ":memory:" or config.store.startswith("file::memory:")
-        self.acks = AckLedger(None if memory else config.store + ".acks")
+        self.acks = AckLedger(None if is_memory(config.store) else config.store + ".acks")
         self.graph = PoseGraph(config=config.graph)
         self.graph.optimizer = optimizer(config.solve_in_child, config.solve_timeout_s)
         if config.solve_inflation != 1.0:
@@ -171,6 +170,7 @@ class MergeService:
         """After a restart: damage checked, the sessions and the graph from the processed
         submaps, the factors with the verdicts they had, the graph solved as it grew, what
         that solve retracts published; then the worker redoes the pending rows."""
+        self.store.claim_fleet(self.config.fleet)
         self.damage = self.acks.lost(self.store.final_seqs())
         for line in self.damage:
             log.error("store %s lost answered submaps: %s", self.store.path, line)

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from mergesvc.core.frames import frame_name
-from mergesvc.errors import InputError, StoreError, one_line
+from mergesvc.errors import ConfigError, InputError, StoreError, one_line
 from mergesvc.store.factors import FactorRecords
 from mergesvc.store.records import (
     _HELD,
@@ -42,6 +42,7 @@ from mergesvc.store.records import (
     _TABLES,
     _UNANSWERED,
     APPLICATION_ID,
+    META_FLEET,
     PENDING,
     STORE_SCHEMA_VERSION,
     StoredFrame,
@@ -510,6 +511,14 @@ class Store(FactorRecords):
         with self._transaction() as c:
             c.execute("INSERT OR IGNORE INTO meta (key, value) VALUES (?, ?)", (key, value))
             return str(c.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()[0])
+
+    def claim_fleet(self, fleet: str) -> None:
+        """Tie this store to `fleet` (its first service's), or ConfigError when it belongs to
+        another fleet: one store holds one fleet's sessions, factors and frame."""
+        owner = self.set_meta_once(META_FLEET, fleet)
+        if owner != fleet:
+            raise ConfigError(f"store {self.path} belongs to fleet {owner}, not {fleet}: serve "
+                              f"--fleet {owner}, or pick another --store for fleet {fleet}")
 
     def set_meta(self, key: str, value: str) -> None:
         """Store `value` under `key`, replacing what was there (state derived as the service

@@ -106,6 +106,8 @@ META_NOISE_SCALES = "noise_scales"
 #: Meta key of the fleet's anchor session ("robot/session"): fixed by the first unit of work,
 #: so published coordinates stay in one frame across restarts.
 META_ANCHOR = "anchor"
+#: Meta key of the fleet a store belongs to: fixed by the first service that used it.
+META_FLEET = "fleet"
 
 
 def _read_only(exc: sqlite3.Error) -> bool:
@@ -199,6 +201,6 @@ def _check_factor_status(status: Any) -> FactorStatus:
         raise InputError(f"factor status must be one of {allowed}, got {status!r}") from None
 
 
-__all__ = ["APPLICATION_ID", "META_ANCHOR", "META_EMBEDDING_DIM", "META_NOISE_SCALES", "PENDING",
-           "STORE_SCHEMA_VERSION", "StoredFactor", "StoredFrame", "StoredSubmap",
-           "SubmapConflictError", "Synchronous"]
+__all__ = ["APPLICATION_ID", "META_ANCHOR", "META_EMBEDDING_DIM", "META_FLEET",
+           "META_NOISE_SCALES", "PENDING", "STORE_SCHEMA_VERSION", "StoredFactor",
+           "StoredFrame", "StoredSubmap", "SubmapConflictError", "Synchronous"]
