@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import gtsam
@@ -229,6 +232,37 @@ def test_export_command_prints_one_line_per_file(exported, tmp_path) -> None:
     r = CliRunner().invoke(app, ["export", "--store", str(tmp_path / "nope.db"), "--out",
                                  str(out)])
     assert r.exit_code == 2 and "no store file" in r.output
+
+
+def test_a_store_is_exported_as_its_own_fleet_whatever_the_settings_say(exported,
+                                                                          tmp_path) -> None:
+    _, _, _, res = exported
+    other = export_store(res.out_dir.parent / "merge.db", tmp_path / "out",
+                         config=ServiceConfig(fleet="another"))
+    assert other.graph.read_text() == res.graph.read_text()
+
+
+def test_a_store_on_read_only_media_is_exported(exported, tmp_path) -> None:
+    """Read-only media (a read-only bind mount in a mount namespace of its own): SQLite cannot
+    make a WAL file's index beside the store; the export reads a copy instead."""
+    _, _, _, res = exported
+    src, ro = tmp_path / "media", tmp_path / "ro"
+    src.mkdir()
+    ro.mkdir()
+    for name in ("merge.db", "merge.db-wal"):  # as a clean close or a crash leaves them
+        if (res.out_dir.parent / name).is_file():
+            shutil.copyfile(res.out_dir.parent / name, src / name)
+    script = (f"mount --bind {src} {ro} && mount -o remount,bind,ro {ro} && "
+              f"! touch {ro}/probe 2>/dev/null && exec {sys.executable} -m mergesvc.cli export "
+              f"--store {ro}/merge.db --out {tmp_path / 'out'}")
+    probe = subprocess.run(["unshare", "-m", "sh", "-c", "mount --bind / /mnt"],
+                           capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no mount namespace here to make read-only media: {probe.stderr.strip()}")
+    r = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True,
+                       timeout=120, cwd=Path(__file__).parents[1])
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out" / "graph.g2o").read_text() == res.graph.read_text()
 
 
 def test_evo_ape_on_the_export_is_the_service_side_ate(tmp_path) -> None:

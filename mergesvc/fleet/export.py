@@ -13,7 +13,9 @@ node's frame). The files, vertex ids, edge order, frames and TUM stamps: docs/ex
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import sqlite3
 import tempfile
 from collections.abc import Sequence
@@ -31,6 +33,7 @@ from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, MergeError, StoreError, one_line
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.service import MergeService
+from mergesvc.store import META_FLEET
 from mergesvc.wire import Projection, decode_message
 from mergesvc.wire.formats import write_g2o, write_tum
 
@@ -73,25 +76,51 @@ class ExportResult:
 
 def snapshot_store(store_path: str | Path, copy_path: str | Path) -> Path:
     """A consistent copy of a store (SQLite online backup through a read-only connection: the
-    source is never written, a service may be running on it). InputError: no such file;
-    StoreError: not an SQLite file, or unreadable."""
+    source is never written, a service may be running on it). On read-only media, where SQLite
+    cannot make a WAL file's index beside it, the file and its WAL are copied first and read
+    there. InputError: no such file; StoreError: not an SQLite file, or unreadable."""
     src_path = Path(store_path)
     if not src_path.is_file():
         raise InputError(f"no store file {src_path}")
     dst_path = Path(copy_path)
     try:
-        src = sqlite3.connect(f"{src_path.resolve().as_uri()}?mode=ro", uri=True)
         try:
-            dst = sqlite3.connect(dst_path)
-            try:
-                src.backup(dst)
-            finally:
-                dst.close()
-        finally:
-            src.close()
-    except sqlite3.Error as exc:
+            _backup(f"{src_path.resolve().as_uri()}?mode=ro", dst_path)
+        except sqlite3.OperationalError:
+            if os.access(src_path.parent, os.W_OK):
+                raise
+            with tempfile.TemporaryDirectory(dir=dst_path.parent) as tmp:
+                for suffix in ("", "-wal"):
+                    if Path(f"{src_path}{suffix}").is_file():
+                        shutil.copyfile(f"{src_path}{suffix}", Path(tmp) / f"s.db{suffix}")
+                _backup((Path(tmp) / "s.db").as_uri(), dst_path)
+    except (sqlite3.Error, OSError) as exc:
         raise StoreError(f"cannot read store {src_path}: {one_line(exc)}") from exc
     return dst_path
+
+
+def _backup(src_uri: str, dst_path: Path) -> None:
+    src = sqlite3.connect(src_uri, uri=True)
+    try:
+        dst = sqlite3.connect(dst_path)
+        try:
+            src.backup(dst)
+        finally:
+            dst.close()
+    finally:
+        src.close()
+
+
+def _store_fleet(path: Path) -> str | None:
+    """The fleet a store belongs to (META_FLEET), None for a file from before it was kept."""
+    conn = sqlite3.connect(path)
+    try:
+        row = conn.execute("SELECT value FROM meta WHERE key = ?", (META_FLEET,)).fetchone()
+    except sqlite3.OperationalError:  # no meta table: an older file
+        return None
+    finally:
+        conn.close()
+    return None if row is None else str(row[0])
 
 
 def _write_json(path: Path, data: Any) -> Path:
@@ -218,7 +247,9 @@ def export_store(
     cfg = config or ServiceConfig()
     with tempfile.TemporaryDirectory(prefix="mergesvc-export-") as tmp:
         copy = snapshot_store(store_path, Path(tmp) / "store.db")
-        svc = MergeService(cfg.model_copy(update={"store": str(copy)}), None, list(projections))
+        fleet = _store_fleet(copy) or cfg.fleet  # the store's own, whatever the settings say
+        svc = MergeService(cfg.model_copy(update={"store": str(copy), "fleet": fleet}), None,
+                           list(projections))
         try:
             svc.restore()
             return _write(svc, out, Path(store_path), list(projections))
