@@ -190,6 +190,31 @@ def test_errors_say_what_is_wrong_with_the_file(files: Path, tmp_path: Path) -> 
         assert text in r.stderr, (args, r.stderr)
 
 
+def test_all_zero_embeddings_are_matched_with_a_warning(files: Path, tmp_path: Path) -> None:
+    """Their cosine with anything is 0: the match runs, and stderr says which objects nothing
+    can match by appearance, for a JSON submap and a binary map alike."""
+    sub = json.loads((files / "submap.json").read_text())
+    for o in sub["objects"][:2]:
+        o["embedding"] = [0.0] * len(o["embedding"])
+    (tmp_path / "sub.json").write_text(json.dumps(sub))
+    m = json.loads((files / "map.json").read_text())
+    m["objects"][3]["embedding"] = [0.0] * len(m["objects"][3]["embedding"])
+    (tmp_path / "map.json").write_text(json.dumps(m))
+    assert run("convert", str(tmp_path / "map.json"), str(tmp_path / "map.npz")).returncode == 0
+    r = run("match", "--map", str(tmp_path / "map.npz"), "--submap", str(tmp_path / "sub.json"),
+            "--json")
+    assert r.returncode == 0, r.stderr
+    ids = [o["id"] for o in sub["objects"][:2]]
+    assert r.stderr.strip().splitlines() == [
+        f"warning: {tmp_path / 'map.npz'}: 1 object with an all-zero embedding "
+        f"({m['objects'][3]['id']}): nothing matches it by appearance",
+        f"warning: {tmp_path / 'sub.json'}: 2 objects with an all-zero embedding "
+        f"({', '.join(ids)}): nothing matches them by appearance"]
+    assert json.loads(r.stdout)["accepted"] in (True, False)  # the JSON answer, as ever
+    assert run("match", "--map", str(files / "map.json"), "--submap",
+               str(files / "submap.json")).stderr == ""
+
+
 def test_a_check_of_a_folder_that_is_not_there_says_so(tmp_path: Path) -> None:
     for args in (("schemas", str(tmp_path / "none"), "--check"),
                  ("codec", "golden", "--out", str(tmp_path / "none"), "--check")):

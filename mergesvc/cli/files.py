@@ -43,6 +43,24 @@ CodecSettingsFile = settings_file("`codec`")
 UncertaintySettings = settings_file("`uncertainty`", bare="UncertaintyConfig")
 
 
+def _warn_zero_embeddings(path: Path, objs: Any) -> None:
+    """One warning line on stderr for a file's objects whose embedding is all zeros: their
+    cosine with anything is 0, so nothing matches them by appearance (a detector's fault)."""
+    import numpy as np
+
+    if hasattr(objs, "norms_n"):  # arrays (a binary file): the norms the match computed
+        ids = [objs.ids[k] for k in np.flatnonzero(objs.norms_n == 0)[:4]]
+        n = int(np.count_nonzero(objs.norms_n == 0))
+    else:
+        zero = [o.id for o in objs.objects if not any(o.embedding)]
+        ids, n = zero[:4], len(zero)
+    if n:
+        more = ", ..." if n > len(ids) else ""
+        typer.echo(f"warning: {path}: {n} object{'' if n == 1 else 's'} with an all-zero "
+                   f"embedding ({', '.join(ids)}{more}): nothing matches "
+                   f"{'it' if n == 1 else 'them'} by appearance", err=True)
+
+
 def match(
     ctx: typer.Context,
     map_path: Annotated[Path, typer.Option(
@@ -97,6 +115,8 @@ def match(
             # paper mode's solver runs on every submap x map pair: a flag choice, not a fault
             raise InputError(f"{one_line(exc)}: paper mode solves over every pair; use "
                              "--mode verified, or another --solver") from exc
+    for path, objs in ((map_path, map_), (submap_path, sub)):
+        _warn_zero_embeddings(path, objs)
     result = outcome.result
     if as_json:
         typer.echo(json.dumps(match_json(result)))

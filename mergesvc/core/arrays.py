@@ -162,12 +162,22 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
-def _all_finite(a: np.ndarray) -> bool:
+class NonFiniteRowError(SchemaError):
+    """A NaN or inf in one object's `what` (its row); ObjectArrays names the object."""
+
+    def __init__(self, what: str, row: int) -> None:
+        super().__init__(f"object {row}: its {what} has NaN or inf")
+        self.what, self.row = what, row
+
+
+def _check_finite(a: np.ndarray, what: str) -> None:
+    """NonFiniteRowError for the first row of `a` holding a NaN or inf."""
     for lo in chunks(len(a)):
-        if not np.isfinite(a[lo:lo + _CHUNK_ROWS]).all():
-            return False
+        block = np.isfinite(a[lo:lo + _CHUNK_ROWS])
+        if not block.all():
+            bad = block.reshape(len(block), -1).all(axis=1)
+            raise NonFiniteRowError(what, lo + int(np.argmin(bad)))
         release_rows(a, lo, lo + _CHUNK_ROWS)
-    return True
 
 
 def _as_float32(e: Any) -> np.ndarray:
@@ -175,12 +185,10 @@ def _as_float32(e: Any) -> np.ndarray:
     is not finite or lies beyond float32's range."""
     a = e if isinstance(e, np.ndarray) else np.asarray(e)
     if a.dtype == np.float32:
-        if not _all_finite(a):
-            raise SchemaError("embeddings_nd has NaN or inf")
+        _check_finite(a, "embedding")
         return a
     a = np.asarray(a, dtype=np.float64)
-    if not _all_finite(a):
-        raise SchemaError("embeddings_nd has NaN or inf")
+    _check_finite(a, "embedding")
     if a.size and float(np.abs(a).max()) > FLOAT32_MAX:
         raise SchemaError(f"embedding values beyond +-{FLOAT32_MAX:.3g} (float32) are not "
                           "supported")
@@ -201,8 +209,7 @@ def _compact_variances(v: Any, n: int, d: int) -> np.ndarray:
         elif all(bool((a[lo:lo + _CHUNK_ROWS] == a[lo:lo + _CHUNK_ROWS, :1]).all())
                  for lo in chunks(n)):
             a = np.ascontiguousarray(a[:, :1])
-    if not _all_finite(a):
-        raise SchemaError("variances_nd has NaN or inf")
+    _check_finite(a, "variance")
     if n and not float(a.min()) > 0:
         raise SchemaError("variances_nd must be positive")
     return np.broadcast_to(a, (n, d)) if a.shape[1] == 1 else a
@@ -238,10 +245,13 @@ class ObjectArrays:
         emb = self.embeddings_nd
         if getattr(emb, "ndim", np.ndim(emb)) != 2 or len(emb) != n:
             raise SchemaError(f"embeddings_nd must be ({n}, d), got {np.shape(emb)}")
-        emb = _as_float32(emb)
-        var = _compact_variances(self.variances_nd, n, emb.shape[1])
-        if not np.all(np.isfinite(pos)):
-            raise SchemaError("position_xyz_m has NaN or inf")
+        try:
+            emb = _as_float32(emb)
+            var = _compact_variances(self.variances_nd, n, emb.shape[1])
+            _check_finite(pos, "position")
+        except NonFiniteRowError as exc:
+            raise SchemaError(f"object {exc.row} (id {self.ids[exc.row]!r}): its {exc.what} "
+                              "has NaN or inf") from exc
         if np.any(np.abs(pos) > MAX_COORDINATE_M):
             raise SchemaError(f"position_xyz_m beyond +-{MAX_COORDINATE_M:g} m")
         for name, value in (("position_xyz_m", pos), ("embeddings_nd", emb),
