@@ -165,8 +165,11 @@ def load_settings(
         return Settings.model_validate(data)
     except ValidationError as exc:
         loc = exc.errors()[0]["loc"]
-        source = next((label or _env_name(found, loc) for label, values in reversed(layers)
-                       if _sets(values, loc)), None)
+        setters = [(label, values) for label, values in reversed(layers) if _sets(values, loc)]
+        source = None  # a whole section refused: its setter only when one layer set it
+        if setters and (len(loc) > 1 or len(setters) == 1):
+            label = setters[0][0]
+            source = label or _env_name(found, loc)
         raise _config_error(exc, source) from exc
 
 
@@ -240,10 +243,15 @@ def _env_tree(found: _EnvFound) -> dict[str, Any]:
 
 
 def _env_name(found: _EnvFound, loc: Sequence[Any]) -> str:
-    """The variable that set the value at `loc` (the longest path leading to it)."""
+    """The variable that set the value at `loc` (the longest path leading to it), or the
+    variables that set values below it (a whole section refused)."""
     names = [(len(path), name) for path, (_, name, _) in found.items()
              if tuple(loc[:len(path)]) == path]
-    return max(names)[1] if names else "the environment"
+    if names:
+        return max(names)[1]
+    below = sorted(name for path, (_, name, _) in found.items()
+                   if path[:len(loc)] == tuple(loc))
+    return ", ".join(below) if below else "the environment"
 
 
 def _sets(values: Mapping[str, Any], loc: Sequence[Any]) -> bool:
@@ -287,13 +295,18 @@ def _validate(data: Mapping[str, Any]) -> Settings:
         raise _config_error(exc) from exc
 
 
+FROM_FLAGS = "(set on the command line)"
+
+
 class SettingsError(ConfigError):
     """Settings refused; `from_flag`: the value at fault came from a command-line flag (bad
-    input, where a file's or a variable's is a configuration error)."""
+    input, where a file's or a variable's is a configuration error); `loc`: where in the tree
+    (its message says FROM_FLAGS where the command line can name the flag)."""
 
-    def __init__(self, message: str, *, from_flag: bool = False) -> None:
+    def __init__(self, message: str, *, from_flag: bool = False,
+                 loc: tuple[Any, ...] = ()) -> None:
         super().__init__(message)
-        self.from_flag = from_flag
+        self.from_flag, self.loc = from_flag, loc
 
 
 def _config_error(exc: ValidationError, source: str | None = None) -> SettingsError:
@@ -309,11 +322,11 @@ def _config_error(exc: ValidationError, source: str | None = None) -> SettingsEr
         hint = f" (did you mean {near[0]}?)" if near else " (no such setting)"
     from_flag = source == FLAGS or (source or "").startswith("--")
     if source == FLAGS:
-        where = err["loc"][1] if len(err["loc"]) > 1 else None
-        source = "--" + where.replace("_", "-") if isinstance(where, str) else "a flag"
-    if source:
+        hint += f" {FROM_FLAGS}"
+    elif source:
         hint += f" (set by {source})"
-    return SettingsError(f"invalid settings: {loc}: {msg}{hint}", from_flag=from_flag)
+    return SettingsError(f"invalid settings: {loc}: {msg}{hint}", from_flag=from_flag,
+                         loc=tuple(err["loc"]))
 
 
 def _keys_at(path: Sequence[Any]) -> list[str]:
@@ -394,6 +407,7 @@ def _env_value(raw: str, annotation: Any) -> Any:
 
 __all__ = [
     "ENV_PREFIX",
+    "FROM_FLAGS",
     "SECTIONS",
     "SETTINGS_ENV",
     "AgentSettings",

@@ -9,9 +9,11 @@ factors, and the odometry the submaps carry."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import shutil
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -237,8 +239,11 @@ def test_export_command_prints_one_line_per_file(exported, tmp_path) -> None:
 def test_a_store_is_exported_as_its_own_fleet_whatever_the_settings_say(exported,
                                                                           tmp_path) -> None:
     _, _, _, res = exported
-    other = export_store(res.out_dir.parent / "merge.db", tmp_path / "out",
-                         config=ServiceConfig(fleet="another"))
+    store = tmp_path / "claimed.db"
+    shutil.copyfile(res.out_dir.parent / "merge.db", store)
+    with contextlib.closing(sqlite3.connect(store)) as c, c:
+        c.execute("INSERT INTO meta (key, value) VALUES ('fleet', 'reef')")
+    other = export_store(store, tmp_path / "out", config=ServiceConfig(fleet="another"))
     assert other.graph.read_text() == res.graph.read_text()
 
 
@@ -246,15 +251,27 @@ def test_a_store_on_read_only_media_is_exported(exported, tmp_path) -> None:
     """Read-only media (a read-only bind mount in a mount namespace of its own): SQLite cannot
     make a WAL file's index beside the store; the export reads a copy instead."""
     _, _, _, res = exported
-    src, ro = tmp_path / "media", tmp_path / "ro"
-    src.mkdir()
-    ro.mkdir()
-    for name in ("merge.db", "merge.db-wal"):  # as a clean close or a crash leaves them
-        if (res.out_dir.parent / name).is_file():
-            shutil.copyfile(res.out_dir.parent / name, src / name)
+    src, ro, live = tmp_path / "media", tmp_path / "ro", tmp_path / "live"
+    for d in (src, ro, live, src / "wal"):
+        d.mkdir()
+    shutil.copyfile(res.out_dir.parent / "merge.db", src / "merge.db")  # closed cleanly
+    # as a crash leaves a store: rows in its WAL not yet in the file (autocheckpoint off)
+    shutil.copyfile(res.out_dir.parent / "merge.db", live / "merge.db")
+    with contextlib.closing(sqlite3.connect(live / "merge.db")) as c:
+        c.execute("PRAGMA wal_autocheckpoint=0")
+        with c:
+            c.execute("INSERT INTO meta (key, value) VALUES ('probe', 'in the wal')")
+        for name in ("merge.db", "merge.db-wal"):
+            shutil.copyfile(live / name, src / "wal" / name)
+    snapshot = tmp_path / "snapshot.py"
+    snapshot.write_text(
+        "import sqlite3, sys\nfrom mergesvc.fleet.export import snapshot_store\n"
+        "c = sqlite3.connect(snapshot_store(sys.argv[1], sys.argv[2]))\n"
+        "print(c.execute(\"SELECT value FROM meta WHERE key = 'probe'\").fetchone()[0])\n")
     script = (f"mount --bind {src} {ro} && mount -o remount,bind,ro {ro} && "
-              f"! touch {ro}/probe 2>/dev/null && exec {sys.executable} -m mergesvc.cli export "
-              f"--store {ro}/merge.db --out {tmp_path / 'out'}")
+              f"! touch {ro}/probe 2>/dev/null && {sys.executable} -m mergesvc.cli export "
+              f"--store {ro}/merge.db --out {tmp_path / 'out'} >/dev/null && exec "
+              f"{sys.executable} {snapshot} {ro}/wal/merge.db {tmp_path}/copy.db")
     probe = subprocess.run(["unshare", "-m", "sh", "-c", "mount --bind / /mnt"],
                            capture_output=True, text=True)
     if probe.returncode != 0:
@@ -263,6 +280,7 @@ def test_a_store_on_read_only_media_is_exported(exported, tmp_path) -> None:
                        timeout=120, cwd=Path(__file__).parents[1])
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out" / "graph.g2o").read_text() == res.graph.read_text()
+    assert r.stdout.strip() == "in the wal"  # the WAL's rows were read with the file
 
 
 def test_evo_ape_on_the_export_is_the_service_side_ate(tmp_path) -> None:

@@ -571,8 +571,14 @@ def test_a_bad_flag_value_is_bad_input_as_before(monkeypatch: pytest.MonkeyPatch
 @pytest.mark.parametrize(("args", "message"), [
     (["agent", "--robot", "auv/1"], "invalid robot 'auv/1': may not contain '/' (set by --robot)"),
     (["agent", "--robot", "a", "--session", "s//1"], "empty key chunk (set by --session)"),
-    (["agent", "--robot", "a", "--fleet", "f*"], "invalid fleet 'f*'"),
-    (["serve", "--fleet", "a b", "--store", ":memory:"], "(set by --fleet)"),
+    (["agent", "--robot", "a", "--fleet", "f*"], "Invalid value for '--fleet': invalid fleet"),
+    (["serve", "--fleet", "a b", "--store", ":memory:"], "invalid fleet 'a b'"),
+    (["view", "--fleet", "a b", "--duration", "1"], "invalid fleet 'a b'"),
+    (["link", "bridge", "--fleet", "a/b", "--seconds", "1"], "invalid fleet 'a/b'"),
+    (["link", "bridge", "--vehicles", "auv1", "--vehicles", "a*"], "invalid robot 'a*'"),
+    (["link", "sim", "--bytes-per-submap", "999999999"],
+     "workload.uplink_bytes: Input should be less than or equal to 65536 (set on the command "
+     "line)"),
     (["serve", "--seconds", "-1", "--store", ":memory:"], "--seconds"),
     (["agent", "--robot", "a", "--linger", "-1"], "--linger"),
 ])
@@ -604,6 +610,10 @@ def test_names_are_checked_as_keys_check_them() -> None:
             AgentSettings(fleet=fleet)
         with pytest.raises(KeyNameError):
             check_name("fleet", fleet)
+    from mergesvc.fleet.agent import AgentRun, run_agent
+
+    with pytest.raises(ConfigError, match="invalid agent settings: robot: invalid robot 'a/b'"):
+        run_agent(AgentRun(robot="a/b"), None, [])  # before any session opens
     # what the keys take, the settings take: a key that worked before still works
     assert AgentConfig(robot="auv 1", session="day1/dive2").session == "day1/dive2"
     with pytest.raises(ValueError, match="up must be"):  # every check of AgentConfig's
@@ -711,9 +721,16 @@ def test_a_refused_value_names_where_it_was_set(tmp_path: Path) -> None:
             load_settings(f, environ={name: value})
     with pytest.raises(ConfigError, match=r"top_k: .* \(set by MERGESVC_CANDIDATES__TOP_K\)$"):
         load_settings(environ={"MERGESVC_CANDIDATES__TOP_K": "0"})
-    with pytest.raises(SettingsError, match=r"fleet 'q r'.* \(set by --fleet\)$") as err:
+    with pytest.raises(SettingsError, match=r"fleet 'q r'.* \(set on the command line\)$") as err:
         load_settings(f, environ={}, overrides={"service": {"fleet": "q r"}})
-    assert err.value.from_flag
+    assert err.value.from_flag and err.value.loc == ("service", "fleet")  # the CLI names it
+    # a whole section refused: its setter named when one layer set values in it, else none
+    u = tmp_path / "u.json"
+    u.write_text(json.dumps({"uncertainty": {"output_range": [2, 1]}}))
+    with pytest.raises(ConfigError, match=rf"output_range .* \(set by settings file {u}\)$"):
+        load_settings(u, environ={})
+    with pytest.raises(ConfigError, match=r"output_range must satisfy [^(]*$"):
+        load_settings(u, environ={"MERGESVC_UNCERTAINTY__PATIENCE": "3"})
     fixed = load_settings(f, environ={}, overrides={"service": {"fleet": "qr"}})
     assert fixed.service.fleet == "qr"
     with pytest.raises(SettingsError) as err:

@@ -5,6 +5,7 @@ says why. One fleet per store (Store.claim_fleet)."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -50,17 +51,25 @@ def test_serve_on_a_store_another_service_holds_fails_in_one_line(tmp_path: Path
         "pick another --store"]
 
 
-def test_a_store_belongs_to_the_fleet_that_first_served_it(tmp_path: Path) -> None:
+def test_a_store_belongs_to_the_fleet_whose_submaps_it_took(tmp_path: Path) -> None:
     """Another fleet's service on it is refused before it reads anything (its sessions and
-    frame are not that fleet's); the same fleet, restarted, is served."""
+    frame are not that fleet's); the same fleet, restarted, is served. A service that stored
+    nothing (a typo in --fleet, a --seconds 0 start) leaves no mark."""
+    from mergesvc.core.model import ObjectNode, Submap
     from mergesvc.fleet.config import ServiceConfig
     from mergesvc.fleet.service import MergeService
 
     store = tmp_path / "merge.db"
-    with MergeService(ServiceConfig(fleet="reef", store=str(store)), None):
-        pass
-    with pytest.raises(ConfigError, match=f"store {store} belongs to fleet reef, not wreck: "
-                       "serve --fleet reef, or pick another --store for fleet wreck"):
+    with MergeService(ServiceConfig(fleet="typo", store=str(store)), None) as svc:
+        assert svc.store.meta("fleet") is None
+    objects = [ObjectNode(id=f"o{i}", position=(float(i), 0.0, 0.0), embedding=[1.0, 0.0],
+                          variance=0.1) for i in range(3)]
+    with MergeService(ServiceConfig(fleet="reef", store=str(store)), None) as svc:
+        svc.ingest(Submap(robot_id="auv1", session_id="s0", seq=0, objects=objects))
+        assert svc.store.meta("fleet") == "reef"
+    told = (f"store {store} holds fleet reef's submaps, not wreck's: serve --fleet reef, or "
+            "pick another --store for wreck")
+    with pytest.raises(ConfigError, match=re.escape(told)):
         MergeService(ServiceConfig(fleet="wreck", store=str(store)), None).start()
     with MergeService(ServiceConfig(fleet="reef", store=str(store)), None) as svc:
         assert svc.store.meta("fleet") == "reef"
@@ -68,6 +77,4 @@ def test_a_store_belongs_to_the_fleet_that_first_served_it(tmp_path: Path) -> No
     r = subprocess.run([sys.executable, "-m", "mergesvc.cli", "serve", "--store", str(store),
                         "--fleet", "wreck", "--listen", "tcp/127.0.0.1:0", "--seconds", "5"],
                        capture_output=True, text=True, timeout=120, env=clean)
-    assert r.returncode == 1 and r.stderr.strip().splitlines() == [
-        f"error: store {store} belongs to fleet reef, not wreck: serve --fleet reef, or pick "
-        "another --store for fleet wreck"], r.stderr
+    assert r.returncode == 1 and r.stderr.strip().splitlines() == [f"error: {told}"], r.stderr

@@ -24,6 +24,7 @@ from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
     ConnectTimeout,
+    FleetName,
     LinkKind,
     Listen,
     Mode,
@@ -34,6 +35,7 @@ from mergesvc.cli.options import (
     bare_match_for,
     command_group,
     given,
+    key_names,
     progress_lines,
     resolve_settings,
     settings_env,
@@ -104,7 +106,7 @@ def _ros2_bridge(on: bool, session: Any, fleet: str, domain_id: int, namespace: 
 
 def serve(
     ctx: typer.Context,
-    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    fleet: FleetName = "fleet0",
     store: Annotated[Path, typer.Option(help="SQLite file (WAL mode)")] = Path("mergesvc.db"),
     mode: Mode = ZenohMode.ROUTER,
     listen: Listen = None,
@@ -151,7 +153,8 @@ def serve(
             typer.echo(f"merge service for fleet {cfg.fleet} on {listen or connect}, "
                        f"store {cfg.store}")
             start = time.monotonic()
-            with progress_lines(progress, lambda: status_line(svc.status(False, False))):
+            fresh = cfg.status_refresh_s <= 0  # else the figures' thread's last read
+            with progress_lines(progress, lambda: status_line(svc.status(False, fresh))):
                 while not stop.is_set() and (seconds is None
                                              or time.monotonic() - start < seconds):
                     stop.wait(0.2)
@@ -210,7 +213,7 @@ def _agent_frames(robot: str, session: str, seed: int, laps: int, objects: int,
 def agent(
     ctx: typer.Context,
     robot: Annotated[str, typer.Option(help="this vehicle's name")],
-    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    fleet: FleetName = "fleet0",
     session_id: Annotated[str, typer.Option("--session", help="this session's name")] = "s0",
     seed: Annotated[int, typer.Option(help="fleet world seed (scenario input)")] = 0,
     laps: Annotated[int, typer.Option(help="laps of the robot's pattern")] = 2,
@@ -405,11 +408,12 @@ def link_sim(
 
 @link_app.command("bridge")
 def link_bridge(
-    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    fleet: FleetName = "fleet0",
     rate: Annotated[int, typer.Option(help="modem rate 1, 3 or 5")] = 5,
     snr_db: Annotated[float, typer.Option(help="mean SNR in dB")] = 6.0,
     time_scale: Annotated[float, typer.Option(help="simulated s per wall s, inverted")] = 1.0,
-    vehicles: Annotated[list[str] | None, typer.Option(help="vehicle names (repeat)")] = None,
+    vehicles: Annotated[list[str] | None, typer.Option(
+        help="vehicle names (repeat)", callback=key_names("robot"))] = None,
     mode: BridgeMode = ZenohMode.CLIENT,
     connect: Connect = None,
     listen: Listen = None,

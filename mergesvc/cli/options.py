@@ -40,6 +40,8 @@ __all__ = [
     "Connect",
     "ConnectTimeout",
     "DeprecatedConfig",
+    "Flags",
+    "FleetName",
     "LinkKind",
     "Listen",
     "Mode",
@@ -53,6 +55,7 @@ __all__ = [
     "command_group",
     "deprecated_config",
     "given",
+    "key_names",
     "progress_lines",
     "resolve_settings",
     "settings_env",
@@ -150,6 +153,27 @@ def progress_lines(every_s: float, line: Callable[[], str]) -> Iterator[None]:
     finally:
         done.set()
         thread.join()
+
+
+def key_names(what: str) -> Callable[[Any], Any]:
+    """A typer callback refusing a name (or each of a list) that no key can hold as a `what`
+    (fleet, robot: wire/keys.py check_name): bad input, before anything connects."""
+    from mergesvc.errors import ConfigError
+    from mergesvc.wire.keys import check_name
+
+    def check(value: Any) -> Any:
+        try:
+            for name in value if isinstance(value, list) else [value] if value else []:
+                check_name(what, name)
+        except ConfigError as exc:
+            raise typer.BadParameter(str(exc)) from exc
+        return value
+
+    return check
+
+
+FleetName = Annotated[str, typer.Option(help="fleet name in the key space",
+                                        callback=key_names("fleet"))]
 
 
 def bare_match_for(command: SettingsCommand | None) -> tuple[tuple[str, ...], ...]:
@@ -253,11 +277,12 @@ def deprecated_config(settings: Path | None, config: Path | None, command: str) 
     return config
 
 
-def given(ctx: typer.Context, **flags: Any) -> dict[str, Any]:
+def given(ctx: typer.Context, **flags: Any) -> Flags:
     """The flags typed on the command line (named by their parameter), enums as their values:
     the flags' layer of the settings. A flag left at its default is left out, so the value
     from the file or the environment stands (a flag's default is the setting's default)."""
-    out = {}
+    out = Flags()
+    out.options = {p.name: list(p.opts) for p in ctx.command.params if p.name and p.opts}
     for name, value in flags.items():
         source = ctx.get_parameter_source(name)
         if source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP"):
@@ -275,14 +300,34 @@ def resolve_settings(
     `bare_match`: where a bare MatchConfig file goes (`bare_match_for(command)`). A bad file or
     variable is a ConfigError (exit 1 under exit_on_error); a flag the settings refuse is bad
     input (exit 2), as when the command checked it itself."""
-    from mergesvc.settings import SettingsError, load_settings
+    from mergesvc.settings import FROM_FLAGS, SettingsError, load_settings
 
     try:
         return load_settings(path, environ=os.environ, overrides=flags, bare_match=bare_match)
     except SettingsError as exc:
         if not exc.from_flag:
             raise
-        fail(exc, EXIT_BAD_INPUT)
+        flag = _flag_of(flags or {}, exc.loc)
+        text = str(exc).replace(FROM_FLAGS, f"(set by {flag})") if flag else str(exc)
+        fail(SettingsError(text, from_flag=True, loc=exc.loc), EXIT_BAD_INPUT)
+
+
+def _flag_of(flags: Mapping[str, Any], loc: tuple[Any, ...]) -> str | None:
+    """The flag (`given`'s options) that set the setting at `loc` (section, setting, ...):
+    the parameter named as the setting or spelt so; None when no flag is known for it."""
+    if len(loc) < 2 or not isinstance(loc[1], str):
+        return None
+    options = getattr(flags.get(loc[0]), "options", {})
+    spelt = "--" + loc[1].replace("_", "-")
+    return next((opts[0] for name, opts in options.items()
+                 if name == loc[1] or spelt in opts), None)
+
+
+class Flags(dict[str, Any]):
+    """The flags typed (`given`), with every parameter's option names (`options`: parameter
+    -> its flags) to name the flag a refused setting came from."""
+
+    options: dict[str, list[str]]
 
 
 def write_settings_beside(settings: Settings, out: Path, *, folder: bool) -> Path:

@@ -15,6 +15,7 @@ from mergesvc.cli.options import (
     DEFAULT_ENDPOINT,
     Connect,
     ConnectTimeout,
+    FleetName,
     Listen,
     ZenohConfigFile,
     ZenohMode,
@@ -29,7 +30,7 @@ ViewMode = zenoh_mode("zenoh mode")
 
 
 def view(
-    fleet: Annotated[str, typer.Option(help="fleet name in the key space")] = "fleet0",
+    fleet: FleetName = "fleet0",
     mode: ViewMode = ZenohMode.CLIENT,
     connect: Connect = None,
     listen: Listen = None,

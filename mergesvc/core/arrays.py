@@ -162,7 +162,7 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
-class NonFiniteRowError(SchemaError):
+class _NonFiniteRowError(SchemaError):
     """A NaN or inf in one object's `what` (its row); ObjectArrays names the object."""
 
     def __init__(self, what: str, row: int) -> None:
@@ -171,12 +171,12 @@ class NonFiniteRowError(SchemaError):
 
 
 def _check_finite(a: np.ndarray, what: str) -> None:
-    """NonFiniteRowError for the first row of `a` holding a NaN or inf."""
+    """_NonFiniteRowError for the first row of `a` holding a NaN or inf."""
     for lo in chunks(len(a)):
         block = np.isfinite(a[lo:lo + _CHUNK_ROWS])
         if not block.all():
             bad = block.reshape(len(block), -1).all(axis=1)
-            raise NonFiniteRowError(what, lo + int(np.argmin(bad)))
+            raise _NonFiniteRowError(what, lo + int(np.argmin(bad)))
         release_rows(a, lo, lo + _CHUNK_ROWS)
 
 
@@ -249,7 +249,7 @@ class ObjectArrays:
             emb = _as_float32(emb)
             var = _compact_variances(self.variances_nd, n, emb.shape[1])
             _check_finite(pos, "position")
-        except NonFiniteRowError as exc:
+        except _NonFiniteRowError as exc:
             raise SchemaError(f"object {exc.row} (id {self.ids[exc.row]!r}): its {exc.what} "
                               "has NaN or inf") from exc
         if np.any(np.abs(pos) > MAX_COORDINATE_M):

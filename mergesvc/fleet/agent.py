@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
+from pydantic import ValidationError
+
 from mergesvc.core.model import Factor, Submap
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import ConfigError, MergeError
@@ -319,7 +321,12 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame],
     proj = Projection.load(run.projection) if run.projection is not None else None
     if run.profile is Profile.COMPACT and proj is None:
         raise ConfigError("the compact profile needs a fleet projection")
-    acfg = run.config or AgentConfig(robot=run.robot, session=run.session, fleet=run.fleet)
+    try:
+        acfg = run.config or AgentConfig(robot=run.robot, session=run.session, fleet=run.fleet)
+    except ValidationError as exc:  # a name no key can hold
+        err = exc.errors()[0]
+        raise ConfigError(f"invalid agent settings: {'.'.join(map(str, err['loc']))}: "
+                          f"{err['msg'].removeprefix('Value error, ')}") from exc
     if (acfg.robot, acfg.session, acfg.fleet) != (run.robot, run.session, run.fleet):
         raise ConfigError(
             f"agent settings are for {acfg.robot}/{acfg.session} in fleet {acfg.fleet}, the run "

@@ -89,6 +89,7 @@ class Store(FactorRecords):
                             else Path(self.path).resolve().as_uri() + "?mode=ro")
         self._reader: sqlite3.Connection | None = None  # the status figures' (_figures)
         self._reader_lock = threading.Lock()
+        self._fleet: str | None = None  # the fleet to claim with a submap stored (claim_fleet)
         try:
             self._conn: sqlite3.Connection | None = sqlite3.connect(
                 self.path,
@@ -290,6 +291,9 @@ class Store(FactorRecords):
                     (robot_id, session_id, seq, payload, digest, t),
                 )
                 self._touch_frame(c, frame, robot_id, session_id, t)
+                if self._fleet is not None:  # (claim_fleet) in the submap's commit
+                    c.execute("INSERT OR IGNORE INTO meta (key, value) VALUES (?, ?)",
+                              (META_FLEET, self._fleet))
                 return int(cur.lastrowid), True
             row_id, stored_digest = row
             if stored_digest == digest:
@@ -513,12 +517,15 @@ class Store(FactorRecords):
             return str(c.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()[0])
 
     def claim_fleet(self, fleet: str) -> None:
-        """Tie this store to `fleet` (its first service's), or ConfigError when it belongs to
-        another fleet: one store holds one fleet's sessions, factors and frame."""
-        owner = self.set_meta_once(META_FLEET, fleet)
-        if owner != fleet:
-            raise ConfigError(f"store {self.path} belongs to fleet {owner}, not {fleet}: serve "
-                              f"--fleet {owner}, or pick another --store for fleet {fleet}")
+        """Store `fleet`'s submaps from now on, or ConfigError when the store holds another
+        fleet's (one store, one fleet's sessions, factors and frame). The claim is written
+        with the first submap this store takes (`put_submap`): a service that stored nothing
+        leaves no mark, and an older file is claimed by the fleet whose submaps it takes."""
+        owner = self.meta(META_FLEET)
+        if owner is not None and owner != fleet:
+            raise ConfigError(f"store {self.path} holds fleet {owner}'s submaps, not {fleet}'s: "
+                              f"serve --fleet {owner}, or pick another --store for {fleet}")
+        self._fleet = fleet
 
     def set_meta(self, key: str, value: str) -> None:
         """Store `value` under `key`, replacing what was there (state derived as the service

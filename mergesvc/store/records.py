@@ -106,7 +106,7 @@ META_NOISE_SCALES = "noise_scales"
 #: Meta key of the fleet's anchor session ("robot/session"): fixed by the first unit of work,
 #: so published coordinates stay in one frame across restarts.
 META_ANCHOR = "anchor"
-#: Meta key of the fleet a store belongs to: fixed by the first service that used it.
+#: Meta key of the fleet whose submaps a store holds: fixed with the first one stored.
 META_FLEET = "fleet"
 
 
