@@ -15,7 +15,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from pydantic import ValidationError
 
@@ -94,7 +94,6 @@ class Agent:
         cache_samples: int = 10_000,
         result_key: str | None = None,
         stats: AgentStats | None = None,
-        echo: Callable[[bytes], Submap] | None = None,
     ) -> None:
         import zenoh
         from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
@@ -103,7 +102,6 @@ class Agent:
         self.local = LocalMap(config)
         self.stats = AgentStats() if stats is None else stats
         self._encode, self._decode = encode, decode_factor
-        self._echo = echo  # a payload sent as the service decodes it (a lossy codec)
         self._lock = threading.Lock()
         self._session = session
         self._token = session.liveliness().declare_token(alive_key)
@@ -255,10 +253,6 @@ class Agent:
     def publish(self, sub: Submap) -> None:
         """Encode and send one submap (kept for a retry: see the class docstring)."""
         payload = self._encode(sub, self.stats.submaps_sent)
-        if self._echo is not None and sub.odometry is not None:
-            sent = self._echo(payload)  # the odometry as rounded: the next one corrects it
-            with self._lock:
-                self.local.as_sent(sent)
         with self._lock:
             self._sent[(sub.session_id, sub.seq)] = (payload, sub.keyframe)
             while len(self._sent) > self._keep:
@@ -337,15 +331,11 @@ def run_agent(run: AgentRun, zenoh_config: Any, frames: Iterable[Frame],
     def encode(sub: Submap, seq: int) -> bytes:
         return encode_message(sub, run.profile, run.robot, seq, projection=proj)
 
-    def echo(data: bytes) -> Submap:
-        return cast("Submap", decode_message(data, proj)[1])
-
     with open_session(zenoh_config) as session, Agent(
         acfg, session, encode, decode_factor,
         submap_key=keys.submap_key(root, run.robot, run.session),
         factor_key=keys.robot_factors(root, run.robot), alive_key=keys.alive_key(root, run.robot),
         result_key=keys.result_key(root, run.robot), stats=stats,
-        echo=None if run.profile is Profile.FULL else echo,
     ) as ag:
         stats = ag.run(frames, time_scale=run.time_scale, stop=stop)
         (stop or threading.Event()).wait(run.linger_s)

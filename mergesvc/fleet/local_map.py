@@ -16,7 +16,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.odometry import chain_covariance, step_covariance
-from mergesvc.core.poses import pose3_from_model
 from mergesvc.core.tracking import Frame, ObjectTracker, Track, TrackingConfig
 from mergesvc.errors import InputError
 from mergesvc.wire.keys import check_name
@@ -109,9 +108,6 @@ class LocalMap:
     # keyframes whose submap the service will never hold (refused for good, failed): the next
     # submap's odometry starts from the last keyframe before them, so its chain stays joined
     lost: set[int] = field(default_factory=set)
-    # keyframe -> its pose as the service composes it from the odometry sent, which the codec
-    # rounded (`as_sent`): the next odometry starts there, so the rounding does not add up
-    sent_pose: dict[int, np.ndarray] = field(default_factory=dict)
     _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
     # factor id -> a factor on an own keyframe not reached yet (a restart on the same session
     # is told of its earlier factors at once): added when the keyframe is (`add_held`)
@@ -212,29 +208,16 @@ class LocalMap:
         inv(T_est[from]) T_est[to], the composition of the odometry steps in between (not the
         smoothed estimate, so that the service can use it as a factor independent of the
         landmarks this vehicle also sends), with the steps' covariance composed to first order
-        (core/odometry.py: a heading error grows into sideways position error). From the pose
-        the service holds for `from_keyframe` when the codec rounded what was sent (`as_sent`):
-        each step then corrects the last one's rounding, and the chain the service composes
-        stays within one rounding of the odometry instead of walking away from it."""
+        (core/odometry.py: a heading error grows into sideways position error)."""
         if not 0 <= from_keyframe < to_keyframe < self.frames_seen:
             raise InputError(
                 f"odometry needs 0 <= from < to < {self.frames_seen}, got {from_keyframe}, "
                 f"{to_keyframe}")
-        start = self.sent_pose.get(from_keyframe, self.poses_est[from_keyframe])
-        T = np.linalg.inv(start) @ self.poses_est[to_keyframe]
+        T = np.linalg.inv(self.poses_est[from_keyframe]) @ self.poses_est[to_keyframe]
         cov = chain_covariance(self.poses_est[from_keyframe:to_keyframe + 1],
                                step_covariance(self.config.odometry_sigma))
         return Odometry(from_keyframe=from_keyframe, T_from_to=_transform(T),
                         covariance=cov.tolist())
-
-    def as_sent(self, sub: Submap) -> None:
-        """Record a submap as the service decodes it (`sub`: the payload sent, decoded): its
-        keyframe's pose is where the service's chain of this vehicle puts it."""
-        odo = sub.odometry
-        if odo is None or sub.keyframe is None:
-            return
-        start = self.sent_pose.get(odo.from_keyframe, self.poses_est[odo.from_keyframe])
-        self.sent_pose[sub.keyframe] = start @ pose3_from_model(odo.T_from_to).matrix()
 
     def _node(self, t: Track, est: gtsam.Values, T_k_inv: np.ndarray) -> ObjectNode:
         key = L(self.landmark_of[t.track_id])

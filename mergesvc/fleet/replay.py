@@ -19,7 +19,7 @@ import logging
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -62,15 +62,13 @@ def _deliver_in_order(subs: list[Submap]) -> tuple[list[Submap], dict[str, Any]]
 
 def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projection,
                       profile: Profile, seed: int,
-                      rebase: Callable[[Submap, int], Submap] | None = None,
-                      sent: Callable[[Submap], None] | None = None,
+                      rebase: Callable[[Submap, int], Submap] | None = None
                       ) -> tuple[list[Submap], dict[str, Any]]:
     """Each submap offered at its stamp from its vehicle to the topside; delivered ones come
     back decoded, in arrival order. With `rebase`, a vehicle sends each submap's odometry from
     its last keyframe it knows arrived (a delivery is known one TDMA cycle later, when the
     topside's slot has acked it; keyframe 0, the session origin, before any): a lost submap then
-    leaves no gap in its odometry chain (`rebase(submap, from_keyframe)` re-cuts the odometry,
-    every submap's, after `sent` was told each earlier one as decoded, as the agent does)."""
+    leaves no gap in its odometry chain (`rebase(submap, from_keyframe)` re-cuts the odometry)."""
     robots = sorted({s.robot_id for s in subs})
     cfg = link.model_copy(deep=True)
     cfg.tdma.slot_order = [TOPSIDE, *robots]
@@ -90,11 +88,10 @@ def _deliver_acoustic(subs: list[Submap], link: LinkConfig, projection: Projecti
             seen += 1
         if rebase is not None and s.odometry is not None:
             base = known.get(s.robot_id, 0)
-            rebased += base < s.odometry.from_keyframe
-            s = rebase(s, min(base, s.odometry.from_keyframe))
+            if base < s.odometry.from_keyframe:
+                s = rebase(s, base)
+                rebased += 1
         payload = encode_message(s, profile, s.robot_id, s.seq or 0, projection=projection)
-        if sent is not None:
-            sent(cast("Submap", decode_message(payload, [projection])[1]))
         keyframe_of[sim.offer(s.robot_id, TOPSIDE, payload, at_s=at)] = (
             s.robot_id, s.keyframe if s.keyframe is not None else -1)
     end = max((s.stamp or 0.0) for s in subs) if subs else 0.0
@@ -151,8 +148,7 @@ def replay_world(
         order, delivery = _deliver_acoustic(
             subs, link, projection, profile, seed,
             lambda sub, k: sub.model_copy(update={
-                "odometry": local[sub.robot_id].odometry(k, sub.keyframe)}),
-            lambda sub: local[sub.robot_id].as_sent(sub))
+                "odometry": local[sub.robot_id].odometry(k, sub.keyframe)}))
     svc = MergeService(service.model_copy(update={"store": ":memory:"}), session=None)
     try:
         for s in order:
