@@ -535,7 +535,7 @@ def run_soak(plan: SoakPlan, serve_command: Sequence[str] | None = None,
                 return pending == 0 and set(ledger.valid) <= stored
 
             is_drained = _wait(drained, plan.drain_timeout_s, 0.5)
-            _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0)
+            _wait(lambda: not ledger.unanswered(), 10.0)
             drain_s = time.monotonic() - t_drain
             drain_end = time.time()
             sampler_stop.set()
@@ -590,10 +590,10 @@ def _wait_router(config: Any, timeout_s: float) -> bool:
 
 def _restart(svc: ServiceProcess, monitor: Any, plan: SoakPlan, gate: _Gate, ledger: Ledger,
              rng: np.random.Generator, echo: Callable[[str], Any]) -> dict[str, float]:
-    """kill -9 the service and start it again on the same store; the attacker waits (its
-    payloads sent so far answered first, at most 10 s)."""
+    """kill -9 the service and start it again on the same store; the attacker and the flood
+    wait (their payloads sent so far answered first, at most 10 s)."""
     with gate.hold():
-        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+        _wait(lambda: not ledger.unanswered(), 10.0, 0.1)
         t_kill = time.time()
         svc.kill()
         time.sleep(float(rng.uniform(*plan.restart_pause_s)))
@@ -622,7 +622,7 @@ def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, g
     episode_log = svc.log_path.with_name(svc.log_path.name + ".disk_full")
     gate.calm.clear()
     with gate.hold():
-        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 10.0, 0.1)
+        _wait(lambda: not ledger.unanswered(), 10.0, 0.1)
         svc.stop()
         appended = [p for p in (store.with_name(store.name + "-wal"),
                                 store.with_name(store.name + ".acks")) if p.exists()]
@@ -634,7 +634,7 @@ def _disk_full(svc: ServiceProcess, store: Path, monitor: Any, plan: SoakPlan, g
             raise MergeError(f"the service did not start with a full disk (log: {episode_log})")
     time.sleep(plan.disk_full_s)
     with gate.hold():  # (failing writes slow the service's ingress: a longer wait)
-        _wait(lambda: ledger.hostile_answered() >= len(ledger.hostile), 60.0, 0.1)
+        _wait(lambda: not ledger.unanswered(), 60.0, 0.1)
         svc.stop()
         t_to = time.time()
         with svc.log_path.open("ab") as out:

@@ -70,9 +70,12 @@ class Ledger:
     episode: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    def hostile_answered(self) -> int:
+    def unanswered(self) -> bool:
+        """Whether a hostile payload or a flood variant sent is not answered yet (a kill then
+        would lose its answer: neither is stored)."""
         with self.lock:
-            return sum(sum(self.errors[r].values()) for r in HOSTILE_ROBOTS)
+            return (sum(sum(self.errors[r].values()) for r in HOSTILE_ROBOTS) < len(self.hostile)
+                    or sum(self.errors[FLOOD_ROBOT].values()) < self.flood_sent)
 
     def on_error(self, sample: Any) -> None:
         robot = str(sample.key_expr).rsplit("/", 1)[-1]
