@@ -619,3 +619,15 @@ def test_progress_line_texts() -> None:
                        results={"processed": 1, "no_match": 1})
     assert stats.line() == ("40 frames, 2 submaps sent (900 bytes), answers: 1 no match, "
                             "1 processed, factors in: 1")
+
+
+def test_view_save_path_that_cannot_be_written_is_said_before_connecting(tmp_path: Path) -> None:
+    """A missing folder, a folder, a file as a folder: one line, exit 2, before the session
+    (a dead endpoint would say exit 3) and before Rerun (whose refusal adds a log line)."""
+    (tmp_path / "f").write_text("")
+    for save, why in ((tmp_path / "no" / "x.rrd", "No such file or directory"),
+                      (tmp_path, "Is a directory"), (tmp_path / "f" / "x.rrd", "Not a directory")):
+        r = run("view", "--save", str(save), "--connect", "tcp/127.0.0.1:1",
+                "--connect-timeout", "1", "--duration", "1")
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip().splitlines() == [f"error: cannot use {save}: {why}"], r.stderr

@@ -3,7 +3,9 @@ docs/view.md): a native viewer, the web viewer (`--serve-web`), or an .rrd file 
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import time
 from pathlib import Path
 from typing import Annotated
@@ -69,6 +71,8 @@ def view(
         projections = [Projection.load(p) for p in projection or []]
         zconf = zenoh_config(mode, connect, listen, config,
                              default_connect=(DEFAULT_ENDPOINT,), connect_timeout=connect_timeout)
+        if save is not None:
+            _check_writable(save)
         sink = ViewSink(save=save, web=serve_web, web_port=web_port, grpc_port=grpc_port)
         # the session first: a fleet that cannot be reached opens no viewer
         with open_session(zconf) as session, LiveView.open(sink) as live:
@@ -83,3 +87,15 @@ def view(
                 feed.poll_status()  # the recording ends with the latest merged state
             typer.echo(json.dumps({"fleet": fleet, **vars(feed.stats),
                                    "saved": str(save) if save else None}))
+
+
+def _check_writable(path: Path) -> None:
+    """OSError (naming `path`) unless a file can be written there: said before anything
+    connects, and before Rerun, whose own refusal comes with a log line of its own."""
+    folder = path.parent
+    fault = (errno.EISDIR if path.is_dir() else errno.ENOENT if not folder.exists()
+             else errno.ENOTDIR if not folder.is_dir()
+             else errno.EACCES if not os.access(folder, os.W_OK)
+             or (path.exists() and not os.access(path, os.W_OK)) else None)
+    if fault is not None:
+        raise OSError(fault, os.strerror(fault), str(path))
