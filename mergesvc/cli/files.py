@@ -49,11 +49,10 @@ def _warn_zero_embeddings(path: Path, objs: Any) -> None:
     import numpy as np
 
     if hasattr(objs, "norms_n"):  # arrays (a binary file): the norms the match computed
-        ids = [objs.ids[k] for k in np.flatnonzero(objs.norms_n == 0)[:4]]
-        n = int(np.count_nonzero(objs.norms_n == 0))
+        zero = [objs.ids[k] for k in np.flatnonzero(objs.norms_n == 0)]
     else:
         zero = [o.id for o in objs.objects if not any(o.embedding)]
-        ids, n = zero[:4], len(zero)
+    ids, n = zero[:4], len(zero)
     if n:
         more = ", ..." if n > len(ids) else ""
         typer.echo(f"warning: {path}: {n} object{'' if n == 1 else 's'} with an all-zero "

@@ -33,7 +33,7 @@ from mergesvc.core.poses import pose3_from_model
 from mergesvc.errors import InputError, MergeError, StoreError, one_line
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.service import MergeService
-from mergesvc.store import META_FLEET
+from mergesvc.store import META_FLEET, StoreReader
 from mergesvc.wire import Projection, decode_message
 from mergesvc.wire.formats import write_g2o, write_tum
 
@@ -109,18 +109,6 @@ def _backup(src_uri: str, dst_path: Path) -> None:
             dst.close()
     finally:
         src.close()
-
-
-def _store_fleet(path: Path) -> str | None:
-    """The fleet a store belongs to (META_FLEET), None for a file from before it was kept."""
-    conn = sqlite3.connect(path)
-    try:
-        row = conn.execute("SELECT value FROM meta WHERE key = ?", (META_FLEET,)).fetchone()
-    except sqlite3.OperationalError:  # no meta table: an older file
-        return None
-    finally:
-        conn.close()
-    return None if row is None else str(row[0])
 
 
 def _write_json(path: Path, data: Any) -> Path:
@@ -247,7 +235,8 @@ def export_store(
     cfg = config or ServiceConfig()
     with tempfile.TemporaryDirectory(prefix="mergesvc-export-") as tmp:
         copy = snapshot_store(store_path, Path(tmp) / "store.db")
-        fleet = _store_fleet(copy) or cfg.fleet  # the store's own, whatever the settings say
+        with StoreReader(copy) as reader:  # the store's own fleet, whatever the settings say
+            fleet = reader.meta(META_FLEET) or cfg.fleet
         svc = MergeService(cfg.model_copy(update={"store": str(copy), "fleet": fleet}), None,
                            list(projections))
         try:

@@ -109,9 +109,9 @@ class LocalMap:
     # submap's odometry starts from the last keyframe before them, so its chain stays joined
     lost: set[int] = field(default_factory=set)
     _received: dict[str, _Received] = field(default_factory=dict)  # factor id -> in the graph
-    # factor id -> a factor on an own keyframe not reached yet (a restart on the same session
+    # factor id -> (own keyframe not reached yet, the factor) (a restart on the same session
     # is told of its earlier factors at once): added when the keyframe is (`add_held`)
-    _held: dict[str, Factor] = field(default_factory=dict)
+    _held: dict[str, tuple[int, Factor]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.tracker = ObjectTracker(self.config.tracking)
@@ -271,7 +271,7 @@ class LocalMap:
             if len(self._held) >= MAX_HELD:
                 raise InputError(f"factor {fid} ties own keyframe {own_k}, this map has "
                                  f"{self.frames_seen} poses and holds {MAX_HELD} such factors")
-            self._held[fid] = factor
+            self._held[fid] = (own_k, factor)
             return (f"factor {fid}: ties my keyframe {own_k}, not reached yet ("
                     f"{self.frames_seen} poses): held until then")
         other = (str(FrameId(factor.robot_b, factor.session_b) if me_a
@@ -313,10 +313,7 @@ class LocalMap:
     def add_held(self) -> list[str]:
         """Add the held factors whose own keyframe this map has reached now, in the order
         they came; their log lines."""
-        mine = (self.config.robot, self.config.session)
-        due = [f for f in self._held.values()
-               if ((f.keyframe_a if (f.robot_a, f.session_a) == mine else f.keyframe_b) or 0)
-               < self.frames_seen]
+        due = [f for k, f in self._held.values() if k < self.frames_seen]
         return [self.add_inter_robot(f) for f in due]
 
     def _retract(self, factor: Factor) -> str:

@@ -258,7 +258,7 @@ class StatusReply(BaseModel):
 
 def status_line(status: dict[str, Any]) -> str:
     """A StatusReply (as `MergeService.status` returns it) as one progress line: submaps,
-    factors, the robots alive and the store's problems, no poses."""
+    factors, the robots alive and a failing pose graph, no poses."""
     sub, fac, res = status["submaps"], status["factors"], status["results"]
     refused, no_match = sum(res["refused"].values()), sum(res["no_match"].values())
     alive = ", ".join(status["robots_alive"]) or "none"

@@ -44,6 +44,15 @@ class StoreReader:
                     "SELECT robot_id, session_id, seq, status, received_at_s, processed_at_s "
                     "FROM submaps")]
 
+    def meta(self, key: str) -> str | None:
+        """A fleet-wide fact stored once (Store.meta), None if not set or the file has no
+        meta table (a version-1 file)."""
+        try:
+            row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        except sqlite3.OperationalError:
+            return None
+        return None if row is None else str(row[0])
+
     def conflicts(self) -> int:
         return int(self._rows("SELECT COUNT(*) FROM submap_conflicts")[0][0])
 
