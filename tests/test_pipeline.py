@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from oracles import brute_force
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench import score_case
+from mergesvc.bench.match import bench_scenario
 from mergesvc.core.config import match_config
 from mergesvc.core.model import ObjectArrays, RejectReason
 from mergesvc.core.pipeline import match
@@ -49,6 +51,32 @@ def test_verified_underwater_never_accepts_a_wrong_match(seed: int) -> None:
     if out.result.accepted:
         assert s["wrong"] == 0
     assert s["accuracy"] >= 0.5
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 4, 5, 6])
+def test_a_tiny_problem_is_solved_exactly_without_the_heuristic(seed, monkeypatch) -> None:
+    """2-5 objects against a pool: the exact search answers the proposal (the brute-force
+    optimum over its candidates) and RRWM never runs; a KITTI-sized problem still runs it."""
+    from mergesvc.core import pipeline
+    from mergesvc.core.candidates import retrieve
+    from mergesvc.core.solvers import heuristic
+
+    calls: list[int] = []
+    real = heuristic.rrwm
+    monkeypatch.setattr(heuristic, "rrwm", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cfg = match_config(None, mode="verified")
+    for sc, tiny in ((bench_scenario(Family.UNDERWATER, seed), True),
+                     (make_scenario(Family.KITTI, seed), False)):
+        m_arr, s_arr = sc.map.arrays(), sc.submap.arrays()
+        cands, _ = retrieve(s_arr, m_arr, cfg.candidates, cfg.affinity, cfg.seed)
+        sigma_m, _ = pipeline.edge_scales(m_arr, cfg.affinity)
+        calls.clear()
+        prop = pipeline._propose(s_arr, m_arr, cands, cfg, sigma_m, pipeline.StageTimer())
+        assert (prop.exact is not None) is tiny and bool(calls) is not tiny
+        if tiny:
+            best, score = brute_force(prop.signed)
+            assert prop.signed.score(prop.assignment) == pytest.approx(score, abs=1e-9)
+            assert prop.exact[0].optimal and np.array_equal(prop.exact[0].assignment, best)
 
 
 def test_outliers_come_out_unmatched(underwater_scenario) -> None:

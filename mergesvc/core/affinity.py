@@ -23,7 +23,7 @@ from mergesvc.core.config import AffinityConfig, NodeAffinity
 from mergesvc.core.geometry import pairwise_lengths, radius_edges
 from mergesvc.core.model import ObjectArrays
 from mergesvc.core.solvers import dense
-from mergesvc.core.solvers.problem import AssignmentProblem
+from mergesvc.core.solvers.problem import AssignmentProblem, block
 
 # Chunk of map nodes per vectorised step of the per-dimension Gaussian distances; bounds the
 # (n1, chunk, d) temporaries to a few tens of MB.
@@ -482,8 +482,8 @@ def candidate_K(
         E1 = np.repeat(np.repeat(e_sub, counts, axis=0), counts, axis=1)
         X = np.repeat(np.repeat(neg_inv, counts, axis=0), counts, axis=1)
     else:
-        E1 = e_sub[np.ix_(R, R)]
-        X = neg_inv[np.ix_(R, R)]
+        E1 = block(e_sub, R)
+        X = block(neg_inv, R)
     xyz = map_.position_xyz_m[local[cols]]
     D = pairwise_lengths(xyz)  # e_ab of every candidate pair
     D -= E1
@@ -493,11 +493,7 @@ def candidate_K(
     K_pos = exp_edges(X)
     K_pos *= w
     invalid = cols[:, None] == cols[None, :]
-    if grouped:
-        for lo, hi in zip(np.r_[0, np.cumsum(counts)[:-1]], np.cumsum(counts)):
-            invalid[lo:hi, lo:hi] = True
-    else:
-        invalid |= R[:, None] == R[None, :]
+    invalid |= R[:, None] == R[None, :]
     K_pos[invalid] = 0.0
     K_signed = K_pos - w * aff.edge_threshold
     K_signed[invalid] = 0.0
@@ -540,9 +536,9 @@ def extend_K(
     new = np.arange(m, M)
     # entries (p, q) with q new: every row against the new columns, one (M, M - m) block
     D = _cross_lengths(xyz, xyz[new])
-    D -= e_sub[np.ix_(R, R[new])]
+    D -= block(e_sub, R, R[new])
     np.square(D, out=D)
-    X = neg_inv[np.ix_(R, R[new])] * D
+    X = block(neg_inv, R, R[new]) * D
     invalid = (R[:, None] == R[new][None, :]) | (cols[:, None] == cols[new][None, :])
     w = edge_pair_weight(sub.n, aff)
     pos = exp_edges(X)

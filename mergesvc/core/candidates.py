@@ -135,11 +135,16 @@ def retrieve(
     map_: ObjectArrays,
     cand_cfg: CandidatesConfig,
     aff_cfg: AffinityConfig,
-    rng: np.random.Generator,
+    rng: np.random.Generator | int,
 ) -> tuple[Candidates, Calibration]:
-    """Top-k candidates per submap node with calibrated scores, and the calibration."""
+    """Top-k candidates per submap node with calibrated scores, and the calibration.
+
+    rng: the generator of the map sample's draws, or its seed (a map no larger than the
+    sample draws nothing: no generator is made)."""
     kind = NodeAffinity(aff_cfg.kind)
     n1, n2 = sub.n, map_.n
+    if n2 > cand_cfg.sample and not isinstance(rng, np.random.Generator):
+        rng = np.random.default_rng(rng)
     # shortlist: every map node for small maps, else the best `prefilter` by plain cosine
     # (core/search.py: exact chunked products, or the map's index when it is large)
     cos = None
@@ -177,6 +182,9 @@ def retrieve(
         rows = np.broadcast_to(np.arange(n1)[:, None], shortlist.shape)
         A = log_likelihood_ratio_pairs(sub, map_, same, rows.ravel(), shortlist.ravel())
         A = A.reshape(shortlist.shape)
+    elif n2 <= cand_cfg.prefilter:  # the shortlist is the whole map
+        A = node_affinity(kind, sub, map_, np.arange(n2), aff_cfg.normalize_embeddings, D_ref,
+                          same)
     else:
         union, inverse = np.unique(shortlist, return_inverse=True)
         A_union = node_affinity(

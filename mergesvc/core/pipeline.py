@@ -50,7 +50,7 @@ from mergesvc.core.solvers.exact import ExactResult, solve_exact
 from mergesvc.core.solvers.hungarian import harden, harden_dense, prune_negative
 from mergesvc.core.solvers.margin import row_margins
 from mergesvc.core.solvers.near import NearOptimal, near_optimal
-from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem, block
 from mergesvc.core.threads import blas_threads
 from mergesvc.core.verify import (
     RigidFit,
@@ -161,15 +161,14 @@ def _match_scores(
 ) -> dict[int, float]:
     """Per matched row, in [0, 1]: mean of its node score and of its edge agreement a_e with
     the other matched rows (node score alone when it is the only match)."""
-    rows = np.flatnonzero(assignment != UNMATCHED)
+    rows = (assignment != UNMATCHED).nonzero()[0]
     if len(rows) == 0:
         return {}
-    idx = positive.assignment_to_indices(assignment)
-    block = positive.K[np.ix_(idx, idx)]
-    node = np.clip(np.diag(block), 0.0, 1.0)
+    K = block(positive.K, positive.assignment_to_indices(assignment))
+    node = np.clip(K.diagonal(), 0.0, 1.0)
     if len(rows) == 1:
         return {int(rows[0]): float(node[0])}
-    agree = (block.sum(axis=1) - np.diag(block)) / (edge_w * (len(rows) - 1))
+    agree = (K.sum(axis=1) - K.diagonal()) / (edge_w * (len(rows) - 1))
     return {int(i): float(0.5 * node[k] + 0.5 * agree[k]) for k, i in enumerate(rows)}
 
 
@@ -182,6 +181,8 @@ class _Proposal:
     positive: AssignmentProblem
     local: np.ndarray  # (n2_local,) local col -> map index
     assignment: np.ndarray  # (n1,) local col or UNMATCHED
+    # the exact search's answer over these candidates when it already ran (`_exact`)
+    exact: tuple[ExactResult, NearOptimal | None] | None = None
 
     def to_map(self, assignment: np.ndarray) -> np.ndarray:
         return np.where(assignment == UNMATCHED, UNMATCHED, self.local[assignment])
@@ -241,10 +242,21 @@ def _propose(
         seed = np.where(hit, at, UNMATCHED)
         if not signed.is_feasible(seed):
             seed = None
-    if seed is not None and (config.verify.exact or config.solver.name is SolverName.EXACT):
+    verified = config.verify.exact or config.solver.name is SolverName.EXACT
+    if seed is not None and verified:
         # the exact search follows and starts from the seed (improved by its local search):
         # a second heuristic solve would only hand it another incumbent
         assignment = prune_negative(signed, seed)
+    elif verified and signed.n1 <= _NEAR_MAX_ROWS and signed.m <= _NEAR_MAX_CANDIDATES:
+        # small enough for the exact search to answer outright, from the node scores' own
+        # assignment: the heuristic would only hand it an incumbent (and the guided step a
+        # worse answer to probe)
+        start = prune_negative(signed, harden(signed, signed.K.diagonal().copy(), 0.0))
+        found = _exact(signed, start, config)
+        assignment = found[0].assignment if found[0].score >= signed.score(start) - 1e-9 \
+            else start
+        timer.lap("exact")
+        return _Proposal(cands, signed, positive, local, assignment, found)
     else:
         assignment = _solve_candidates(signed, positive, config)
         if seed is not None and signed.score(seed) > signed.score(assignment):
@@ -259,7 +271,7 @@ def _fit(
 ) -> RigidFit:
     """Rigid fit of the proposed matches and its tilt test: 6-DoF from 3 matches; with the
     verticals related, 4-DoF for 2 matches or for matches on a line."""
-    rows = np.flatnonzero(proposed != UNMATCHED)
+    rows = (proposed != UNMATCHED).nonzero()[0]
     sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
     gate = _inlier_gate(sub_xyz, sigma_m, config)
     v = config.verify
@@ -429,12 +441,11 @@ def _unmatch_gains(problem: AssignmentProblem, assignment: np.ndarray) -> np.nda
 
     An upper bound on the row's margin over "no match" (the others could adapt)."""
     out = np.full(problem.n1, np.nan)
-    rows = np.flatnonzero(assignment != UNMATCHED)
+    rows = (assignment != UNMATCHED).nonzero()[0]
     if len(rows) == 0:
         return out
-    idx = problem.assignment_to_indices(assignment)
-    block = problem.K[np.ix_(idx, idx)]
-    out[rows] = block.sum(axis=0) + block.sum(axis=1) - np.diag(block)
+    K = block(problem.K, problem.assignment_to_indices(assignment))
+    out[rows] = K.sum(axis=0) + K.sum(axis=1) - K.diagonal()
     return out
 
 
@@ -476,7 +487,9 @@ def _verify(
     when the proposal to fit is the same (the fit depends on nothing else)."""
     assignment = prop.assignment
     exact = near = None
-    if config.verify.exact or config.solver.name is SolverName.EXACT:
+    if prop.exact is not None:
+        exact, near = prop.exact
+    elif config.verify.exact or config.solver.name is SolverName.EXACT:
         exact, near = _exact(prop.signed, assignment, config)
         if exact.score >= prop.signed.score(assignment) - 1e-9:
             assignment = exact.assignment
@@ -527,14 +540,13 @@ def _verify(
 def _match_verified(
     map_: ObjectArrays, sub: ObjectArrays, config: MatchConfig, timer: StageTimer
 ) -> MatchOutcome:
-    rng = np.random.default_rng(config.seed)
     unmatched = np.full(sub.n, UNMATCHED, dtype=np.int64)
     windowed = sub.n > config.windows.above_objects
     cand_cfg = config.candidates
     if windowed:
         cand_cfg = cand_cfg.model_copy(
             update={"prefilter": min(cand_cfg.prefilter, config.windows.shortlist)})
-    cands, calib = retrieve(sub, map_, cand_cfg, config.affinity, rng)
+    cands, calib = retrieve(sub, map_, cand_cfg, config.affinity, config.seed)
     timer.lap("candidates")
     if cands.m == 0:
         return _finish(RejectReason.NO_CANDIDATES, sub, map_, unmatched, unmatched, {}, timer)
@@ -571,6 +583,14 @@ def _verified_pass(
         # search then verifies once, over the enlarged candidate set.
         first = prop.to_map(prop.assignment)
         probe = _fit(sub, map_, first, sigma_m, config, rel)
+        if not probe.accepted and prop.exact is not None:
+            # the optimum over the first candidates need not fit where the heuristic's answer
+            # does (look-alikes whose true instances are not candidates yet): probe that too
+            heuristic_answer = prop.to_map(_solve_candidates(prop.signed, prop.positive, config))
+            if not np.array_equal(heuristic_answer, first):
+                other = _fit(sub, map_, heuristic_answer, sigma_m, config, rel)
+                if other.accepted:
+                    first, probe = heuristic_answer, other
         probed = (first, probe)
         timer.lap("verify")
         if probe.accepted:
@@ -579,8 +599,8 @@ def _verified_pass(
             more = expand_near(cands, sub, map_, predicted, gate, calib)
             timer.lap("candidates")
             if more.m > cands.m:
-                start = prop.to_map(prop.assignment)
-                rows = np.flatnonzero(start != UNMATCHED)
+                start = first.copy()
+                rows = (start != UNMATCHED).nonzero()[0]
                 start[rows[~probe.inliers]] = UNMATCHED
                 prop = _propose(sub, map_, more, config, sigma_m, timer, start=start,
                                 prev=prop)
@@ -632,7 +652,7 @@ def _match_windowed(
         scores.update({int(w[i]): v for i, v in res.scores.items()})
         if res.fit.accepted:
             hypotheses.append(res.fit.T_map_submap)
-    rows = np.flatnonzero(proposed != UNMATCHED)
+    rows = (proposed != UNMATCHED).nonzero()[0]
     sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
     gate = _inlier_gate(sub_xyz, sigma_m, config)
     T, inl = consensus(sub_xyz, map_xyz, gate, hypotheses)
@@ -695,7 +715,7 @@ def _fit_large(
 ) -> RigidFit:
     """`_fit` for matches already consistent with one transform (windows' consensus): no
     pairwise consistency peeling (O(k^2)), the 6-DoF fit and its tilt test."""
-    rows = np.flatnonzero(proposed != UNMATCHED)
+    rows = (proposed != UNMATCHED).nonzero()[0]
     sub_xyz, map_xyz = sub.position_xyz_m[rows], map_.position_xyz_m[proposed[rows]]
     gate = _inlier_gate(sub_xyz, sigma_m, config)
     fit = fit_rigid(sub_xyz, map_xyz, gate, min_matches=config.verify.min_matches,

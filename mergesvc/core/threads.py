@@ -42,8 +42,20 @@ def blas_threads(n_pairs: int) -> Iterator[None]:
     if n_pairs >= PIN_BELOW_PAIRS:
         yield
         return
-    with _threadpools().limit(limits=1, user_api="blas"):
+    # each library switched directly, and only when it is not on one thread already: a
+    # fifth of threadpoolctl's `limit` context per match
+    changed = []
+    for lib in _threadpools().lib_controllers:
+        if lib.user_api == "blas":
+            n = lib.get_num_threads()
+            if n != 1:
+                lib.set_num_threads(1)
+                changed.append((lib, n))
+    try:
         yield
+    finally:
+        for lib, n in changed:
+            lib.set_num_threads(n)
 
 
 def blas_thread_counts() -> list[int]:

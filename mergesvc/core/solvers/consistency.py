@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem, block
 
 
 def pairwise_conflicts(
@@ -46,18 +46,23 @@ def repair_conflicts(problem: AssignmentProblem, assignment: np.ndarray) -> np.n
     a = np.asarray(assignment).copy()
     if problem.conflict is None:
         return a
-    while True:
-        rows = np.flatnonzero(a != UNMATCHED)
-        if len(rows) < 2:
-            return a
-        idx = problem.assignment_to_indices(a)
-        n_conf = problem.conflict[np.ix_(idx, idx)].sum(axis=1)
+    rows = (a != UNMATCHED).nonzero()[0]
+    if len(rows) < 2:
+        return a
+    idx = problem.assignment_to_indices(a)
+    conflict, K = block(problem.conflict, idx), None
+    while len(rows) >= 2:
+        n_conf = conflict.sum(axis=1)
         if not n_conf.any():
-            return a
-        sub = problem.K[np.ix_(idx, idx)]
-        gain = sub.sum(axis=0) + sub.sum(axis=1) - np.diag(sub)
+            break
+        if K is None:
+            K = block(problem.K, idx)
+        gain = K.sum(axis=0) + K.sum(axis=1) - K.diagonal()
         worst = np.lexsort((gain, -n_conf))[0]
         a[rows[worst]] = UNMATCHED
-
+        keep = np.arange(len(rows)) != worst
+        rows, idx = rows[keep], idx[keep]
+        conflict, K = conflict[keep][:, keep], K[keep][:, keep]
+    return a
 
 __all__ = ["pairwise_conflicts", "repair_conflicts"]

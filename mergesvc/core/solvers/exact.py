@@ -42,7 +42,7 @@ from mergesvc.core.solvers.bnb_state import (
 from mergesvc.core.solvers.bounds import Bound, bound
 from mergesvc.core.solvers.consistency import repair_conflicts
 from mergesvc.core.solvers.primal import local_search, slots_score, to_cols
-from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem, block
 from mergesvc.core.solvers.reduce import eliminate
 from mergesvc.errors import SolverError
 
@@ -164,17 +164,17 @@ def dominated(
     if problem.invalid_zero:
         # candidate_K's problems: K symmetric, 0 where two candidates share a row or a col
         sorted_ = bool(np.all(problem.rows[1:] >= problem.rows[:-1]))
-        P = problem.K * 2.0 if sorted_ else problem.K[np.ix_(order, order)] * 2.0
+        P = problem.K * 2.0 if sorted_ else block(problem.K, order) * 2.0
         np.fill_diagonal(P, 0.0)
         if problem.conflict is not None:
-            P[problem.conflict if sorted_ else problem.conflict[np.ix_(order, order)]] = 0.0
+            P[problem.conflict if sorted_ else block(problem.conflict, order)] = 0.0
     else:
-        P = problem.K[np.ix_(order, order)]
+        P = block(problem.K, order)
         P += P.T.copy()
         apart = rows[:, None] == rows[None, :]  # same row (and the diagonal)
         apart |= cols[:, None] == cols[None, :]  # same col: cannot coexist
         if problem.conflict is not None:
-            apart |= problem.conflict[np.ix_(order, order)]  # conflicting: cannot coexist
+            apart |= block(problem.conflict, order)  # conflicting: cannot coexist
         P[apart] = 0.0
     np.maximum(P, 0.0, out=P)
     unary = np.diag(problem.K)[order]

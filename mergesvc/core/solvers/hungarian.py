@@ -6,7 +6,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mergesvc.core.solvers.consistency import repair_conflicts
-from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem, block
 
 # Value of a forbidden (non-candidate) cell; finite so linear_sum_assignment always succeeds.
 _FORBIDDEN = -1e12
@@ -48,15 +48,18 @@ def prune_negative(problem: AssignmentProblem, assignment: np.ndarray) -> np.nda
     objective), so the answer is always feasible.
     """
     a = repair_conflicts(problem, assignment)
-    while True:
-        rows = np.flatnonzero(a != UNMATCHED)
-        if len(rows) == 0:
-            return a
-        idx = problem.assignment_to_indices(a)
-        sub = problem.K[np.ix_(idx, idx)]
+    rows = (a != UNMATCHED).nonzero()[0]
+    if len(rows) == 0:
+        return a
+    K = block(problem.K, problem.assignment_to_indices(a))
+    while len(rows):
         # contribution of p: K_pp + sum_{q != p} (K_pq + K_qp)
-        gain = np.diag(sub) + sub.sum(axis=0) + sub.sum(axis=1) - 2 * np.diag(sub)
+        diag = K.diagonal()
+        gain = diag + K.sum(axis=0) + K.sum(axis=1) - 2 * diag
         worst = int(np.argmin(gain))
         if gain[worst] >= 0:
-            return a
+            break
         a[rows[worst]] = UNMATCHED
+        keep = np.arange(len(rows)) != worst
+        rows, K = rows[keep], K[keep][:, keep]
+    return a

@@ -19,7 +19,7 @@ import numpy as np
 
 from mergesvc.core.solvers.bnb_state import ABS_TOL, REL_TOL
 from mergesvc.core.solvers.exact import ExactResult
-from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem
+from mergesvc.core.solvers.problem import UNMATCHED, AssignmentProblem, block
 
 
 @dataclass(frozen=True)
@@ -87,14 +87,14 @@ def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int =
     rank[order] = np.arange(len(order))
     o = np.argsort(rank[rows], kind="stable")
     same_order = bool(np.all(o[1:] > o[:-1]))
-    K = problem.K if same_order else problem.K[np.ix_(o, o)]
+    K = problem.K if same_order else block(problem.K, o)
     if not problem.invalid_zero:
         K = 0.5 * (K + K.T)
     r, c = (rows, cols) if same_order else (rows[o], cols[o])
     compat = r[:, None] != r[None, :]
     compat &= c[:, None] != c[None, :]
     if problem.conflict is not None:
-        compat &= ~(problem.conflict if same_order else problem.conflict[np.ix_(o, o)])
+        compat &= ~(problem.conflict if same_order else block(problem.conflict, o))
     starts = np.searchsorted(rank[r], np.arange(len(order)))
     # best partner of each candidate in each row (>= 0: the row may stay unmatched), and its
     # suffix sums in the decision order: half_from[:, k] = sum over rows k.. of that

