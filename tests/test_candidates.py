@@ -139,6 +139,31 @@ def test_floor_sample_kept_with_the_map_changes_nothing(
         assert after == runs[0][2]
 
 
+def test_the_floor_reads_the_searchs_products_as_the_samples_own(kitti_scenario) -> None:
+    """A map above the shortlist and the sample, searched exactly in one chunk: the search
+    keeps its products, whose sample columns are the sample's own product entry for entry,
+    and the ucos floor read from them is the floor of that product (the reference)."""
+    from mergesvc.core.search import ExactSearch
+
+    sc = kitti_scenario
+    cfg = match_config(affinity={"kind": "ucos"})
+    m, s = replace(sc.map.arrays()), sc.submap.arrays()
+    assert m.n > max(cfg.candidates.sample, cfg.candidates.prefilter)
+    _, calib = retrieve(s, m, cfg.candidates, cfg.affinity, 7)
+    idx = np.sort(np.random.default_rng(7).choice(m.n, cfg.candidates.sample, replace=False))
+    q32 = s.unit_rows().astype(np.float32)
+    e = np.asarray(m.embeddings_nd[idx], dtype=np.float32)
+    _, _, products = ExactSearch(m.embeddings_nd, m.norms_n).search_with_products(q32, 256)
+    assert products is not None and products.shape == (s.n, m.n)
+    np.testing.assert_array_equal(products[:, idx], q32 @ e.T)
+    norms = np.where(m.norms_n[idx] > 0, m.norms_n[idx], 1.0)
+    u = (s.uncertainty_s[:, None] + m.uncertainty_s[idx][None, :]) / 2.0
+    floor = np.median(((q32 @ e.T) / norms).astype(np.float64) / (1.0 + u), axis=1)
+    np.testing.assert_array_equal(calib.floor_n, floor)
+    many = ExactSearch(m.embeddings_nd, m.norms_n, chunk_rows=100)  # several chunks: none kept
+    assert many.search_with_products(q32, 256)[2] is None
+
+
 @pytest.mark.parametrize("cols", [1, 2, 7, 512, 513])
 def test_row_medians_are_numpys_medians_to_the_bit(cols: int) -> None:
     rng = np.random.default_rng(cols)

@@ -23,7 +23,7 @@ from mergesvc.core.affinity import (
 from mergesvc.core.arrays import take_rows
 from mergesvc.core.config import AffinityConfig, CandidatesConfig, NodeAffinity
 from mergesvc.core.model import ObjectArrays
-from mergesvc.core.search import exact_cosines, map_search
+from mergesvc.core.search import ExactSearch, exact_cosines, map_search
 
 
 @dataclass(frozen=True)
@@ -150,13 +150,19 @@ def retrieve(
     cos = None
     q = sub.unit_rows()  # (n1, d) float64, and float32 for the products over the map
     q32 = q.astype(np.float32)
+    products = None  # (n1, n2) float32 q32 @ embeddings.T, when the search kept them
     if n2 <= cand_cfg.prefilter:
         shortlist = np.broadcast_to(np.arange(n2), (n1, n2))
     else:
         search = map_search(map_, cand_cfg, n1)
         # best first only where the nearest is read (the likelihood ratio's model)
-        shortlist, cos, err = search.search_bounded(
-            q32, cand_cfg.prefilter, ordered=kind is NodeAffinity.LIKELIHOOD_RATIO)
+        ordered = kind is NodeAffinity.LIKELIHOOD_RATIO
+        if isinstance(search, ExactSearch):
+            shortlist, cos, products = search.search_with_products(
+                q32, cand_cfg.prefilter, ordered, products=kind is NodeAffinity.UCOS)
+            err = np.zeros(cos.shape, dtype=np.float32)  # exact
+        else:
+            shortlist, cos, err = search.search_bounded(q32, cand_cfg.prefilter, ordered)
     sample, sample_rows = _map_sample(map_, cand_cfg.sample, rng)
     D_ref = None
     same = None
@@ -201,8 +207,12 @@ def retrieve(
             n_idx = map_.norms_n[idx]
             cos_s = (q32 @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
             floor = row_medians(_ucos_pairs(sub, map_, cos_s, idx[None, :]))
-        else:  # the same arithmetic on the rows kept with the map
-            cos_s = (q32 @ sample_rows["embeddings"].T) / sample_rows["norms"][None, :]
+        else:  # the same arithmetic on the rows kept with the map (their products kept by
+            # the search when it made them: a BLAS computes each entry alike whatever the
+            # other columns, tests/test_candidates.py)
+            dot = (q32 @ sample_rows["embeddings"].T if products is None
+                   else products[:, sample])
+            cos_s = dot / sample_rows["norms"][None, :]
             s2 = sample_rows["uncertainty"][None, :]
             floor = row_medians(cos_s.astype(np.float64)
                                 / (1.0 + (sub.uncertainty_s[:, None] + s2) / 2.0))

@@ -151,24 +151,38 @@ class ExactSearch:
 
     def search(self, q_unit: np.ndarray, k: int, ordered: bool = True
                ) -> tuple[np.ndarray, np.ndarray]:
+        rows, cos, _ = self.search_with_products(q_unit, k, ordered, products=False)
+        return rows, cos
+
+    def search_with_products(self, q_unit: np.ndarray, k: int, ordered: bool = True,
+                             products: bool = True
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """`search`, and with `products` the (m, n) float32 products of the queries with every
+        row before the norms divide them, when the map is one chunk and the queries one block
+        (else None): a caller that needs other rows' products (the ucos floor's sample) reads
+        them there instead of multiplying again."""
         q = np.asarray(q_unit, dtype=np.float32)
         if len(q) > _QUERY_BLOCK:  # bounds the (queries x chunk) products
             parts = [self.search(q[lo:lo + _QUERY_BLOCK], k, ordered)
                      for lo in chunks(len(q), _QUERY_BLOCK)]
-            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts])
+            return np.vstack([p[0] for p in parts]), np.vstack([p[1] for p in parts]), None
         m = len(q)
         k = max(1, min(k, self.n))
         best_rows = np.zeros((m, 0), dtype=np.int64)
         best = np.zeros((m, 0), dtype=np.float32)
         offset = 0
         left = sum(len(chunks(len(e), self.chunk_rows)) for e, _ in self._parts)
+        kept = None
         for e, norms in self._parts:
             inv = (1.0 / np.where(norms > 0, norms, 1.0)).astype(np.float32)
             for lo in chunks(len(e), self.chunk_rows):
                 left -= 1
                 hi = min(len(e), lo + self.chunk_rows)
                 s = q @ e[lo:hi].T
-                s *= inv[lo:hi]
+                if products and left == 0 and offset == lo == 0:  # the only chunk
+                    kept, s = s, s * inv[lo:hi]
+                else:
+                    s *= inv[lo:hi]
                 if self.release:
                     release_rows(e, lo, hi)
                 rows = np.broadcast_to(np.arange(offset + lo, offset + hi), s.shape)
@@ -187,7 +201,7 @@ class ExactSearch:
                 # the running top-k stays sorted (its k-th best gates the next chunk)
                 best_rows, best = _best_first(rows, s, k, ordered or left > 0)
             offset += len(e)
-        return best_rows, best
+        return best_rows, best, kept
 
     def search_bounded(self, q_unit: np.ndarray, k: int, ordered: bool = True
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
