@@ -2,6 +2,7 @@
 
 verified: candidates -> affinity K over candidate pairs -> solver -> hard assignment with
           no-match -> exact search on the candidate set -> rigid fit -> accept / reject
+          (a problem small enough for the exact search to answer outright skips the solver)
 paper:    node affinity (all pairs) -> dense K (pygmtools) -> solver -> Hungarian, every node
           matched (Singh & Leonard's pipeline, the baseline)
 
