@@ -43,8 +43,10 @@ class AgentStats:
     last_refusal: str = ""  # the last of those: "code: detail"
 
     def line(self) -> str:
-        """What was done so far, as one progress line."""
-        answers = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in sorted(self.results.items()))
+        """What was done so far, as one progress line (read while the agent runs: the answers
+        are copied first, a single step another thread's insert cannot interleave with)."""
+        answers = ", ".join(f"{n} {k.replace('_', ' ')}"
+                            for k, n in sorted(self.results.copy().items()))
         return (f"{self.frames} frames, {self.submaps_sent} submaps sent ({self.bytes_sent} "
                 f"bytes), answers: {answers or 'none yet'}, factors in: {self.factors_received}")
 

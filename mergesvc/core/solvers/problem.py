@@ -21,6 +21,7 @@ from mergesvc.errors import SolverError
 UNMATCHED = -1
 # rows x cols up to which a problem keeps an (n1, n2) table of candidate indices
 _CELL_TABLE_MAX = 1 << 16
+_UNMATCHED_CELL = -2  # the cell table's entry for an unmatched row
 
 
 def block(X: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
@@ -126,16 +127,20 @@ class AssignmentProblem:
         Raises SolverError when a chosen pair is not a candidate.
         """
         a = np.asarray(assignment)
+        table = self._cell_index
+        if table is not None and a.shape == (self.n1,) and a.dtype.kind == "i" and (
+                self.n1 == 0 or int(a.min()) >= UNMATCHED):
+            try:  # one gather: UNMATCHED (-1) reads the table's last column
+                idx = table[self._row_range, a]
+            except IndexError:  # a column beyond n2: the general path says which
+                pass
+            else:
+                idx = idx[idx != _UNMATCHED_CELL]
+                if len(idx) == 0 or int(idx.min()) >= 0:
+                    return idx
         rows = (a != UNMATCHED).nonzero()[0]
         if len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
-        table = self._cell_index
-        if table is not None and a.shape == (self.n1,) and a.dtype.kind in "iu":
-            cols = a[rows]
-            if int(cols.min()) >= 0 and int(cols.max()) < self.n2:
-                idx = table[rows, cols]
-                if int(idx.min()) >= 0:
-                    return idx
         keys = rows * max(self.n2, 1) + a[rows].astype(np.int64)
         sorted_keys, order = self._key_index
         at = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
@@ -147,13 +152,19 @@ class AssignmentProblem:
 
     @functools.cached_property
     def _cell_index(self) -> np.ndarray | None:
-        """(n1, n2) candidate index of each (row, col), -1 where none; None when that table
-        would be large (the sorted keys serve then)."""
+        """(n1, n2 + 1) candidate index of each (row, col), -1 where none, and a last column
+        of _UNMATCHED_CELL (what an UNMATCHED row reads); None when that table would be large
+        (the sorted keys serve then)."""
         if self.n1 * self.n2 > _CELL_TABLE_MAX:
             return None
-        table = np.full((self.n1, self.n2), -1, dtype=np.int64)
+        table = np.full((self.n1, self.n2 + 1), -1, dtype=np.int64)
+        table[:, -1] = _UNMATCHED_CELL
         table[self.rows, self.cols] = np.arange(self.m)
         return table
+
+    @functools.cached_property
+    def _row_range(self) -> np.ndarray:
+        return np.arange(self.n1)
 
     @functools.cached_property
     def _key_index(self) -> tuple[np.ndarray, np.ndarray]:
