@@ -261,9 +261,40 @@ def test_frame_level_factor_is_anchored_at_keyframe_0(frames) -> None:
     g = _factor("pk", "auv1", subs[0].keyframe, np.eye(4), 0, cov)
     lm.add_inter_robot(g)
     assert list(lm.other_keys) == [("other/s0", 0)]
-    # factors between two other sessions, or two of mine, are not for this map
+    # factors between two other sessions are not for this map
     h = f.model_copy(update={"factor_id": "x", "robot_b": "auv9"})
     assert "ignored" in lm.add_inter_robot(h)
+
+
+def test_a_loop_within_the_session_ties_two_own_poses(frames) -> None:
+    """A factor between two of its own keyframes (a loop the service found in the session's
+    map), from the truth: a BetweenFactor of the two own poses, no other robot's variable;
+    the trajectory's ATE goes down, and back when it is retracted. One on a keyframe not
+    reached yet is held; one tying a keyframe to itself is ignored."""
+    robot = "auv3"
+    fr = frames[robot]
+    lm, subs = build_submaps(AgentConfig(robot=robot, odometry_sigma=(0.02, 0.05)), fr)
+    truth = np.stack([f.T_true for f in fr])
+    k1, k2 = subs[1].keyframe, subs[-1].keyframe
+    cov = np.diag([0.01**2] * 3 + [0.05**2] * 3)
+
+    def loop(fid: str, ka: int, kb: int) -> Factor:
+        return Factor(factor_id=fid, robot_a=robot, session_a="s0", robot_b=robot,
+                      session_b="s0", T_a_b=_transform(np.linalg.inv(truth[ka]) @ truth[kb]),
+                      covariance=cov.tolist(), keyframe_a=ka, keyframe_b=kb)
+
+    before = ate_rmse(lm.own_poses(), truth)
+    line = lm.add_inter_robot(loop("L", k1, k2))
+    assert "moved max" in line and not lm.other_keys
+    after = ate_rmse(lm.own_poses(), truth)
+    assert after < 0.85 * before, (before, after)
+    ahead = loop("H", k1, k2).model_copy(update={"keyframe_b": lm.frames_seen + 3})
+    assert "held until then" in lm.add_inter_robot(ahead)
+    assert "to itself" in lm.add_inter_robot(loop("S", k2, k2))
+    line = lm.add_inter_robot(loop("L", k1, k2).model_copy(
+        update={"status": FactorStatus.RETRACTED}))
+    assert "removed" in line and not lm.other_keys
+    assert ate_rmse(lm.own_poses(), truth) == pytest.approx(before, abs=0.05)
 
 
 def test_submaps_declare_the_ahrs_gravity_of_their_keyframe(frames) -> None:

@@ -19,7 +19,7 @@ import pytest
 import zenoh
 from helpers import Inbox, free_port, wait_for, zenoh_config
 
-from mergesvc.core.model import ErrorMessage, ObjectNode, Submap
+from mergesvc.core.model import ErrorMessage, ObjectNode, Odometry, Submap
 from mergesvc.errors import SchemaError, StoreError
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.demo import query_status
@@ -365,6 +365,50 @@ def test_candidate_frames_are_the_most_alike() -> None:
         tried = [n for n, _ in svc.sessions.candidate_frames(
             "victim/s0", again, cfg.max_candidate_frames, cfg.max_frames_per_robot)]
         assert len(tried) == 3 and tried[0] == "seen/s0", tried
+    finally:
+        svc.close()
+
+
+def _keyframed(sub: Submap, objects_of: Submap | None = None) -> Submap:
+    """`sub` cut at keyframe seq, 1 m on from the previous one (no motion at 0); with
+    `objects_of`, seeing that submap's objects again where they were."""
+    objs = sub.objects if objects_of is None else [
+        o.model_copy(update={"id": f"{o.id}-again"}) for o in objects_of.objects]
+    odo = None if sub.seq == 0 else Odometry(
+        from_keyframe=sub.seq - 1, T_from_to={"translation": [0.0, 0.0, 0.0],
+                                              "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]},
+        covariance=(np.eye(6) * 1e-4).tolist())
+    return sub.model_copy(update={"keyframe": sub.seq, "odometry": odo, "objects": objs})
+
+
+@pytest.mark.parametrize("gap", [4, 0])
+def test_a_vehicle_back_where_it_was_is_matched_against_its_own_older_objects(gap) -> None:
+    """A vehicle (no motion: its odometry says so) sees the objects of its submap 1 again in
+    submap 6: with loop_gap_submaps 4 the submap is also matched against its own session's
+    objects last seen in submaps 0-2 (not 3-5: its latest submaps' own detections), and the
+    match becomes a factor between its keyframes 1 and 6 (a loop closed within the session),
+    the objects paired right; with 0 its own session is never tried."""
+    cfg = ServiceConfig(fleet=FLEET, store=":memory:", loop_gap_submaps=gap)
+    svc = MergeService(cfg, None)  # offline
+    try:
+        subs = [_keyframed(make_submap("loop", "s0", seq, n=6, seed=4)) for seq in range(6)]
+        for sub in subs:
+            svc.ingest(sub)
+        back = _keyframed(make_submap("loop", "s0", 6, n=6, seed=4), objects_of=subs[1])
+        tried = svc.sessions.candidate_frames("loop/s0", back, cfg.max_candidate_frames,
+                                               cfg.max_frames_per_robot, cfg.loop_gap_submaps)
+        own = [sm for name, sm in tried if name == "loop/s0"]
+        if gap == 0:
+            assert not own and not tried
+            return
+        assert len(own) == 1
+        assert sorted({h.seq for h in own[0].objects}) == [0, 1, 2]
+        assert list(own[0].arrays.ids) == [h.id for h in own[0].objects]
+        np.testing.assert_array_equal(own[0].arrays.position_xyz_m, own[0].positions)
+        svc.ingest(back)
+        loops = [f for f in svc.merger.factors.values() if f.robot_a == f.robot_b == "loop"]
+        assert len(loops) == 1 and (loops[0].keyframe_a, loops[0].keyframe_b) == (1, 6)
+        assert all(c.object_b == f"{c.object_a}-again" for c in loops[0].correspondences)
     finally:
         svc.close()
 

@@ -134,6 +134,11 @@ class ServiceConfig(BaseModel):
         "that opens many sessions cannot take every slot)",
     )
     min_map_objects: int = Field(3, ge=3, description="frames with fewer objects are not matched")
+    loop_gap_submaps: int = Field(
+        4, ge=0, description="each submap is also matched against its own session's objects "
+        "last seen this many submaps or more before it: a place the vehicle came back to gives "
+        "a loop closure within its session (its odometry's drift since); fewer submaps apart "
+        "the objects are still its own tracked detections. 0: only other sessions")
     drift_sigma: tuple[float, float] = Field(
         (0.05, 0.5),
         description="added to every factor's covariance: rotation rad, translation m. A "

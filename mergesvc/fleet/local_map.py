@@ -76,6 +76,7 @@ class _Received:
     factor: Factor
     index: int
     other_key: int
+    loop: bool = False  # between two own keyframes: other_key is an own pose
 
 
 @dataclass
@@ -250,13 +251,15 @@ class LocalMap:
         factors gets a weak prior at its current estimate, so the system stays well-posed
         (the prior touches only that variable, not the own poses). A factor id already in the
         graph with the same content is ignored; with new content it replaces the old one.
-        Factors not between this session and another are ignored."""
+        A factor between two keyframes of this session (a loop the service found in its own
+        map) is a BetweenFactorPose3 between the two own poses. Others are ignored."""
         mine = (self.config.robot, self.config.session)
         me_a = (factor.robot_a, factor.session_a) == mine
         me_b = (factor.robot_b, factor.session_b) == mine
         fid = factor.factor_id
-        if me_a == me_b:
-            return f"factor {fid}: not between this session and another: ignored"
+        if not (me_a or me_b):
+            return f"factor {fid}: not about this session: ignored"
+        loop = me_a and me_b
         if factor.status == FactorStatus.RETRACTED:
             if self._held.pop(fid, None) is not None:
                 return f"factor {fid} retracted: it was held, not yet in the graph"
@@ -266,13 +269,16 @@ class LocalMap:
             return f"factor {fid}: already in the graph: ignored"
         own_k = (factor.keyframe_a if me_a else factor.keyframe_b) or 0
         other_k = (factor.keyframe_b if me_a else factor.keyframe_a) or 0
+        if loop and own_k == other_k:
+            return f"factor {fid}: ties keyframe {own_k} to itself: ignored"
         self._held.pop(fid, None)
-        if own_k >= self.frames_seen:
+        latest = max(own_k, other_k) if loop else own_k  # the own keyframe it waits for
+        if latest >= self.frames_seen:
             if len(self._held) >= MAX_HELD:
-                raise InputError(f"factor {fid} ties own keyframe {own_k}, this map has "
+                raise InputError(f"factor {fid} ties own keyframe {latest}, this map has "
                                  f"{self.frames_seen} poses and holds {MAX_HELD} such factors")
-            self._held[fid] = (own_k, factor)
-            return (f"factor {fid}: ties my keyframe {own_k}, not reached yet ("
+            self._held[fid] = (latest, factor)
+            return (f"factor {fid}: ties my keyframe {latest}, not reached yet ("
                     f"{self.frames_seen} poses): held until then")
         other = (str(FrameId(factor.robot_b, factor.session_b) if me_a
                      else FrameId(factor.robot_a, factor.session_a)), other_k)
@@ -285,7 +291,7 @@ class LocalMap:
             Ad = T_ab.AdjointMap()
             cov = Ad @ cov @ Ad.T
             cov = 0.5 * (cov + cov.T)
-        key = F(self.other_keys.setdefault(other, len(self.other_keys)))
+        key = X(other_k) if loop else F(self.other_keys.setdefault(other, len(self.other_keys)))
         est = self.isam.calculateEstimate()
         before = self.own_poses(est)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -301,7 +307,7 @@ class LocalMap:
             if old.other_key != key:
                 self._keep_posed(old.other_key, graph, est)
         res = self.isam.update(graph, values, remove)
-        self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key)
+        self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key, loop)
         after_est = self._settle()
         at = after_est.atPose3(key).translation()
         name = f"{other[0]}#{other[1]}"
@@ -323,7 +329,8 @@ class LocalMap:
         est = self.isam.calculateEstimate()
         before = self.own_poses(est)
         graph = gtsam.NonlinearFactorGraph()
-        self._keep_posed(rec.other_key, graph, est)
+        if not rec.loop:
+            self._keep_posed(rec.other_key, graph, est)
         self.isam.update(graph, gtsam.Values(), [rec.index])
         after_est = self._settle()
         return (f"factor {factor.factor_id} retracted: removed from the graph; "

@@ -115,7 +115,8 @@ class Merger:
         me = str(FrameId(sub.robot_id, sub.session_id))
         code = self.views.note(me, payload)  # compact: how its embeddings were coded
         others = self.sessions.candidate_frames(me, sub, self.config.max_candidate_frames,
-                                                self.config.max_frames_per_robot)
+                                                self.config.max_frames_per_robot,
+                                                self.config.loop_gap_submaps)
         return MatchPlan(others, [self.views.pair(other, sm.arrays, sub, code)
                                   for other, sm in others])
 
@@ -136,8 +137,10 @@ class Merger:
         factors: list[Factor] = []
         tried: list[FrameTried] = []
         others = todo.others
+        me = str(FrameId(sub.robot_id, sub.session_id))
         for (other, sm), res in zip(others, results):
-            if not yields_factor(res):
+            if not yields_factor(res) or (  # (a loop onto the submap's own node: none)
+                    other == me and anchoring_keyframe(res, sm.keyframe_of) == sub.keyframe):
                 tried.append(FrameTried(frame=other, reason=res.reason,
                                         matches=len(res.matches)))
                 continue

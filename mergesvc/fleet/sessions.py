@@ -2,7 +2,8 @@
 (`SessionState`, rebuilt from the stored submaps on a restart), and `Sessions`, all of them:
 each session's map placed for matching (`SessionMap`, cached until the session or the graph
 solution changes), the other sessions a submap is matched against (one index over the fleet's
-objects per embedding model: models are never matched with each other), and the odometry
+objects per embedding model: models are never matched with each other) and its own session's
+objects last seen a few submaps before it (a loop the vehicle closed), and the odometry
 chains between keyframes (pose and covariance) that factors and their checks need.
 
 A session's map places every object with the current pose of its keyframe in the session
@@ -233,6 +234,21 @@ class SessionMap:
             up_xyz=None if self.up is None else np.asarray(self.up, dtype=np.float64),
         )
 
+    def seen_by(self, seq: int, min_objects: int) -> SessionMap | None:
+        """The objects last held from submap `seq` or an earlier one, placed as here (None
+        with fewer than min_objects): the old side of a loop, without the objects the
+        vehicle's latest submaps still track (its own detections, not a revisit)."""
+        keep = [k for k, h in enumerate(self.objects) if h.seq <= seq]
+        if len(keep) < min_objects:
+            return None
+        if len(keep) == len(self.objects):
+            return self
+        objs = tuple(self.objects[k] for k in keep)
+        out = SessionMap(self.frame, objs, tuple(self.positions[k] for k in keep), self.up,
+                         {h.id: self.keyframe_of[h.id] for h in objs}, self.poses)
+        out.__dict__["arrays"] = self.arrays.subset(np.asarray(keep))  # rows of this map's
+        return out
+
     @property
     def map(self) -> ObjectMap:
         return ObjectMap(robot_id=self.frame.robot, session_id=self.frame.session,
@@ -307,10 +323,12 @@ class Sessions:
         self._maps.clear()
 
     def candidate_frames(self, me: str, sub: Submap, max_frames: int,
-                         max_per_robot: int) -> list[tuple[str, SessionMap]]:
+                         max_per_robot: int, loop_gap: int = 0) -> list[tuple[str, SessionMap]]:
         """The other sessions a submap of session `me` is matched against: those of its
         embedding model whose objects look most like the submap's (core/retrieval.py), at
-        most max_frames, at most max_per_robot of one robot."""
+        most max_frames, at most max_per_robot of one robot; then, with loop_gap > 0, its own
+        session's objects last seen loop_gap or more submaps before it (`SessionMap.seen_by`;
+        not for a submap without a sequence number or a keyframe)."""
         index = self._indexes.setdefault(sub.dim, FleetIndex())
         for name, st in self.states.items():  # sessions changed since they were indexed
             if st.dim == sub.dim and self._indexed.get(name) != st.version:
@@ -331,6 +349,13 @@ class Sessions:
             if sm is not None and sm.dim == sub.dim:
                 out.append((fs.frame, sm))
                 per_robot[robot] += 1
+        if loop_gap > 0 and sub.seq is not None and sub.keyframe is not None \
+                and me in self.states:  # (a loop ties two keyframes of the session)
+            own = self.session_map(me)
+            old = None if own is None or own.dim != sub.dim else own.seen_by(
+                sub.seq - loop_gap, self.min_map_objects)
+            if old is not None:
+                out.append((me, old))
         return out
 
     def session_map(self, name: str) -> SessionMap | None:
