@@ -79,6 +79,10 @@ def test_merging_corrects_drift_on_the_long_pool_mission(report: dict) -> None:
     active = [f for f in run["factors"] if not f["retracted"] and f["correct"]]
     assert active and all(f["nees"] < 22.5 for f in active), sorted(f["nees"] for f in active)
     assert run["precision"] >= 0.95
+    # the vehicles came back to places they saw laps before: loops within their sessions
+    loops = [f for f in run["factors"] if f["robots"][0] == f["robots"][1]]
+    assert {f["robots"][0] for f in loops} == set(run["robots"])
+    assert sum(f["correct"] for f in loops) >= 0.9 * len(loops)
 
 
 def test_the_acoustic_world_went_through_the_link(report: dict) -> None:
