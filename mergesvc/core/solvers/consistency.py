@@ -65,4 +65,5 @@ def repair_conflicts(problem: AssignmentProblem, assignment: np.ndarray) -> np.n
         conflict, K = conflict[keep][:, keep], K[keep][:, keep]
     return a
 
+
 __all__ = ["pairwise_conflicts", "repair_conflicts"]
