@@ -131,6 +131,16 @@ def test_conflict_feasibility_subset_and_score() -> None:
     assert not problem.is_feasible(np.array([1, UNMATCHED, UNMATCHED]))
     assert not AssignmentProblem(3, 3, rows, cols, K).is_feasible(np.array([1, UNMATCHED, 2]))
     assert brute_force(problem)[1] == 4.0  # one of rows 0, 1 with row 2
+    # a column out of range is no candidate either, by the cell table or by the sorted keys
+    # (a small problem keeps the one, a large one the other): never read as another pair
+    big = AssignmentProblem(3, 1 << 15, rows, cols, K)
+    for p in (problem, big):
+        for bad in ([p.n2, UNMATCHED, UNMATCHED], [p.n2 + 1, UNMATCHED, UNMATCHED],
+                    [-2, UNMATCHED, UNMATCHED]):
+            with pytest.raises(SolverError, match="not a candidate"):
+                p.assignment_to_indices(np.array(bad))
+            assert not p.is_feasible(np.array(bad))
+        assert p.assignment_to_indices(np.array([0, UNMATCHED, 2])).tolist() == [0, 2]
     res = solve_exact(problem)
     assert res.optimal and res.score == 4.0 and problem.is_feasible(res.assignment)
 

@@ -109,7 +109,11 @@ def test_g2o_edges_carry_the_factors_measurement_and_covariance(exported) -> Non
     edges = {e["factor_id"]: n for n, e in enumerate(manifest["edges"])}
     assert set(edges) == set(live["factor_ids"])
     kinds = {e["kind"] for e in manifest["edges"]}
-    assert kinds == {"odometry", "inter_robot"}
+    assert kinds - {"loop"} == {"odometry", "inter_robot"}
+    for e in manifest["edges"]:  # a loop ties two keyframes of one session
+        if e["kind"] == "loop":
+            assert live["factors"][e["factor_id"]]["robot_a"] == \
+                live["factors"][e["factor_id"]]["robot_b"]
     assert len(live["factors"]) > 0
     for fid, f in live["factors"].items():
         factor = graph.at(edges[fid])

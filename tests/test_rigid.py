@@ -129,6 +129,41 @@ def test_good_odometry_is_kept_rigid_and_drifting_odometry_is_bent(seed: int) ->
     assert merged < 0.5 * odometry
 
 
+def test_loops_within_a_chain_are_evidence_of_its_drift() -> None:
+    """One robot alone, its odometry drifting 0.23 deg a step, and loops within its own chain
+    (factors between its keyframe i and i + 12, from the truth): the test counts them, so the
+    chain is bent and ends closer to the truth than its odometry; the same robot with good
+    odometry stays rigid."""
+    for drift, rigid in ((0.004, False), (0.0, True)):
+        rng = np.random.default_rng(5)
+        truth = _truth(2)
+        pg = PoseGraph(anchor="c#0", config=GraphConfig(rigid_chains="odo:"))
+        sigma = ODO_SIGMA.copy()
+        sigma[2] = max(sigma[2], drift)
+        for i in range(N - 1):
+            noise = rng.normal(0, ODO_SIGMA * 0.3)
+            noise[2] += drift
+            pg.add_factor(f"c{i}", f"c#{i}", f"c#{i + 1}",
+                          truth[i].between(truth[i + 1]).compose(gtsam.Pose3.Expmap(noise)),
+                          np.diag(sigma ** 2), known_inlier=True, group="odo:c")
+        for i in range(0, N - 12, 3):
+            Z = truth[i].between(truth[i + 12]).compose(
+                gtsam.Pose3.Expmap(rng.normal(0, FACTOR_SIGMA)))
+            pg.add_factor(f"loop{i}", f"c#{i}", f"c#{i + 12}", Z,
+                          np.diag((SOLVE_INFLATION * FACTOR_SIGMA) ** 2))
+        sol = pg.optimize()
+        (t,) = sol.rigid_tests
+        assert t.rigid is rigid and t.factors == 6, (drift, t)
+        odometry = _odometry_poses(pg, "c")
+        if rigid:
+            assert _shape_error(sol, "c", odometry) < 1e-3
+            continue
+        merged = _shape_error(sol, "c", truth)
+        drifted = max(float(np.linalg.norm(odometry[i].translation() - truth[0].between(
+            truth[i]).translation())) for i in range(N))
+        assert merged < 0.5 * drifted, (merged, drifted)
+
+
 @pytest.mark.parametrize("seed", [0, 3])
 def test_a_slow_drift_is_bent_where_the_99_percent_level_kept_it_rigid(seed: int) -> None:
     """c drifts 0.14 deg a step (4 deg over the chain): its closures lower their cost by more

@@ -208,8 +208,8 @@ def retrieve(
             cos_s = (q32 @ map_.embeddings_nd[idx].T) / np.where(n_idx > 0, n_idx, 1.0)[None, :]
             floor = row_medians(_ucos_pairs(sub, map_, cos_s, idx[None, :]))
         else:  # the same arithmetic on the rows kept with the map (their products kept by
-            # the search when it made them: a BLAS computes each entry alike whatever the
-            # other columns, tests/test_candidates.py)
+            # the search when it made them: the same products up to the BLAS's rounding, bit
+            # for bit at the sizes measured; a small-matrix path may move the floor by ~1e-9)
             dot = (q32 @ sample_rows["embeddings"].T if products is None
                    else products[:, sample])
             cos_s = dot / sample_rows["norms"][None, :]

@@ -4,9 +4,11 @@ inter-robot factors show that the odometry is wrong.
 A chain is the nodes one robot's odometry factors join. Its rigid placement is the one pose that
 puts the chain's odometry shape (composed along the chain) best against the factors from the
 chain to nodes outside it, those held where the solve put them. The chain is kept rigid unless
-bending it as the solve did lowers those factors' summed squared whitened residuals by more
-than the chi-square quantile of DRIFT_DOF degrees of freedom: a likelihood-ratio test of "the
-odometry's shape is right" against "it drifted at a constant rate". Pure.
+bending it as the solve did lowers those factors' summed squared whitened residuals, and those
+of its loops (factors, not known inliers, between two of its own nodes: the shape fixes their
+residual), by more than the chi-square quantile of DRIFT_DOF degrees of freedom: a
+likelihood-ratio test of "the odometry's shape is right" against "it drifted at a constant
+rate". Pure.
 """
 
 from __future__ import annotations
@@ -32,9 +34,9 @@ IsChain = Callable[[str | None], bool]
 
 @dataclass(frozen=True)
 class RigidTest:
-    """One chain's test: its factors to outside nodes (`factors`), their summed squared
-    whitened residuals with the chain placed rigidly (`rigid_cost`) and as solved
-    (`bent_cost`), the degrees of freedom charged (`dof`) and the verdict (`rigid`)."""
+    """One chain's test: its factors to outside nodes and its loops (`factors`), their
+    summed squared whitened residuals with the chain placed rigidly (`rigid_cost`) and as
+    solved (`bent_cost`), the degrees of freedom charged (`dof`) and the verdict (`rigid`)."""
 
     nodes: int
     factors: int
@@ -93,9 +95,17 @@ def rigid_test(shape: Mapping[str, gtsam.Pose3], facs: Sequence[GraphFactor],
     them."""
     graph = gtsam.NonlinearFactorGraph()
     first: gtsam.Pose3 | None = None
-    bent = 0.0
+    bent = loops = 0.0  # loops: the shape's own residual of the chain's loops
+    n_loops = 0
     for f in facs:
         a_in, b_in = f.frame_a in shape, f.frame_b in shape
+        if a_in and b_in and not f.known_inlier and f.frame_a in placed \
+                and f.frame_b in placed:
+            T, C = measured(f)
+            loops += _whitened_cost(T, C, shape[f.frame_a].between(shape[f.frame_b]))
+            bent += _whitened_cost(T, C, placed[f.frame_a].between(placed[f.frame_b]))
+            n_loops += 1
+            continue
         if a_in == b_in or (f.frame_b if a_in else f.frame_a) not in placed:
             continue
         T, C = measured(f)
@@ -114,12 +124,14 @@ def rigid_test(shape: Mapping[str, gtsam.Pose3], facs: Sequence[GraphFactor],
         if first is None:
             first = P
     n = graph.size()
-    if n < 2 or first is None:  # one factor or none: a rigid placement explains it
+    if n_loops == 0 and (n < 2 or first is None):  # a rigid placement explains one factor
         return RigidTest(len(shape), n, bent, bent, 0, True)
-    values = gtsam.Values()
-    values.insert(0, first)
-    cost = 2.0 * float(graph.error(levenberg_marquardt(graph, values, "rigid placement")))
-    return RigidTest(len(shape), n, cost, bent, DRIFT_DOF,
+    cost = loops
+    if n >= 2 and first is not None:  # (one factor out: placed on it exactly, cost 0)
+        values = gtsam.Values()
+        values.insert(0, first)
+        cost += 2.0 * float(graph.error(levenberg_marquardt(graph, values, "rigid placement")))
+    return RigidTest(len(shape), n + n_loops, cost, bent, DRIFT_DOF,
                      cost - bent <= chi2_quantile(probability, DRIFT_DOF))
 
 

@@ -177,7 +177,9 @@ def _graph_edges(svc: MergeService, ids: dict[str, int]) -> tuple[list[tuple[int
             if tuple(str(x) for x in factor_nodes(f)) != (a, b):
                 raise MergeError(f"factor {fid}: the graph ties {a} -> {b}, the factor "
                                  f"{' -> '.join(str(x) for x in factor_nodes(f))}")
-            T, C, kind = pose3_from_model(f.T_a_b), np.asarray(f.covariance), "inter_robot"
+            T, C = pose3_from_model(f.T_a_b), np.asarray(f.covariance)
+            same = (f.robot_a, f.session_a) == (f.robot_b, f.session_b)
+            kind = "loop" if same else "inter_robot"  # loop: two keyframes of one session
         elif fid in odometry:
             e = odometry[fid]
             T, C, kind = e.T_from_to, np.asarray(e.covariance), "odometry"

@@ -304,7 +304,7 @@ class LocalMap:
         if old is not None:  # same id, new content: replace it
             del self._received[fid]
             remove.append(old.index)
-            if old.other_key != key:
+            if old.other_key != key and not old.loop:
                 self._keep_posed(old.other_key, graph, est)
         res = self.isam.update(graph, values, remove)
         self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key, loop)

@@ -234,11 +234,14 @@ class SessionMap:
             up_xyz=None if self.up is None else np.asarray(self.up, dtype=np.float64),
         )
 
-    def seen_by(self, seq: int, min_objects: int) -> SessionMap | None:
-        """The objects last held from submap `seq` or an earlier one, placed as here (None
-        with fewer than min_objects): the old side of a loop, without the objects the
-        vehicle's latest submaps still track (its own detections, not a revisit)."""
-        keep = [k for k, h in enumerate(self.objects) if h.seq <= seq]
+    def seen_by(self, seq: int, min_objects: int, exclude: frozenset[str] = frozenset()
+                ) -> SessionMap | None:
+        """The objects last held from submap `seq` or an earlier one and not in `exclude`,
+        placed as here (None with fewer than min_objects): the old side of a loop, without
+        the objects the vehicle's latest submaps still track (its own detections, not a
+        revisit) nor the ids the submap holds (an object its tracker kept the id of is its own
+        association again, and a submap planned twice finds the same map)."""
+        keep = [k for k, h in enumerate(self.objects) if h.seq <= seq and h.id not in exclude]
         if len(keep) < min_objects:
             return None
         if len(keep) == len(self.objects):
@@ -353,7 +356,8 @@ class Sessions:
                 and me in self.states:  # (a loop ties two keyframes of the session)
             own = self.session_map(me)
             old = None if own is None or own.dim != sub.dim else own.seen_by(
-                sub.seq - loop_gap, self.min_map_objects)
+                sub.seq - loop_gap, self.min_map_objects,
+                frozenset(o.id for o in sub.objects))
             if old is not None:
                 out.append((me, old))
         return out

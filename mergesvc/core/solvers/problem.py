@@ -130,9 +130,9 @@ class AssignmentProblem:
         table = self._cell_index
         if table is not None and a.shape == (self.n1,) and a.dtype.kind == "i" and (
                 self.n1 == 0 or int(a.min()) >= UNMATCHED):
-            try:  # one gather: UNMATCHED (-1) reads the table's last column
-                idx = table[self._row_range, a]
-            except IndexError:  # a column beyond n2: the general path says which
+            try:  # one gather: UNMATCHED (-1) reads the table's first column
+                idx = table[self._row_range, a + 1]
+            except IndexError:  # a column n2 or beyond: the general path says which
                 pass
             else:
                 idx = idx[idx != _UNMATCHED_CELL]
@@ -141,7 +141,11 @@ class AssignmentProblem:
         rows = (a != UNMATCHED).nonzero()[0]
         if len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
-        keys = rows * max(self.n2, 1) + a[rows].astype(np.int64)
+        cols = a[rows].astype(np.int64)
+        if int(cols.min()) < 0 or int(cols.max()) >= self.n2:  # (keys would alias)
+            k = int(np.flatnonzero((cols < 0) | (cols >= self.n2))[0])
+            raise SolverError(f"pair ({int(rows[k])}, {int(cols[k])}) is not a candidate")
+        keys = rows * max(self.n2, 1) + cols
         sorted_keys, order = self._key_index
         at = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
         hit = (sorted_keys[at] == keys) if len(sorted_keys) else np.zeros(len(keys), bool)
@@ -152,14 +156,14 @@ class AssignmentProblem:
 
     @functools.cached_property
     def _cell_index(self) -> np.ndarray | None:
-        """(n1, n2 + 1) candidate index of each (row, col), -1 where none, and a last column
-        of _UNMATCHED_CELL (what an UNMATCHED row reads); None when that table would be large
-        (the sorted keys serve then)."""
+        """(n1, n2 + 1) candidate index of each (row, col) at column col + 1, -1 where none,
+        and a first column of _UNMATCHED_CELL (what an UNMATCHED row reads); None when that
+        table would be large (the sorted keys serve then)."""
         if self.n1 * self.n2 > _CELL_TABLE_MAX:
             return None
         table = np.full((self.n1, self.n2 + 1), -1, dtype=np.int64)
-        table[:, -1] = _UNMATCHED_CELL
-        table[self.rows, self.cols] = np.arange(self.m)
+        table[:, 0] = _UNMATCHED_CELL
+        table[self.rows, self.cols + 1] = np.arange(self.m)
         return table
 
     @functools.cached_property
