@@ -409,6 +409,14 @@ def test_a_vehicle_back_where_it_was_is_matched_against_its_own_older_objects(ga
         loops = [f for f in svc.merger.factors.values() if f.robot_a == f.robot_b == "loop"]
         assert len(loops) == 1 and (loops[0].keyframe_a, loops[0].keyframe_b) == (1, 6)
         assert all(c.object_b == f"{c.object_a}-again" for c in loops[0].correspondences)
+        # ids its tracker kept (the same objects under the same ids) are its own association,
+        # not a revisit: left out of the old map
+        kept = _keyframed(make_submap("loop", "s0", 7, n=6, seed=4)).model_copy(
+            update={"objects": subs[0].objects})
+        tried = svc.sessions.candidate_frames("loop/s0", kept, cfg.max_candidate_frames,
+                                               cfg.max_frames_per_robot, cfg.loop_gap_submaps)
+        (old,) = [sm for name, sm in tried if name == "loop/s0"]
+        assert old.objects and not {h.id for h in old.objects} & {o.id for o in subs[0].objects}
     finally:
         svc.close()
 
