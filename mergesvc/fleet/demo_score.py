@@ -245,7 +245,8 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
                 factors: list[Factor], path: Path) -> Path:
     """Each robot's trajectory and objects in the anchor frame (as the service aligned them),
-    inter-robot correspondences drawn; every kind of mark in the legend."""
+    the factors' correspondences drawn (between robots, and a robot's loops); every kind of
+    mark in the legend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -276,7 +277,7 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
             a, b = placed.get((f.robot_a, c.object_a)), placed.get((f.robot_b, c.object_b))
             if a is not None and b is not None:
                 ax.plot([a[0], b[0]], [a[1], b[1]], color="k", lw=0.6, alpha=0.5)
-    ax.plot([], [], color="k", lw=0.6, label="inter-robot correspondences")
+    ax.plot([], [], color="k", lw=0.6, label="correspondences (between robots; loops)")
     ax.set_aspect("equal")
     ax.set_title(f"merged map in {anchor}'s frame")
     ax.set_xlabel("x [m]")
