@@ -299,6 +299,12 @@ def factor_frames(factor: Factor) -> tuple[FrameId, FrameId]:
     return FrameId(factor.robot_a, factor.session_a), FrameId(factor.robot_b, factor.session_b)
 
 
+def is_loop(factor: Factor) -> bool:
+    """Whether a factor ties two keyframes of one session (a loop the vehicle closed)."""
+    fa, fb = factor_frames(factor)
+    return fa == fb
+
+
 def _result(result: MatchResult | MatchOutcome) -> MatchResult:
     return result if isinstance(result, MatchResult) else result.result
 
@@ -310,6 +316,7 @@ __all__ = [
     "factor_from_match",
     "factor_nodes",
     "inflate_covariance",
+    "is_loop",
     "local_fit",
     "match_factor_id",
     "odometry_edge",

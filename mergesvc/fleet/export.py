@@ -26,7 +26,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mergesvc.core.factors import factor_nodes
+from mergesvc.core.factors import factor_nodes, is_loop
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, Submap
 from mergesvc.core.poses import pose3_from_model
@@ -178,8 +178,7 @@ def _graph_edges(svc: MergeService, ids: dict[str, int]) -> tuple[list[tuple[int
                 raise MergeError(f"factor {fid}: the graph ties {a} -> {b}, the factor "
                                  f"{' -> '.join(str(x) for x in factor_nodes(f))}")
             T, C = pose3_from_model(f.T_a_b), np.asarray(f.covariance)
-            same = (f.robot_a, f.session_a) == (f.robot_b, f.session_b)
-            kind = "loop" if same else "inter_robot"  # loop: two keyframes of one session
+            kind = "loop" if is_loop(f) else "inter_robot"
         elif fid in odometry:
             e = odometry[fid]
             T, C, kind = e.T_from_to, np.asarray(e.covariance), "odometry"

@@ -13,6 +13,7 @@ import gtsam
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from mergesvc.core.factors import is_loop
 from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap, Transform
 from mergesvc.core.odometry import chain_covariance, step_covariance
@@ -75,8 +76,11 @@ class _Received:
 
     factor: Factor
     index: int
-    other_key: int
-    loop: bool = False  # between two own keyframes: other_key is an own pose
+    other_key: int  # an own pose for a loop (two own keyframes)
+
+    @property
+    def loop(self) -> bool:
+        return is_loop(self.factor)
 
 
 @dataclass
@@ -307,7 +311,7 @@ class LocalMap:
             if old.other_key != key and not old.loop:
                 self._keep_posed(old.other_key, graph, est)
         res = self.isam.update(graph, values, remove)
-        self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key, loop)
+        self._received[fid] = _Received(factor, int(res.getNewFactorsIndices()[0]), key)
         after_est = self._settle()
         at = after_est.atPose3(key).translation()
         name = f"{other[0]}#{other[1]}"
