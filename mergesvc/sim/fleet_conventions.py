@@ -1,0 +1,71 @@
+"""A fleet whose vehicles each use their own axis convention (ENU, NED, camera, a random
+rotation) for their body and odometry frames: the same world, the same noise, only the axes
+renamed (`in_conventions`). What a merge of it gives must not depend on the conventions.
+
+For a vehicle in convention C (p_conv = C p, core axes x forward, y left, z up): each pose
+T (body -> odometry) becomes C T C^T in block form (R -> C R C^T, t -> C t); detections and
+their covariances in the odometry frame C p, C S C^T; the measured vertical C up; the true pose
+T_true C^T and the odometry frame's true start S C^T (the world frame is not renamed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from mergesvc.core.tracking import Frame
+from mergesvc.sim.conventions import E_Z
+
+
+def _block(C: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = C
+    return out
+
+
+@dataclass(frozen=True)
+class ConventionFleet:
+    """`world` (a fleet world: robots, frames, session_start, objects_xyz_m, object_ids) with
+    robot name -> its convention C (3, 3); robots not listed keep the core axes."""
+
+    world: Any
+    conventions: Mapping[str, np.ndarray]
+
+    def __getattr__(self, name: str) -> Any:  # objects, ids, cfg, ...: the world's own
+        return getattr(self.world, name)
+
+    @property
+    def robots(self) -> list[Any]:
+        return list(self.world.robots)
+
+    def convention(self, name: str) -> np.ndarray:
+        return np.asarray(self.conventions.get(name, np.eye(3)), dtype=np.float64)
+
+    def up(self, name: str) -> tuple[float, float, float]:
+        """The vertical (opposite to gravity) in the robot's odometry frame."""
+        return tuple(float(x) for x in self.convention(name) @ E_Z)  # type: ignore[return-value]
+
+    def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
+        C = self.convention(name)
+        B = _block(C)
+        for f in self.world.frames(name, session):
+            dets = [replace(d, position_xyz_m=C @ d.position_xyz_m,
+                            position_cov_33=C @ d.position_cov_33 @ C.T)
+                    for d in f.detections]
+            yield replace(f, T_est=B @ f.T_est @ B.T, T_true=f.T_true @ B.T,
+                          detections=dets,
+                          up_body=None if f.up_body is None else C @ f.up_body)
+
+    def session_start(self, name: str, session: int = 0) -> np.ndarray:
+        return self.world.session_start(name, session) @ _block(self.convention(name)).T
+
+
+def in_conventions(world: Any, conventions: Mapping[str, np.ndarray]) -> ConventionFleet:
+    """`world` with each listed robot's body and odometry axes in its convention."""
+    return ConventionFleet(world, dict(conventions))
+
+
+__all__ = ["ConventionFleet", "in_conventions"]
