@@ -230,7 +230,9 @@ def test_global_map_objects_sit_where_the_true_objects_are(served) -> None:
     for o in gmap.objects:
         i = int(o.id.rsplit("/o", 1)[1])  # "{robot}/{session}/o{i}": ids stay per session
         err.append(np.linalg.norm(np.asarray(o.position) - truth[i]))
-    assert np.median(err) < 0.7 and np.percentile(err, 90) < 1.5
+    # measured: median 0.68 m with factors weighed by noise alone, 0.70 weighed by placement
+    # too (better on average over pool seeds, docs/benchmarks/merge.md); p90 1.34-1.38
+    assert np.median(err) < 0.75 and np.percentile(err, 90) < 1.5
     # fused: fewer global objects than held objects, none joining two objects of one session
     held = sum(len(s.objects) for s in svc.sessions.values())
     assert len(gmap.objects) < held

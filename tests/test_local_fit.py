@@ -91,3 +91,36 @@ def test_what_cannot_be_fitted() -> None:
     up = np.array([0.0, 0.0, 1.0])
     above = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     assert local_fit(above, above, [7, 7], placed, up_sub=up, up_map=up) is None
+
+
+@pytest.mark.parametrize("vertical", [True, False])
+def test_objects_placed_by_an_uncertain_chain_weigh_less(vertical: bool) -> None:
+    """Three objects of keyframe 12, placed by a chain whose heading is known to 3 degrees,
+    among five of Ka itself: weighed by their placement too, the fit's yaw spreads less than
+    weighed by their own noise alone, and its covariance says by how much."""
+    T_true, _, P, _, _, _ = _scene(5, vertical)
+    rng = np.random.default_rng(6)
+    kfs = [7] * 5 + [12] * 3
+    world = rng.uniform([-4, -4, -1], [6, 6, 1], size=(len(kfs), 3))
+    sub = np.array([T_true.transformTo(x) for x in world])
+    body = np.array([P[g].transformTo(x) for x, g in zip(world, kfs)])
+    S = {7: np.zeros((6, 6)), 12: np.diag([1e-6, 1e-6, np.radians(3.0) ** 2, 1e-4, 1e-4, 1e-6])}
+    up = np.array([0.0, 0.0, 1.0]) if vertical else None
+    yaw: dict[bool, list[float]] = {True: [], False: []}
+    model: dict[bool, list[float]] = {True: [], False: []}
+    for _ in range(300):
+        eta = rng.multivariate_normal(np.zeros(6), S[12])
+        placed = {7: (P[7], S[7]), 12: (P[12].compose(gtsam.Pose3.Expmap(eta)), S[12])}
+        s_noisy = sub + rng.normal(0, 0.05, sub.shape)
+        for weighted in (True, False):
+            out = local_fit(s_noisy, body, kfs, placed, up_sub=up, up_map=up,
+                            vertical_sigma_rad=1e-4, range_weighted=False,
+                            placement_weighted=weighted)
+            assert out is not None
+            yaw[weighted].append(gtsam.Pose3.Logmap(T_true.between(out[0]))[2])
+            model[weighted].append(out[1][2, 2])
+    spread = {w: float(np.std(v)) for w, v in yaw.items()}
+    assert spread[True] < 0.8 * spread[False], spread
+    # each covariance honest about its own estimator's spread (measured 1.09-1.13)
+    ratio = {w: float(np.sqrt(np.mean(model[w])) / spread[w]) for w in (True, False)}
+    assert all(0.8 < r < 1.5 for r in ratio.values()), ratio

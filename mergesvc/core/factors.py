@@ -161,6 +161,7 @@ def local_fit(
     vertical_sigma_rad: float = np.radians(2.0),
     sigma_floor_m: float = 1e-3,
     range_weighted: bool = True,
+    placement_weighted: bool = True,
 ) -> tuple[gtsam.Pose3, np.ndarray] | None:
     """T_{Ka,Kb} and its covariance from matched objects, the map's placed around keyframe Ka
     by the odometry alone (not by any merged solution, so that errors of the graph do not
@@ -177,19 +178,21 @@ def local_fit(
 
     range_weighted: an object's noise grows with its range from the keyframe that placed it
     (sonar and stereo both): sigma_i = c (1 + rho_i / median rho), rho_i the larger of its two
-    ranges, c from the weighted residuals; the fit and its covariance weigh each pair so."""
+    ranges, c from the weighted residuals. placement_weighted: the fit is then redone with
+    each pair weighed by its noise and its placement's (an object placed by a long odometry
+    chain from Ka moves with that chain's heading error), and its covariance is that
+    estimator's (a sandwich: same as above when no placement is uncertain)."""
     k = len(sub_xyz)
     if k == 0 or any(g not in placements for g in map_keyframes):
         return None
-    q = np.array([placements[g][0].transformFrom(np.asarray(m, dtype=np.float64))
-                  for m, g in zip(map_body_xyz, map_keyframes, strict=True)])
+    m = np.asarray(map_body_xyz, dtype=np.float64)
+    q = np.array([placements[g][0].transformFrom(x) for x, g in zip(m, map_keyframes,
+                                                                      strict=True)])
     p = np.asarray(sub_xyz, dtype=np.float64)
     u = np.ones(k)  # each pair's noise, relative
     if range_weighted:
-        rho = np.maximum(np.linalg.norm(p, axis=1),
-                         np.linalg.norm(np.asarray(map_body_xyz, dtype=np.float64), axis=1))
+        rho = np.maximum(np.linalg.norm(p, axis=1), np.linalg.norm(m, axis=1))
         u = 1.0 + rho / max(float(np.median(rho)), 1e-9)
-    w = 1.0 / u**2
     vertical = up_sub is not None and up_map is not None
     if vertical:
         u_s = np.asarray(up_sub, dtype=np.float64) / np.linalg.norm(up_sub)
@@ -197,46 +200,64 @@ def local_fit(
         centred = p - p.mean(axis=0)
         if k < 2 or np.linalg.norm(centred - np.outer(centred @ u_s, u_s), axis=1).max() < 1e-6:
             return None
-        T = align_about_vertical(p, q, u_s, u_m, weights=w)
         dof = 3 * k - 4
+
+        def fit(w: np.ndarray) -> gtsam.Pose3 | None:
+            return align_about_vertical(p, q, u_s, u_m, weights=w)
     else:
         if k < 3:
             return None
         sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
         if sv[1] < 1e-3 * sv[0]:
             return None
-        T = align_weighted(p, q, w)
         dof = 3 * k - 6
+
+        def fit(w: np.ndarray) -> gtsam.Pose3 | None:
+            return align_weighted(p, q, w)
+    T = fit(1.0 / u**2)
     if T is None:
         return None
     R = T.rotation().matrix()
-    rss = float(np.sum(w * np.sum((p @ R.T + T.translation() - q) ** 2, axis=1)))
+    rss = float(np.sum(np.sum((p @ R.T + T.translation() - q) ** 2, axis=1) / u**2))
     c = max(np.sqrt(rss / dof) if dof > 0 else 0.0, sigma_floor_m)
-    sigma = c * u
+    sigma = c * u  # each pair's own noise
+    # each pair's placement: q_i = P_g m_i moves by G_i eta, G_i = R_g [-[m_i]x, I], eta ~ S_g
+    G = {i: placements[g][0].rotation().matrix() @ np.hstack([-skew(m[i]), np.eye(3)])
+         for i, g in enumerate(map_keyframes)}
+    spread = np.array([np.trace(G[i] @ placements[g][1] @ G[i].T) / 3.0
+                       for i, g in enumerate(map_keyframes)])
+    s_eff = np.sqrt(sigma**2 + spread) if placement_weighted else sigma  # the fit's weights
+    if placement_weighted and np.any(spread > 0):
+        T = fit(1.0 / s_eff**2)
+        if T is None:
+            return None
+        R = T.rotation().matrix()
     try:
-        info = pose_covariance_info(T, p, sigma)
+        # the estimator weighs pair i by 1 / s_eff_i^2: its gain K_e maps the data's gradient
+        # to the fitted directions; the pairs' own noise gives K_e H_n K_e^T (a sandwich,
+        # H_n = sum J_i^T J_i sigma_i^2 / s_eff_i^4), K_e itself when s_eff = sigma
+        info = pose_covariance_info(T, p, s_eff)
+        meat = pose_covariance_info(T, p, s_eff**2 / sigma)
         if vertical:  # yaw and translation from the points, tilt from the verticals' prior
-            cov = vertical_fit_covariance(T, p, sigma, u_s, vertical_sigma_rad)
             B = np.zeros((6, 4))
             B[:3, 0], B[3:, 1:] = u_s, np.eye(3)
-            K = B @ np.linalg.inv(B.T @ info @ B) @ B.T  # data gradient -> fitted directions
+            K = B @ np.linalg.inv(B.T @ info @ B) @ B.T
+            tilt = vertical_fit_covariance(T, p, s_eff, u_s, vertical_sigma_rad) - K
+            cov = K @ meat @ K.T + tilt
         else:
-            K = cov = np.linalg.inv(info)
+            K = np.linalg.inv(info)
+            cov = K @ meat @ K.T
     except np.linalg.LinAlgError:
         return None
-    # the placements: q_i = P_g m_i moves by R_g (-[m_i]x eta_r + eta_t) for eta ~ N(0, S_g),
-    # the fit by K sum_i J_i^T dq_i / sigma_i^2 (J_i = [-R [p_i]x, R], verify.pose_covariance)
+    # the placements: the fit moves by K sum_i J_i^T dq_i / s_eff_i^2 (J_i = [-R [p_i]x, R],
+    # verify.pose_covariance), dq_i = G_i eta_g for the pairs of keyframe g
     M = np.zeros((6, 6))
     for g in dict.fromkeys(map_keyframes):
-        P, S = placements[g]
-        Rg = P.rotation().matrix()
         Bg = np.zeros((6, 6))
         for i in (i for i, kf in enumerate(map_keyframes) if kf == g):
             J = np.hstack([-R @ skew(p[i]), R])
-            G = Rg @ np.hstack([-skew(np.asarray(map_body_xyz[i], dtype=np.float64)),
-                                np.eye(3)])
-            Bg += J.T @ G / sigma[i] ** 2
-        M += Bg @ S @ Bg.T
+            Bg += J.T @ G[i] / s_eff[i] ** 2
+        M += Bg @ placements[g][1] @ Bg.T
     total = cov + K @ M @ K.T
     return T, 0.5 * (total + total.T)
 

@@ -169,8 +169,9 @@ class ServiceConfig(BaseModel):
     local_fit: bool = Field(
         True, description="fit each factor on the matched objects with the other session's "
         "placed around its anchoring keyframe by odometry (not by the merged solution, whose "
-        "errors would become the factor's), the placements' covariance carried into the "
-        "factor's; false: the match's own transform, placed by the solution, drift_sigma added")
+        "errors would become the factor's), each pair weighed by its noise and its "
+        "placement's, the placements' covariance carried into the factor's; false: the "
+        "match's own transform, placed by the solution, drift_sigma added")
     local_drift_sigma: tuple[float, float] = Field(
         (0.0, 0.0), description="added to a locally fitted factor's covariance: rotation rad, "
         "translation m (its placement uncertainty is in it already)")
