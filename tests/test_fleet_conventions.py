@@ -1,7 +1,10 @@
 """The whole merge chain (agents' local maps, submaps, the service's matching, factors, graph,
 calibration, rigid test; the scores) does not depend on the vehicles' axis conventions: the
 pool fleet replayed with its vehicles in NED, camera and a random rotation gives the merge it
-gives in the core axes (x forward, y left, z up), up to floating-point rounding."""
+gives in the core axes (x forward, y left, z up): the same factors and precision, the ATE
+within 5 % (the noise calibration scales each vehicle's odometry per axis of its own frame,
+from a seeded Monte-Carlo estimate whose draws fall on other axes in another convention: its
+scales, and so the solve, differ by a few per cent; measured 2 %)."""
 
 from __future__ import annotations
 
@@ -38,6 +41,12 @@ def test_frames_are_the_same_motion_in_other_axes() -> None:
                 assert np.allclose(e.position_xyz_m, conv @ d.position_xyz_m)
     assert np.allclose(cw.up("auv2"), C[:, 2])
     assert cw.object_ids == world.object_ids
+    # the true starts as the scoring reads them: every way, in the vehicles' conventions
+    S1, S2 = cw.session_start("auv1"), cw.session_start("auv2")
+    assert np.allclose(cw.robot("auv2").T_world_start, S2)
+    assert np.allclose([r.T_world_start for r in cw.robots], [S1, S2])
+    assert np.allclose(cw.T_rel_true("auv1", "auv2"), np.linalg.inv(S1) @ S2)
+    assert np.allclose(S2[:3, :3] @ C[:, 2], world.session_start("auv2")[:3, 2])  # up is up
 
 
 def test_merge_is_the_same_in_every_convention(caplog: pytest.LogCaptureFixture) -> None:

@@ -40,7 +40,6 @@ from mergesvc.core.verify import (
     align_weighted,
     pose_covariance_info,
     skew,
-    vertical_fit_covariance,
 )
 from mergesvc.errors import InputError
 
@@ -179,9 +178,10 @@ def local_fit(
     range_weighted: an object's noise grows with its range from the keyframe that placed it
     (sonar and stereo both): sigma_i = c (1 + rho_i / median rho), rho_i the larger of its two
     ranges, c from the weighted residuals. placement_weighted: the fit is then redone with
-    each pair weighed by its noise and its placement's (an object placed by a long odometry
-    chain from Ka moves with that chain's heading error), and its covariance is that
-    estimator's (a sandwich: same as above when no placement is uncertain)."""
+    each pair weighed by its noise plus its placement's (an object placed by a long odometry
+    chain from Ka moves with that chain's heading error); the covariance stays the one of the
+    fit weighed by noise alone (conservative for it), the tilt turning the points about the
+    weighted centroid the fit keeps."""
     k = len(sub_xyz)
     if k == 0 or any(g not in placements for g in map_keyframes):
         return None
@@ -226,37 +226,43 @@ def local_fit(
          for i, g in enumerate(map_keyframes)}
     spread = np.array([np.trace(G[i] @ placements[g][1] @ G[i].T) / 3.0
                        for i, g in enumerate(map_keyframes)])
-    s_eff = np.sqrt(sigma**2 + spread) if placement_weighted else sigma  # the fit's weights
-    if placement_weighted and np.any(spread > 0):
+    reweighed = placement_weighted and bool(np.any(spread > 0))
+    s_eff = np.sqrt(sigma**2 + spread) if reweighed else sigma  # the weights of the fit
+    if reweighed:
         T = fit(1.0 / s_eff**2)
         if T is None:
             return None
         R = T.rotation().matrix()
+    # the covariance: the fit weighed by noise alone's (K, and the placements carried through
+    # it), at T; under the model the placement-weighted fit spreads less, so this is
+    # conservative for it. Its own (a sandwich) was tighter than its errors in the tail: a
+    # submap's objects share a rigid error of the vehicle's local map that no residual shows
+    # (docs/uncertainty.md)
     try:
-        # the estimator weighs pair i by 1 / s_eff_i^2: its gain K_e maps the data's gradient
-        # to the fitted directions; the pairs' own noise gives K_e H_n K_e^T (a sandwich,
-        # H_n = sum J_i^T J_i sigma_i^2 / s_eff_i^4), K_e itself when s_eff = sigma
-        info = pose_covariance_info(T, p, s_eff)
-        meat = pose_covariance_info(T, p, s_eff**2 / sigma)
+        info = pose_covariance_info(T, p, sigma)
         if vertical:  # yaw and translation from the points, tilt from the verticals' prior
             B = np.zeros((6, 4))
             B[:3, 0], B[3:, 1:] = u_s, np.eye(3)
-            K = B @ np.linalg.inv(B.T @ info @ B) @ B.T
-            tilt = vertical_fit_covariance(T, p, s_eff, u_s, vertical_sigma_rad) - K
-            cov = K @ meat @ K.T + tilt
+            K = B @ np.linalg.inv(B.T @ info @ B) @ B.T  # data gradient -> fitted directions
         else:
             K = np.linalg.inv(info)
-            cov = K @ meat @ K.T
     except np.linalg.LinAlgError:
         return None
-    # the placements: the fit moves by K sum_i J_i^T dq_i / s_eff_i^2 (J_i = [-R [p_i]x, R],
+    cov = K.copy()
+    if vertical:
+        # the tilt, from the verticals' prior (each frame's up known to vertical_sigma_rad),
+        # turns the points about the centroid the fit keeps in place: its weighted one
+        w = 1.0 / s_eff**2
+        Gc = np.vstack([np.eye(3), skew(w @ p / w.sum())])
+        cov += Gc @ (2.0 * vertical_sigma_rad**2 * (np.eye(3) - np.outer(u_s, u_s))) @ Gc.T
+    # the placements: the fit moves by K sum_i J_i^T dq_i / sigma_i^2 (J_i = [-R [p_i]x, R],
     # verify.pose_covariance), dq_i = G_i eta_g for the pairs of keyframe g
     M = np.zeros((6, 6))
     for g in dict.fromkeys(map_keyframes):
         Bg = np.zeros((6, 6))
         for i in (i for i, kf in enumerate(map_keyframes) if kf == g):
             J = np.hstack([-R @ skew(p[i]), R])
-            Bg += J.T @ G[i] / s_eff[i] ** 2
+            Bg += J.T @ G[i] / sigma[i] ** 2
         M += Bg @ placements[g][1] @ Bg.T
     total = cov + K @ M @ K.T
     return T, 0.5 * (total + total.T)

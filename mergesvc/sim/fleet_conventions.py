@@ -5,7 +5,8 @@ renamed (`in_conventions`). What a merge of it gives must not depend on the conv
 For a vehicle in convention C (p_conv = C p, core axes x forward, y left, z up): each pose
 T (body -> odometry) becomes C T C^T in block form (R -> C R C^T, t -> C t); detections and
 their covariances in the odometry frame C p, C S C^T; the measured vertical C up; the true pose
-T_true C^T and the odometry frame's true start S C^T (the world frame is not renamed).
+T_true C^T and the odometry frame's true start S C^T (`robots`, `robot`, `T_rel_true` and
+`session_start` give it so); the world frame and the paths in it are not renamed.
 """
 
 from __future__ import annotations
@@ -35,11 +36,22 @@ class ConventionFleet:
     conventions: Mapping[str, np.ndarray]
 
     def __getattr__(self, name: str) -> Any:  # objects, ids, cfg, ...: the world's own
+        if name.startswith("_"):
+            raise AttributeError(name)
         return getattr(self.world, name)
 
     @property
     def robots(self) -> list[Any]:
-        return list(self.world.robots)
+        """The world's robots, each odometry frame's true start in its convention."""
+        return [replace(r, T_world_start=self.session_start(r.name)) for r in self.world.robots]
+
+    def robot(self, name: str) -> Any:
+        r = self.world.robot(name)
+        return replace(r, T_world_start=self.session_start(name))
+
+    def T_rel_true(self, a: str, b: str) -> np.ndarray:
+        """True pose of robot b's odometry frame in robot a's, both in their conventions."""
+        return np.linalg.inv(self.session_start(a)) @ self.session_start(b)
 
     def convention(self, name: str) -> np.ndarray:
         return np.asarray(self.conventions.get(name, np.eye(3)), dtype=np.float64)
