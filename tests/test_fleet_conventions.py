@@ -4,7 +4,7 @@ pool fleet replayed with its vehicles in NED, camera and a random rotation gives
 gives in the core axes (x forward, y left, z up): the same factors and precision, the ATE
 within 5 % (the noise calibration scales each vehicle's odometry per axis of its own frame,
 from a seeded Monte-Carlo estimate whose draws fall on other axes in another convention: its
-scales, and so the solve, differ by a few per cent; measured 2 %)."""
+scales, and so the solve, differ by a few per cent; measured 1.5-2 %)."""
 
 from __future__ import annotations
 

@@ -224,15 +224,16 @@ def local_fit(
     # each pair's placement: q_i = P_g m_i moves by G_i eta, G_i = R_g [-[m_i]x, I], eta ~ S_g
     G = {i: placements[g][0].rotation().matrix() @ np.hstack([-skew(m[i]), np.eye(3)])
          for i, g in enumerate(map_keyframes)}
-    spread = np.array([np.trace(G[i] @ placements[g][1] @ G[i].T) / 3.0
-                       for i, g in enumerate(map_keyframes)])
-    reweighed = placement_weighted and bool(np.any(spread > 0))
-    s_eff = np.sqrt(sigma**2 + spread) if reweighed else sigma  # the weights of the fit
-    if reweighed:
-        T = fit(1.0 / s_eff**2)
-        if T is None:
-            return None
-        R = T.rotation().matrix()
+    s_eff = sigma  # the weights of the fit
+    if placement_weighted:  # the variance each placement adds to its pair's position
+        spread = np.array([np.trace(G[i] @ placements[g][1] @ G[i].T) / 3.0
+                           for i, g in enumerate(map_keyframes)])
+        if np.any(spread > 0):  # the fit again, weighed by both
+            s_eff = np.sqrt(sigma**2 + spread)
+            T = fit(1.0 / s_eff**2)
+            if T is None:
+                return None
+            R = T.rotation().matrix()
     # the covariance: the fit weighed by noise alone's (K, and the placements carried through
     # it), at T; under the model the placement-weighted fit spreads less, so this is
     # conservative for it. Its own (a sandwich) was tighter than its errors in the tail: a
