@@ -13,12 +13,18 @@ import logging
 import numpy as np
 import pytest
 
+from mergesvc.bench.merge import STRETCHES_QUICK
 from mergesvc.fleet.agent import AgentConfig
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.replay import replay_world
 from mergesvc.sim.conventions import C_CAMERA, C_NED, random_rotation
+from mergesvc.sim.drive_fleet import drive_fleet
 from mergesvc.sim.fleet import fleet_world
 from mergesvc.sim.fleet_conventions import in_conventions
+from mergesvc.sim.real_data import KITTI_GT, KITTI_ORB, data_available
+
+needs_kitti = pytest.mark.skipif(not data_available(None, KITTI_GT, KITTI_ORB),
+                                 reason="../shared/data/kitti00 not present")
 
 
 def _replay(world, up) -> dict:
@@ -67,3 +73,24 @@ def test_merge_is_the_same_in_every_convention(caplog: pytest.LogCaptureFixture)
         bent += a["ate_merged_m"] < 0.9 * a["ate_odometry_m"]
     assert bent >= 1  # the merge moved a trajectory: not odometry compared with itself
     assert other["fleet_ate_merged_m"] == pytest.approx(core["fleet_ate_merged_m"], rel=0.05)
+
+
+@needs_kitti
+def test_a_drive_fleet_in_other_conventions() -> None:
+    """The wrapper takes any fleet world: the KITTI-00 cars (camera axes, cars' records
+    without a settable start) renamed, their starts and verticals with them."""
+    world = drive_fleet(0, stretches=STRETCHES_QUICK)
+    C = random_rotation(np.random.default_rng(2))
+    cw = in_conventions(world, {"car2": C})
+    S = cw.session_start("car2")
+    assert np.allclose([r.T_world_start for r in cw.robots],
+                       [world.session_start("car1"), S, world.session_start("car3")])
+    assert [r.name for r in cw.robots] == ["car1", "car2", "car3"]
+    assert np.array_equal(cw.robot("car2").frames_idx, world.robot("car2").frames_idx)
+    assert np.allclose(cw.T_rel_true("car1", "car2"),
+                       np.linalg.inv(world.session_start("car1")) @ S)
+    f, g = next(world.frames("car2")), next(cw.frames("car2"))
+    assert np.allclose(g.up_body, C @ f.up_body)
+    # the vertical in the odometry frame: the first frame's IMU (its body is that frame)
+    assert np.allclose(world.up("car2"), f.up_body, atol=1e-6)
+    assert np.allclose(cw.up("car2"), C @ f.up_body, atol=1e-6)

@@ -62,7 +62,8 @@ ROBOT_AXES = ("odometry_whitened_rms", "odometry_declared_whitened_rms", "odomet
 WORLD_FIELDS = ("anchor", "robots", "submaps", "delivery", "factors_accepted",
                 "factors_retracted", "factors_correct", "retracted_correct",
                 "retracted_right_correspondences", "active_factors", "active_correct",
-                "correspondences_right", "correspondences_wrong", "precision",
+                "correspondences_right", "correspondences_wrong", "correspondences_wrong_mixed",
+                "precision",
                 "service_ms_median", "service_ms_p90", "factors", "fleet_ate_merged_m",
                 "fleet_ate_align_once_first_m", "fleet_ate_align_once_best_m",
                 "factor_whitened_rms", "factor_over_99_percent", "factor_nees_median",
@@ -389,7 +390,12 @@ def targets(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                                             "worst": max(r["retracted_correct"] for r in rs)}
         p_min = PRECISION_MIN.get(w, 0.99)
         t["precision"] = {"met": all(r["precision"] >= p_min for r in rs),
-                          "worst": _worst([r["precision"] for r in rs], min), "target": p_min}
+                          "worst": _worst([r["precision"] for r in rs], min), "target": p_min,
+                          # of the wrong pairs, those where an agent's tracker had merged the
+                          # two objects (one track took detections of both)
+                          "wrong": sum(r["correspondences_wrong"] for r in rs),
+                          "wrong_on_merged_tracks": sum(r.get("correspondences_wrong_mixed", 0)
+                                                        for r in rs)}
         if "calibration_true_scale" in rs[0]:
             truth = np.asarray(rs[0]["calibration_true_scale"])
             err = np.asarray([np.asarray(v["odometry_scale"]) / truth - 1.0 for v in rows])
@@ -451,7 +457,8 @@ def markdown(report: dict[str, Any]) -> str:
                  "an exact closure between every two co-visible keyframes, fleet/bound.py):")
     for w, t in report["targets"].items():
         parts = [f"{k} {'met' if v['met'] else 'NOT met'} ("
-                 + ", ".join(f"{a} {b:.2f}" for a, b in v.items() if a != "met") + ")"
+                 + ", ".join(f"{a} {b}" if isinstance(b, int) else f"{a} {b:.2f}"
+                             for a, b in v.items() if a != "met") + ")"
                  for k, v in t.items()]
         lines.append(f"- {w}: " + "; ".join(parts))
     return "\n".join(lines)

@@ -288,7 +288,8 @@ def bench_merge(
     acoustic: Annotated[bool, typer.Option(help="also the pool through the acoustic link")
                         ] = True,
     world: Annotated[list[str] | None, typer.Option(
-        help="only these worlds (pool, pool-long, kitti00, kitti00-vo, pool+acoustic)")] = None,
+        help="only these worlds (pool, pool-long, kitti00, kitti00-vo, pool+acoustic, "
+             "pool-calib)")] = None,
     scale: Annotated[str | None, typer.Option(
         help="instead: the service's cost per submap at these fleet sizes, e.g. 2,3,5,10,20 "
              "(the pool world, in-process)")] = None,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,7 +34,13 @@ from mergesvc.fleet.bound import BOUND_DRAWS, closure_bound
 from mergesvc.fleet.bound import error_sigma as bound_error_sigma
 from mergesvc.fleet.config import ServiceConfig, odometry_group
 from mergesvc.fleet.local_map import AgentConfig, L, LocalMap, build_submaps
-from mergesvc.fleet.scoring import OdometryEdgeRecord, align_once, fleet_ate, odometry_honesty
+from mergesvc.fleet.scoring import (
+    OdometryEdgeRecord,
+    align_once,
+    fleet_ate,
+    odometry_honesty,
+    wrong_on_merged_tracks,
+)
 from mergesvc.fleet.service import MergeService
 from mergesvc.link.config import LinkConfig
 from mergesvc.link.simulator import Delivery, LinkSimulator
@@ -184,6 +190,12 @@ def replay_world(
         except (KeyError, MergeError):
             return None
 
+    def counts_of(robot: str, oid: str) -> Mapping[str, int]:
+        try:
+            return local[robot].tracker.track(oid).truth_counts
+        except (KeyError, MergeError):
+            return {}
+
     # factors: correct by transform against the truth relative pose of their two keyframes
     factor_rows = []
     for f in all_factors:
@@ -208,17 +220,21 @@ def replay_world(
         pairs = [(truth_of(f.robot_a, c.object_a), truth_of(f.robot_b, c.object_b))
                  for c in f.correspondences]
         right = sum(a is not None and a == b for a, b in pairs)
+        mixed = wrong_on_merged_tracks(
+            pairs, [counts_of(f.robot_a, c.object_a) for c in f.correspondences],
+            [counts_of(f.robot_b, c.object_b) for c in f.correspondences])
         factor_rows.append({"id": f.factor_id, "retracted": f.factor_id in retracted_ids,
                             "held": f.factor_id in held_ids,
                             "correct": bool(ok_T), "err_m": err_m, "err_deg": err_deg,
                             "nees": nees, "err_tangent": tangent,
                             "keyframes": [ka, kb], "robots": [f.robot_a, f.robot_b],
                             "corr_right": right,
-                            "corr_wrong": len(pairs) - right})
+                            "corr_wrong": len(pairs) - right, "corr_wrong_mixed": mixed})
     active = [r for r in factor_rows if not r["retracted"] and not r["held"]]
     retracted = [r for r in factor_rows if r["retracted"]]
     right = sum(r["corr_right"] for r in active)
     wrong = sum(r["corr_wrong"] for r in active)
+    wrong_mixed = sum(r["corr_wrong_mixed"] for r in active)
 
     merged_all = status.get("keyframe_poses") or {}
     # the bounds: on what the service received (the delivered submaps), exact closures and
@@ -332,6 +348,7 @@ def replay_world(
         "correspondences_right": right,
         "correspondences_wrong": wrong,
         "precision": right / (right + wrong) if right + wrong else float("nan"),
+        "correspondences_wrong_mixed": wrong_mixed,
         "service_ms_median": float(np.median(lat)) if lat.size else float("nan"),
         "service_ms_p90": float(np.percentile(lat, 90)) if lat.size else float("nan"),
         "matches_tried": matches_tried,

@@ -4,7 +4,9 @@
   - the "align once" baseline: each robot's odometry placed in the common frame once, by one
     early inter-robot factor, and never again: the first one, and the best of the first few
     (chosen with the truth: a generous baseline);
-  - how honest the covariances are (core/whitened.py) for odometry edges and factors.
+  - how honest the covariances are (core/whitened.py) for odometry edges and factors;
+  - which wrong correspondences an agent's tracker caused (a track that took detections of
+    two objects, matched as the one it holds fewer of).
 Pure computation on arrays the replay collects; the truth is used to score only.
 """
 
@@ -124,9 +126,19 @@ def odometry_honesty(edges: Sequence[OdometryEdgeRecord], truth: np.ndarray
             "declared_over_99_percent": declared["over_99_percent"]}
 
 
+def wrong_on_merged_tracks(pairs: Sequence[tuple[str | None, str | None]],
+                           counts_a: Sequence[Mapping[str, int]],
+                           counts_b: Sequence[Mapping[str, int]]) -> int:
+    """Of the correspondences (truth of a's object, truth of b's), per pair the truth counts of
+    the two tracks' detections: the wrong ones (truths differ, both known) where one side's
+    track also took detections of the other side's object."""
+    return sum(a is not None and b is not None and a != b and (b in ca or a in cb)
+               for (a, b), ca, cb in zip(pairs, counts_a, counts_b, strict=True))
+
+
 def _matrix(f: Factor) -> np.ndarray:
     return np.asarray(pose3_from_model(f.T_a_b).matrix(), dtype=np.float64)
 
 
 __all__ = ["ALIGN_ONCE_CANDIDATES", "OdometryEdgeRecord", "align_once", "fleet_ate",
-           "odometry_honesty"]
+           "odometry_honesty", "wrong_on_merged_tracks"]

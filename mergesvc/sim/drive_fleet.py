@@ -104,6 +104,11 @@ class DriveFleet:
     def session_start(self, name: str, session: int = 0) -> np.ndarray:
         return self.robot(name).T_world_start
 
+    def up(self, name: str) -> np.ndarray:
+        """The vertical (opposite to gravity) in a car's odometry frame (camera axes; its
+        start's camera, tilted as the road is there)."""
+        return C_CAMERA @ self.robot(name).T_true_grav[0][:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
     def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
         """The car's frames in camera axes, detections placed in its odometry frame."""
         car = self.robot(name)

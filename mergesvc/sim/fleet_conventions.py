@@ -28,6 +28,20 @@ def _block(C: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class _Renamed:
+    """A robot of the world (any record: the pool's vehicles, the drive fleet's cars) with its
+    odometry frame's true start in its convention."""
+
+    robot: Any
+    T_world_start: np.ndarray
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self.robot, name)
+
+
+@dataclass(frozen=True)
 class ConventionFleet:
     """`world` (a fleet world: robots, frames, session_start, objects_xyz_m, object_ids) with
     robot name -> its convention C (3, 3); robots not listed keep the core axes."""
@@ -43,11 +57,10 @@ class ConventionFleet:
     @property
     def robots(self) -> list[Any]:
         """The world's robots, each odometry frame's true start in its convention."""
-        return [replace(r, T_world_start=self.session_start(r.name)) for r in self.world.robots]
+        return [self.robot(r.name) for r in self.world.robots]
 
     def robot(self, name: str) -> Any:
-        r = self.world.robot(name)
-        return replace(r, T_world_start=self.session_start(name))
+        return _Renamed(self.world.robot(name), self.session_start(name))
 
     def T_rel_true(self, a: str, b: str) -> np.ndarray:
         """True pose of robot b's odometry frame in robot a's, both in their conventions."""
@@ -57,8 +70,10 @@ class ConventionFleet:
         return np.asarray(self.conventions.get(name, np.eye(3)), dtype=np.float64)
 
     def up(self, name: str) -> tuple[float, float, float]:
-        """The vertical (opposite to gravity) in the robot's odometry frame."""
-        return tuple(float(x) for x in self.convention(name) @ E_Z)  # type: ignore[return-value]
+        """The vertical (opposite to gravity) in the robot's odometry frame: the world's own
+        (`world.up(name)`, as the drive fleet's camera axes give it), else z, renamed."""
+        own = self.world.up(name) if hasattr(self.world, "up") else E_Z
+        return tuple(float(x) for x in self.convention(name) @ np.asarray(own))  # type: ignore[return-value]
 
     def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
         C = self.convention(name)
