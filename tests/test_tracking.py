@@ -547,3 +547,52 @@ def test_config_validation() -> None:
         ObjectTracker({"window_s": -1.0})
     with pytest.raises(ConfigError):
         ObjectTracker(3.0)  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------------------
+# The semantic gate relative to recent associations (look-alikes)
+# --------------------------------------------------------------------------------------------
+
+
+def _look_alikes(seed: int = 0, d: int = 64) -> tuple[np.ndarray, np.ndarray, np.random.Generator]:
+    """Two instances of one class: cosine ~0.9 to each other, far above any cosine gate."""
+    rng = np.random.default_rng(seed)
+    c = rng.standard_normal(d)
+    a, b = (c + 0.3 * rng.standard_normal(d) for _ in range(2))
+    return a / np.linalg.norm(a), b / np.linalg.norm(b), rng
+
+
+def _run(config: TrackingConfig, s: float, warm: int) -> tuple[list[str], float]:
+    """Object A seen `warm` times, then B (1 m away, A out of view), then A again: the track
+    ids of the last three detections, and the cosine of B to A."""
+    a, b, rng = _look_alikes()
+    tr = ObjectTracker(config)
+    noise = 0.02 / np.sqrt(len(a))  # a view's deviation from its instance: cos ~0.9998
+    for k in range(warm):
+        tr.observe(det(emb=a + noise * rng.standard_normal(len(a)), t=float(k), s=s))
+    ids = [tr.observe(det(emb=b + noise * rng.standard_normal(len(b)), pos=(1.0, 0.0, 0.0),
+                          t=float(warm), s=s)),
+           tr.observe(det(emb=a + noise * rng.standard_normal(len(a)), t=warm + 1.0, s=s)),
+           tr.observe(det(emb=b + noise * rng.standard_normal(len(b)), pos=(1.0, 0.0, 0.0),
+                          t=warm + 2.0, s=s))]
+    return ids, float(a @ b)
+
+
+def test_a_look_alike_a_metre_away_starts_its_own_track() -> None:
+    plain = TrackingConfig(cos_min=0.6, window_s=60.0)
+    gated = plain.model_copy(update={"semantic_ratio": 2.2})
+    ids, cos_ab = _run(plain, 0.05, 40)
+    assert cos_ab > 0.8 and ids == ["o0", "o0", "o0"]  # without it: one track of both objects
+    ids, _ = _run(gated, 0.05, 40)
+    assert ids == ["o1", "o0", "o1"]  # B its own track; A and B each keep theirs
+    # relative to the tracker's own associations: the declared variances' scale does not matter
+    assert _run(gated, 5.0, 40)[0] == ids
+    # and it refuses nothing before it has seen enough associations to compare with
+    from mergesvc.core.tracking import SEMANTIC_WARMUP
+
+    assert _run(gated, 0.05, SEMANTIC_WARMUP - 5)[0] == ["o0", "o0", "o0"]
+
+
+def test_semantic_ratio_must_exceed_one() -> None:
+    with pytest.raises(ConfigError, match="semantic_ratio"):
+        ObjectTracker({"semantic_ratio": 0.5})

@@ -1,11 +1,12 @@
 """Tracking stage: per-object semantic Kalman filter (Singh & Leonard, diagonal: S_i = Sigma_post +
 Sigma_i, K_i = Sigma_post S_i^-1, mu += K_i (y_i - mu), Sigma_post -= K_i S_i K_i^T), a 3-D position
-Kalman filter, and the local-map data-association gates (cosine, Mahalanobis, time window)."""
+Kalman filter, and the local-map data-association gates (cosine, Mahalanobis, time window, and
+optionally a semantic distance relative to the tracker's recent associations)."""
 
 from __future__ import annotations
 
 import logging
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +29,8 @@ _TINY_NORM = 1e-300
 # Weight of the cosine tie-break in the assignment cost (squared-Mahalanobis units): pairs whose
 # squared Mahalanobis distances differ by less than about this are ties, resolved by cosine.
 _COS_TIE_WEIGHT = 1e-9
+SEMANTIC_WINDOW = 256  # associations the semantic gate's median is taken over
+SEMANTIC_WARMUP = 32  # ... and how many it needs before it refuses any
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,6 +286,13 @@ class TrackingConfig(BaseModel):
     window_s: float = Field(
         default=30.0, gt=0.0, description="maximum time since the track was last seen, seconds"
     )
+    semantic_ratio: float | None = Field(
+        default=None, gt=1.0, description="refuse an association whose semantic distance (the "
+        "mean over dimensions of (y - mu)^2 / (track variance + detection variance)) exceeds "
+        "this many times the median of the tracker's recent associations: a look-alike the "
+        "cosine and position gates let through (two objects of one class a metre apart). "
+        "Relative, so the declared variances' scale does not matter. None: off"
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -407,7 +417,9 @@ class ObjectTracker:
 
     A detection may join a track only when all gates hold: cosine(y, mu_track) >= cos_min,
     squared Mahalanobis of the position on (P_track + R_det) <= maha_max, and
-    |stamp - last_seen| <= window_s. Within a frame, detections are assigned jointly so no track
+    |stamp - last_seen| <= window_s; with semantic_ratio, also the semantic distance at most
+    that many times the median of the last SEMANTIC_WINDOW associations' (once SEMANTIC_WARMUP
+    were made). Within a frame, detections are assigned jointly so no track
     receives two of them: as many detections as possible are associated to gated tracks, and
     among such assignments the summed squared Mahalanobis distance is minimal (ties by highest
     cosine). Unassigned detections start new tracks with ids "o0", "o1", ... in detection order.
@@ -429,6 +441,8 @@ class ObjectTracker:
         self._index: dict[str, int] = {}
         self._dim: int | None = None
         self._next_id = 0
+        # the semantic distances of the latest associations (semantic_ratio's reference)
+        self._sem_recent: deque[float] = deque(maxlen=SEMANTIC_WINDOW)
 
     @property
     def dim(self) -> int | None:
@@ -489,11 +503,14 @@ class ObjectTracker:
 
     # -- internals ------------------------------------------------------------------------------
 
-    def _gate(self, dets: list[Detection]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _gate(self, dets: list[Detection]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gated pairs of the frame.
 
         Returns cand (c,) indices of tracks passing the time gate, ok (n, c) bool all-gates mask,
-        cost (n, c) float: squared Mahalanobis + cosine tie-break, valid where ok.
+        cost (n, c) float: squared Mahalanobis + cosine tie-break, valid where ok, and sem
+        (n, c): the semantic distance of the pairs the other gates passed (NaN elsewhere, and
+        everywhere without semantic_ratio).
         """
         cfg = self.config
         n = len(dets)
@@ -502,7 +519,7 @@ class ObjectTracker:
         in_window = np.abs(stamps[:, None] - last[None, :]) <= cfg.window_s  # (n, T)
         cand = np.flatnonzero(in_window.any(axis=0))
         if cand.size == 0:
-            return cand, np.zeros((n, 0), bool), np.zeros((n, 0))
+            return cand, np.zeros((n, 0), bool), np.zeros((n, 0)), np.zeros((n, 0))
         in_window = in_window[:, cand]
 
         # Cosine gate: cos(y_j, mu_t) >= cos_min.
@@ -524,14 +541,25 @@ class ObjectTracker:
         maha2 = np.einsum("nck,nck->nc", diff, sol)
 
         ok = in_window & (cos >= cfg.cos_min) & (maha2 <= cfg.maha_max)
+        sem = np.full(ok.shape, np.nan)
+        if cfg.semantic_ratio is not None and ok.any():
+            # the semantic distance of the pairs the other gates passed
+            j, t = np.nonzero(ok)
+            var = np.stack([self._tracks[cand[i]].semantic.variance_d for i in t])
+            s_det = np.stack([np.broadcast_to(np.asarray(dets[i].uncertainty_s,
+                                                         dtype=np.float64), y.shape[1:])
+                              for i in j])
+            sem[j, t] = np.mean((y[j] - mu[t]) ** 2 / (var + s_det), axis=1)
+            if len(self._sem_recent) >= SEMANTIC_WARMUP:
+                ok[j, t] = sem[j, t] <= cfg.semantic_ratio * float(np.median(self._sem_recent))
         cost = maha2 + _COS_TIE_WEIGHT * (1.0 - cos)
-        return cand, ok, cost
+        return cand, ok, cost, sem
 
     def _associate(self, dets: list[Detection]) -> dict[int, int]:
         """Map detection index -> internal track index for the associated detections."""
         if not self._tracks:
             return {}
-        cand, ok, cost = self._gate(dets)
+        cand, ok, cost, sem = self._gate(dets)
         if not ok.any():
             return {}
         rows = np.flatnonzero(ok.any(axis=1))
@@ -551,6 +579,8 @@ class ObjectTracker:
         for ri, ci in zip(r_idx, c_idx, strict=True):
             if ci < cols.size:
                 out[int(rows[ri])] = int(cand[cols[ci]])
+                if np.isfinite(d := sem[rows[ri], cols[ci]]):
+                    self._sem_recent.append(float(d))
         return out
 
     def _new_track(self, det: Detection) -> str:
@@ -580,6 +610,8 @@ class ObjectTracker:
 
 __all__ = [
     "CHI2_3DOF_99",
+    "SEMANTIC_WARMUP",
+    "SEMANTIC_WINDOW",
     "Detection",
     "Frame",
     "ObjectTracker",
