@@ -562,35 +562,101 @@ def _look_alikes(seed: int = 0, d: int = 64) -> tuple[np.ndarray, np.ndarray, np
     return a / np.linalg.norm(a), b / np.linalg.norm(b), rng
 
 
-def _run(config: TrackingConfig, s: float, warm: int) -> tuple[list[str], float]:
-    """Object A seen `warm` times, then B (1 m away, A out of view), then A again: the track
-    ids of the last three detections, and the cosine of B to A."""
+NOISE = 0.02 / 8.0  # a view's deviation from its instance per dimension (d = 64): cos ~0.9998
+
+
+def _others(tr: ObjectTracker, rng: np.random.Generator, n: int, s: float, t0: float = 0.0,
+            views: int = 3) -> None:
+    """n other objects, 100 m apart and unlike each other, each seen `views` times."""
+    embs = [e / np.linalg.norm(e) for e in rng.standard_normal((n, 64))]
+    for v in range(views):
+        for k, e in enumerate(embs):
+            tr.observe(det(emb=e + NOISE * rng.standard_normal(64), pos=(100.0 * (k + 1), 0, 0),
+                           t=t0 + v, s=s))
+
+
+def _run(config: TrackingConfig, s: float, others: int) -> tuple[list[str], float]:
+    """`others` objects seen, then object A 20 times, then B (1 m from A, A out of view), A
+    again, B again: the track ids of those last three, and the cosine of B to A."""
     a, b, rng = _look_alikes()
     tr = ObjectTracker(config)
-    noise = 0.02 / np.sqrt(len(a))  # a view's deviation from its instance: cos ~0.9998
-    for k in range(warm):
-        tr.observe(det(emb=a + noise * rng.standard_normal(len(a)), t=float(k), s=s))
-    ids = [tr.observe(det(emb=b + noise * rng.standard_normal(len(b)), pos=(1.0, 0.0, 0.0),
-                          t=float(warm), s=s)),
-           tr.observe(det(emb=a + noise * rng.standard_normal(len(a)), t=warm + 1.0, s=s)),
-           tr.observe(det(emb=b + noise * rng.standard_normal(len(b)), pos=(1.0, 0.0, 0.0),
-                          t=warm + 2.0, s=s))]
-    return ids, float(a @ b)
+    _others(tr, rng, others, s)
+    first = len(tr)
+    for k in range(20):
+        tr.observe(det(emb=a + NOISE * rng.standard_normal(64), t=3.0 + k, s=s))
+    ids = [tr.observe(det(emb=b + NOISE * rng.standard_normal(64), pos=(1.0, 0.0, 0.0), t=23.0,
+                          s=s)),
+           tr.observe(det(emb=a + NOISE * rng.standard_normal(64), t=24.0, s=s)),
+           tr.observe(det(emb=b + NOISE * rng.standard_normal(64), pos=(1.0, 0.0, 0.0), t=25.0,
+                          s=s))]
+    return [f"+{int(i[1:]) - first}" for i in ids], float(a @ b)  # ids after the others'
 
 
 def test_a_look_alike_a_metre_away_starts_its_own_track() -> None:
     plain = TrackingConfig(cos_min=0.6, window_s=60.0)
     gated = plain.model_copy(update={"semantic_ratio": 2.2})
-    ids, cos_ab = _run(plain, 0.05, 40)
-    assert cos_ab > 0.8 and ids == ["o0", "o0", "o0"]  # without it: one track of both objects
-    ids, _ = _run(gated, 0.05, 40)
-    assert ids == ["o1", "o0", "o1"]  # B its own track; A and B each keep theirs
-    # relative to the tracker's own associations: the declared variances' scale does not matter
-    assert _run(gated, 5.0, 40)[0] == ids
-    # and it refuses nothing before it has seen enough associations to compare with
+    ids, cos_ab = _run(plain, 0.05, 10)
+    assert cos_ab > 0.8 and ids == ["+0", "+0", "+0"]  # without it: one track of both objects
+    ids, _ = _run(gated, 0.05, 10)
+    assert ids == ["+1", "+0", "+1"]  # B its own track; A and B each keep theirs
+    # relative: a scale shared by every declared variance does not matter
+    assert _run(gated, 5.0, 10)[0] == ids
+    # and it refuses nothing before it has seen enough tracks to compare with
     from mergesvc.core.tracking import SEMANTIC_WARMUP
 
-    assert _run(gated, 0.05, SEMANTIC_WARMUP - 5)[0] == ["o0", "o0", "o0"]
+    assert _run(gated, 0.05, SEMANTIC_WARMUP - 2)[0] == ["+0", "+0", "+0"]
+
+
+def test_an_object_seen_most_does_not_set_the_reference_alone() -> None:
+    """One object seen 300 times with identical views (distance 0) fills the window; the
+    others' ordinary views still join their tracks (each track has one vote)."""
+    rng = np.random.default_rng(5)
+    tr = ObjectTracker(TrackingConfig(cos_min=0.6, window_s=1e6, semantic_ratio=2.0))
+    _others(tr, rng, 9, 0.05, views=2)
+    n = len(tr)
+    a = np.eye(64)[3]
+    for k in range(300):
+        tr.observe(det(emb=a, pos=(-50.0, 0, 0), t=10.0 + k, s=0.05))
+    before = len(tr)
+    assert before == n + 1
+    _others(tr, np.random.default_rng(5), 9, 0.05, t0=400.0, views=1)  # the same 9 objects
+    assert len(tr) == before, "an ordinary view of a known object was refused"
+
+
+def test_the_semantic_gate_against_a_brute_force_reference() -> None:
+    """Several detections and tracks in one frame, per-dimension uncertainties: the pairs the
+    tracker lets through are those whose every gate a plain loop passes."""
+    rng = np.random.default_rng(11)
+    cfg = TrackingConfig(cos_min=0.5, window_s=1e6, semantic_ratio=1.5)
+    tr = ObjectTracker(cfg)
+    base = [np.eye(64)[k] + 0.4 * np.eye(64)[(k + 1) % 64] for k in range(12)]
+    for v in range(3):  # 12 objects, 5 m apart, 3 views each (one frame per round)
+        tr.observe_frame([det(emb=e + 0.05 * rng.standard_normal(64), pos=(5.0 * k, 0, 0),
+                              t=float(v), s=rng.uniform(0.01, 0.1, 64))
+                          for k, e in enumerate(base)])
+    assert len(tr) == 12
+    # a frame: ordinary views of the even objects, look-alikes (half another object) at the odd
+    dets = [det(emb=base[k] + (0.6 * base[(k + 5) % 12] if k % 2 else 0.0)
+                + 0.05 * rng.standard_normal(64), pos=(5.0 * k + rng.normal(0, 0.5), 0, 0),
+                t=5.0, s=rng.uniform(0.01, 0.1, 64)) for k in range(12)]
+    ref = tr._semantic_reference()
+    assert ref is not None and ref > 0
+    cand, ok, _, sem = tr._gate(dets)
+    tracks = tr.tracks
+    for j, d in enumerate(dets):
+        for c, ti in enumerate(cand):
+            trk = tracks[ti]
+            cos = d.embedding_d @ trk.mean_d / np.linalg.norm(d.embedding_d) / np.linalg.norm(
+                trk.mean_d)
+            diff = d.position_xyz_m - trk.position_xyz_m
+            maha2 = diff @ np.linalg.solve(d.position_cov_33 + trk.position_cov_33, diff)
+            dist = np.mean((d.embedding_d - trk.mean_d) ** 2 / (trk.variance_d + d.uncertainty_s))
+            others = cos >= cfg.cos_min and maha2 <= cfg.maha_max
+            assert ok[j, c] == (others and dist <= cfg.semantic_ratio * ref), (j, c)
+            if others:
+                assert sem[j, c] == pytest.approx(dist, rel=1e-12)
+    passed = np.isfinite(sem)  # the pairs the other gates passed
+    assert ok[passed].any() and not ok[passed].all()  # the semantic gate refused some of them
 
 
 def test_semantic_ratio_must_exceed_one() -> None:

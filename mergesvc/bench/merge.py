@@ -15,6 +15,7 @@ table.
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -147,8 +148,10 @@ def run_merge_bench(
                 def car(robot: str, world: Any = world) -> Any:
                     # a car, not a pool vehicle: tracks live ~10 s at 8 m/s, and the odometry
                     # noise per step is what the ORB-SLAM2 steps show (set it to your vehicle's)
-                    return agent(robot).model_copy(update={
-                        "tracking": world.cfg.tracking,
+                    own = agent(robot)
+                    return own.model_copy(update={  # the car's gates, the agent's look-alike one
+                        "tracking": world.cfg.tracking.model_copy(update={
+                            "semantic_ratio": own.tracking.semantic_ratio}),
                         "odometry_sigma": world.odometry_step_sigma,
                         "cut_every_objects": 8, "window_objects": 12, "cut_every_m": 40.0})
 
@@ -457,7 +460,8 @@ def markdown(report: dict[str, Any]) -> str:
                  "an exact closure between every two co-visible keyframes, fleet/bound.py):")
     for w, t in report["targets"].items():
         parts = [f"{k} {'met' if v['met'] else 'NOT met'} ("
-                 + ", ".join(f"{a} {b}" if isinstance(b, int) else f"{a} {b:.2f}"
+                 + ", ".join(f"{a} {b}" if isinstance(b, numbers.Integral)
+                             and not isinstance(b, bool) else f"{a} {b:.2f}"
                              for a, b in v.items() if a != "met") + ")"
                  for k, v in t.items()]
         lines.append(f"- {w}: " + "; ".join(parts))

@@ -29,8 +29,8 @@ _TINY_NORM = 1e-300
 # Weight of the cosine tie-break in the assignment cost (squared-Mahalanobis units): pairs whose
 # squared Mahalanobis distances differ by less than about this are ties, resolved by cosine.
 _COS_TIE_WEIGHT = 1e-9
-SEMANTIC_WINDOW = 256  # associations the semantic gate's median is taken over
-SEMANTIC_WARMUP = 32  # ... and how many it needs before it refuses any
+SEMANTIC_WINDOW = 256  # latest associations the semantic gate's reference is read from
+SEMANTIC_WARMUP = 8  # tracks among them it needs before it refuses any
 
 
 # --------------------------------------------------------------------------------------------
@@ -289,9 +289,10 @@ class TrackingConfig(BaseModel):
     semantic_ratio: float | None = Field(
         default=None, gt=1.0, description="refuse an association whose semantic distance (the "
         "mean over dimensions of (y - mu)^2 / (track variance + detection variance)) exceeds "
-        "this many times the median of the tracker's recent associations: a look-alike the "
-        "cosine and position gates let through (two objects of one class a metre apart). "
-        "Relative, so the declared variances' scale does not matter. None: off"
+        "this many times the median of the tracker's recent associations (each track's "
+        "latest): a look-alike the cosine and position gates let through (two objects of one "
+        "class a metre apart). Relative: a scale shared by every detection's declared "
+        "variance does not matter. A refused view starts a track of its own. None: off"
     )
 
 
@@ -418,8 +419,8 @@ class ObjectTracker:
     A detection may join a track only when all gates hold: cosine(y, mu_track) >= cos_min,
     squared Mahalanobis of the position on (P_track + R_det) <= maha_max, and
     |stamp - last_seen| <= window_s; with semantic_ratio, also the semantic distance at most
-    that many times the median of the last SEMANTIC_WINDOW associations' (once SEMANTIC_WARMUP
-    were made). Within a frame, detections are assigned jointly so no track
+    that many times `_semantic_reference` (each track's latest among the last SEMANTIC_WINDOW
+    associations, their median). Within a frame, detections are assigned jointly so no track
     receives two of them: as many detections as possible are associated to gated tracks, and
     among such assignments the summed squared Mahalanobis distance is minimal (ties by highest
     cosine). Unassigned detections start new tracks with ids "o0", "o1", ... in detection order.
@@ -441,8 +442,8 @@ class ObjectTracker:
         self._index: dict[str, int] = {}
         self._dim: int | None = None
         self._next_id = 0
-        # the semantic distances of the latest associations (semantic_ratio's reference)
-        self._sem_recent: deque[float] = deque(maxlen=SEMANTIC_WINDOW)
+        # (track, semantic distance) of the latest associations: semantic_ratio's reference
+        self._sem_recent: deque[tuple[int, float]] = deque(maxlen=SEMANTIC_WINDOW)
 
     @property
     def dim(self) -> int | None:
@@ -550,8 +551,9 @@ class ObjectTracker:
                                                          dtype=np.float64), y.shape[1:])
                               for i in j])
             sem[j, t] = np.mean((y[j] - mu[t]) ** 2 / (var + s_det), axis=1)
-            if len(self._sem_recent) >= SEMANTIC_WARMUP:
-                ok[j, t] = sem[j, t] <= cfg.semantic_ratio * float(np.median(self._sem_recent))
+            ref = self._semantic_reference()
+            if ref is not None:
+                ok[j, t] = sem[j, t] <= cfg.semantic_ratio * ref
         cost = maha2 + _COS_TIE_WEIGHT * (1.0 - cos)
         return cand, ok, cost, sem
 
@@ -580,8 +582,16 @@ class ObjectTracker:
             if ci < cols.size:
                 out[int(rows[ri])] = int(cand[cols[ci]])
                 if np.isfinite(d := sem[rows[ri], cols[ci]]):
-                    self._sem_recent.append(float(d))
+                    self._sem_recent.append((int(cand[cols[ci]]), float(d)))
         return out
+
+    def _semantic_reference(self) -> float | None:
+        """The median over the tracks of the latest associations of each one's latest semantic
+        distance (one vote per track: an object seen often does not set it alone); None
+        before SEMANTIC_WARMUP tracks are among them."""
+        latest = dict(self._sem_recent)
+        return float(np.median(list(latest.values()))) if len(latest) >= SEMANTIC_WARMUP \
+            else None
 
     def _new_track(self, det: Detection) -> str:
         track_id = f"o{self._next_id}"

@@ -74,7 +74,8 @@ class DriveCar:
 @dataclass(frozen=True)
 class DriveFleet:
     """Several cars on stretches of KITTI-00; the interface of sim.fleet.FleetWorld (robots,
-    frames(name), session_start(name), objects_xyz_m, object_ids), in camera axes."""
+    frames(name), session_start(name), objects_xyz_m, object_ids) and up(name), in camera
+    axes."""
 
     seed: int
     objects_xyz_m: np.ndarray  # camera axes (world = KITTI's first camera)

@@ -38,13 +38,16 @@ class _Renamed:
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
             raise AttributeError(name)
+        if name.startswith("T_"):  # the record's other poses are in the world's own axes
+            raise AttributeError(f"{name} is not renamed: read the fleet's frames")
         return getattr(self.robot, name)
 
 
 @dataclass(frozen=True)
 class ConventionFleet:
-    """`world` (a fleet world: robots, frames, session_start, objects_xyz_m, object_ids) with
-    robot name -> its convention C (3, 3); robots not listed keep the core axes."""
+    """`world` (a fleet world: robots, frames, session_start, objects_xyz_m, object_ids, and
+    optionally up) with robot name -> its convention C (3, 3); robots not listed keep the
+    world's axes."""
 
     world: Any
     conventions: Mapping[str, np.ndarray]
