@@ -859,6 +859,30 @@ def test_demo_hands_its_settings_to_the_processes_it_starts(
     assert SETTINGS_ENV not in os.environ  # restored after the demo
 
 
+def test_demo_scores_with_the_vehicles_settings(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The score rebuilds the vehicles' maps to know which object each track is: with the
+    settings the vehicles ran with (a tracker set otherwise scored 0.13 precision on right
+    factors), not the defaults."""
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"agent": {"tracking": {"semantic_ratio": 2.0},
+                                       "window_objects": 6}}))
+    seen = {}
+
+    def fake_run_demo(plan, out, echo, attach=None):
+        seen["plan"] = plan
+        raise Reached(plan)
+
+    monkeypatch.setattr(mergesvc.fleet.demo, "run_demo", fake_run_demo)
+    _invoke(["demo", "--quick", "--out", str(tmp_path / "demo"), "--settings", str(f)])
+    agents = seen["plan"].agents
+    assert sorted(agents) == ["auv1", "auv2", "auv3"]
+    for r, a in agents.items():
+        assert a.robot == r and a.tracking.semantic_ratio == 2.0 and a.window_objects == 6
+        assert a.tracking.cos_min == AgentConfig(robot=r).tracking.cos_min  # the rest kept
+        assert a.up == (0.0, 0.0, 1.0)  # as the demo's vehicles run
+
+
 def test_bench_writes_the_settings_it_used_beside_its_results(tmp_path: Path) -> None:
     f = tmp_path / "s.json"
     f.write_text(json.dumps({"match": {"candidates": {"top_k": 7}}}))

@@ -322,7 +322,7 @@ def demo(
     Settings: the `service` and `agent` sections, written to OUT/settings.json.
 
     Every process the demo starts reads OUT/settings.json."""
-    from mergesvc.fleet.demo import SESSION, STORE_FILE, DemoPlan, run_demo
+    from mergesvc.fleet.demo import ROBOTS, SESSION, STORE_FILE, DemoPlan, run_demo
     from mergesvc.wire.session import make_zenoh_config, open_session
 
     if listen is not None:  # the service will listen there: a bad or busy endpoint fails now
@@ -338,7 +338,10 @@ def demo(
         })
         if tree.agent.up is None:  # the demo's vehicles know gravity: the pool is z up
             tree = tree.merged({"agent": {"up": [0.0, 0.0, 1.0]}})
-    plan = dataclasses.replace(plan, service=tree.service)  # the export solves with them
+    # the export solves with the service's settings; the score rebuilds the vehicles' maps with
+    # theirs
+    plan = dataclasses.replace(plan, service=tree.service,
+                               agents={r: tree.agent_config(r) for r in ROBOTS})
     with exit_on_error(OSError):
         written = write_settings_beside(tree, out, folder=True)
     attach = None

@@ -49,6 +49,9 @@ class DemoPlan:
     # the `service` settings the service process reads (its settings file): the export of its
     # store solves the graph with them (None: the defaults)
     service: ServiceConfig | None = None
+    # each vehicle's settings as its process reads them: the score rebuilds the vehicles' maps
+    # with them, to know which object each track is (None: the defaults)
+    agents: dict[str, AgentConfig] | None = None
 
     @property
     def fleet(self) -> str:
@@ -65,7 +68,8 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
     """Everything the summary says, against the mission's ground truth."""
     world = fleet_world(plan.seed, ROBOTS, plan.laps, plan.n_objects)
     frames = {r: list(world.frames(r)) for r in ROBOTS}
-    local = {r: build_submaps(AgentConfig(robot=r), frames[r])[0] for r in ROBOTS}
+    local = {r: build_submaps((plan.agents or {}).get(r) or AgentConfig(robot=r), frames[r])[0]
+             for r in ROBOTS}
 
     def truth(robot: str, oid: str) -> str | None:
         try:
