@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from mergesvc.core.tracking import Detection, Frame, TrackingConfig
 from mergesvc.core.trajectory import umeyama_alignment
 from mergesvc.errors import InputError
-from mergesvc.sim.conventions import C_CAMERA
+from mergesvc.sim.conventions import C_CAMERA, E_Z, up_in
 from mergesvc.sim.real_data import (
     DEFAULT_DATA_DIR,
     KITTI_GT,
@@ -108,7 +108,7 @@ class DriveFleet:
     def up(self, name: str) -> np.ndarray:
         """The vertical (opposite to gravity) in a car's odometry frame (camera axes; its
         start's camera, tilted as the road is there)."""
-        return C_CAMERA @ self.robot(name).T_true_grav[0][:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        return up_in(C_CAMERA, self.robot(name).T_true_grav[0][:3, :3].T @ E_Z)
 
     def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
         """The car's frames in camera axes, detections placed in its odometry frame."""

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from mergesvc.core.tracking import Frame
-from mergesvc.sim.conventions import E_Z
+from mergesvc.sim.conventions import E_Z, up_in
 
 
 def _block(C: np.ndarray) -> np.ndarray:
@@ -76,7 +76,7 @@ class ConventionFleet:
         """The vertical (opposite to gravity) in the robot's odometry frame: the world's own
         (`world.up(name)`, as the drive fleet's camera axes give it), else z, renamed."""
         own = self.world.up(name) if hasattr(self.world, "up") else E_Z
-        return tuple(float(x) for x in self.convention(name) @ np.asarray(own))  # type: ignore[return-value]
+        return tuple(float(x) for x in up_in(self.convention(name), own))  # type: ignore[return-value]
 
     def frames(self, name: str, session: int = 0) -> Iterator[Frame]:
         C = self.convention(name)
