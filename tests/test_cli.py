@@ -261,6 +261,13 @@ def test_schemas_check_and_bench_quick(tmp_path: Path) -> None:
     assert report["results"]["kitti/verified (1 thread)/ucos"]["cpu_ms"]["median"] > 0
     assert kitti["node_accuracy"] >= 0.9  # seed 0 is an easy, fully recoverable scenario
     assert "| kitti/verified/ucos |" in r.stdout
+    # the first match of a new `mergesvc match` process, both thread settings, same answers
+    assert set(report["fresh"]) == {"kitti/verified/ucos", "underwater/verified/ucos"}
+    fresh = report["fresh"]["kitti/verified/ucos"]
+    assert fresh["runs"] == 2 and fresh["same_answers"] == 2
+    for label in ("default", "1 thread"):
+        assert 0 < fresh["ms"][f"{label} match"]["max"] < fresh["ms"][f"{label} wall"]["min"]
+    assert "| kitti/verified/ucos | 2/2 |" in r.stdout
 
 
 def test_bench_paper_quick_end_to_end(tmp_path: Path) -> None:

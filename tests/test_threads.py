@@ -31,6 +31,19 @@ def test_a_blas_loaded_after_the_first_pin_is_pinned_too() -> None:
         assert set(blas_thread_counts()) == {1}
 
 
+def test_the_narrow_listing_finds_every_blas_threadpoolctl_finds() -> None:
+    import faiss  # noqa: F401  (a third BLAS, with a name of its own)
+    from threadpoolctl import ThreadpoolController
+
+    from mergesvc.core.threads import _BlasController
+
+    def blas(controller: ThreadpoolController) -> set[str]:
+        return {lib.filepath for lib in controller.lib_controllers if lib.user_api == "blas"}
+
+    full, narrow = blas(ThreadpoolController()), blas(_BlasController())
+    assert len(full) >= 2 and narrow == full
+
+
 def test_match_runs_on_one_thread(monkeypatch: pytest.MonkeyPatch, small_kitti_scenario) -> None:
     seen: list[list[int]] = []
     inner = pipeline._match_verified

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from mergesvc.bench.fresh import markdown_fresh, run_fresh
 from mergesvc.bench.scoring import _cpu_count, _spread, check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
@@ -82,9 +83,12 @@ def run_match_bench(
     affinities: tuple[str, ...] = ("ucos",),
     base: MatchConfig | None = None,
     one_thread: bool = True,
+    fresh: int = 0,
 ) -> dict[str, Any]:
     """Both modes on `seeds` scenarios per family and affinity; verified mode also with the
-    BLAS held to one thread, interleaved with the default runs (`one_thread`). Paper mode runs
+    BLAS held to one thread, interleaved with the default runs (`one_thread`), and (`fresh`
+    > 0) that many times per scenario as the first match of a new `mergesvc match` process
+    (bench/fresh.py; report["fresh"]). Paper mode runs
     once per scenario (it takes seconds); verified mode `repeats` times. Every configuration is
     `base` (default: the defaults) with its mode and affinity set. Returns a JSON-ready report
     (results keyed family/mode/affinity) and echoes a table. InputError for repeats or seeds
@@ -97,6 +101,7 @@ def run_match_bench(
         f"{_cpu_count()} cores, python {platform.python_version()}",
         "settings": {},
         "results": {},
+        "fresh": {},
     }
     start = time.perf_counter()
     scenarios = {(f, s): bench_scenario(f, s) for f in families for s in range(seeds)}
@@ -131,8 +136,19 @@ def run_match_bench(
                 if single:  # the same runs, interleaved, with the BLAS on one thread
                     report["results"][f"{family.value}/{name} (1 thread)/{affinity}"] = \
                         _summary(rows, single, {"cpu": single_cpu})
+                if fresh and name == "verified":
+                    cases = [(scenarios[family, s], match(scenarios[family, s].map,
+                                                          scenarios[family, s].submap, cfg))
+                             for s in range(seeds)]
+                    echo(f"[{time.perf_counter() - start:6.1f}s] {family.value:>10} verified "
+                         f"{affinity:>13}: {fresh * seeds * 2} fresh `mergesvc match` processes")
+                    report["fresh"][f"{family.value}/verified/{affinity}"] = run_fresh(
+                        cases, cfg, fresh)
     echo("")
     echo(markdown_table(report))
+    if report["fresh"]:
+        echo("")
+        echo(markdown_fresh(report["fresh"]))
     return report
 
 

@@ -50,6 +50,9 @@ def bench_match(
     paper: Annotated[bool, typer.Option(help="also run paper mode (slow: dense K)")] = True,
     one_thread: Annotated[bool, typer.Option(
         help="verified mode also with the BLAS on one thread, interleaved")] = True,
+    fresh: Annotated[int, typer.Option(
+        min=0, help="also run verified mode this many times per scenario as the first match "
+        "of a new `mergesvc match --json` process (default and one-thread BLAS; 0: not)")] = 1,
     affinity: Annotated[
         list[NodeAffinity] | None,
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
@@ -65,7 +68,7 @@ def bench_match(
         tree = resolve_settings(settings)
         report = run_match_bench(
             repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
-            one_thread=one_thread,
+            one_thread=one_thread, fresh=fresh,
             base=tree.match,
         )
     if out is not None:

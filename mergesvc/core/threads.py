@@ -10,9 +10,12 @@ leaves it alone above, where a whole-map product does gain from threads.
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from collections.abc import Iterator
 from typing import Any
+
+from threadpoolctl import ThreadpoolController
 
 # submap x map objects from which the BLAS keeps its own thread count (a 20-object submap
 # against a million-object map: its exact cosine pass is one large product)
@@ -21,6 +24,24 @@ PIN_BELOW_PAIRS = 20_000_000
 _controller: Any = None
 _modules_seen = -1
 
+# what a BLAS library's file name holds (threadpoolctl's prefixes: libopenblas,
+# libscipy_openblas, libblas, libblis, libmkl_rt, mkl_rt, libflexiblas)
+_BLAS_NAMES = ("blas", "blis", "mkl")
+
+
+class _BlasController(ThreadpoolController):
+    """threadpoolctl's controller over the BLAS libraries only. The library resolves the path
+    of every loaded shared object before it reads its name (a hundred and more here: numpy,
+    scipy, gtsam, zenoh, each extension module), 5-20 ms, the whole of a small match in a
+    fresh process; this one passes on the files whose name names a BLAS and leaves the rest
+    of the work (symbols, controllers) to threadpoolctl. Should the hook's name change, the
+    override is not called and the full listing runs: slower, as right."""
+
+    def _make_controller_from_path(self, filepath: str) -> None:
+        name = os.path.basename(filepath).lower()
+        if any(k in name for k in _BLAS_NAMES):
+            super()._make_controller_from_path(filepath)
+
 
 def _threadpools() -> Any:
     """threadpoolctl's controller over the BLAS libraries loaded now: listing them costs
@@ -28,9 +49,7 @@ def _threadpools() -> Any:
     when modules were imported since (one may have brought its own BLAS, as faiss does)."""
     global _controller, _modules_seen
     if _controller is None or len(sys.modules) != _modules_seen:
-        from threadpoolctl import ThreadpoolController
-
-        _controller = ThreadpoolController()
+        _controller = _BlasController()
         _modules_seen = len(sys.modules)
     return _controller
 
