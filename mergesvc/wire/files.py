@@ -110,12 +110,28 @@ def _json_limit(exc: ValueError) -> str:
     return text
 
 
+def _valid_objects(data: bytes) -> ObjectMap | None:
+    """A valid map or submap file read by pydantic's JSON parser, as `parse_model` reads one
+    (a map when it validates as one: a submap's own keys are extra fields to a map); None
+    for anything else, which the json module then reads and says what is wrong with."""
+    if b'"objects"' in data:
+        for model in (ObjectMap, Submap):
+            try:
+                return model.model_validate_json(data)
+            except ValueError:  # pydantic's ValidationError among them
+                continue
+    return None
+
+
 def _read_json_model(path: Path) -> AnyMessage:
     try:
         if path.stat().st_size > MAX_FILE_BYTES:
             raise SchemaError(f"{path}: larger than {MAX_FILE_BYTES} bytes")
         data = path.read_bytes()
         _not_binary(path, data[:2])
+        fast = _valid_objects(data)
+        if fast is not None:
+            return _check_arrays(fast, str(path))
         raw = json.loads(data)
     except OSError as exc:
         raise DecodeError(f"cannot read {path}: {exc.strerror or exc}") from exc

@@ -1,0 +1,94 @@
+"""`parse_model` reads a file with pydantic's JSON parser and falls back to the json module
+for what that refuses: whatever either way accepts is the same model, and whatever is refused
+gets the json module's one-line error."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from pydantic import ValidationError
+
+from mergesvc.core.model import ObjectMap, Submap, parse_model
+from mergesvc.errors import DecodeError, SchemaError
+
+
+def _by_the_json_module(model: type[ObjectMap], text: str | bytes) -> ObjectMap:
+    return model.model_validate(json.loads(text))
+
+
+def _variants(text: str, doc: dict) -> dict[str, str | bytes]:
+    """The file, and edits of it at the edges of JSON and of the schema."""
+    oid = json.dumps(doc["objects"][0]["id"])
+    e0 = json.dumps(doc["objects"][0]["embedding"][0])
+    n = f'"n_obs": {doc["objects"][0]["n_obs"]}'
+    return {
+        "as written": text, "utf-16": text.encode("utf-16"), "bom": "\ufeff" + text,
+        "NaN": text.replace(e0, "NaN", 1), "1e400": text.replace(e0, "1e400", 1),
+        "string number": text.replace(e0, '"0.5"', 1), "true": text.replace(e0, "true", 1),
+        "long float": text.replace(e0, "0." + "1" * 400, 1), "-0": text.replace(e0, "-0", 1),
+        "lone surrogate": text.replace(oid, '"\\ud800x"', 1),
+        "raw tab": text.replace(oid, '"a\tb"', 1), "NUL": text.replace(oid, '"a\\u0000b"', 1),
+        "huge int": text.replace(n, '"n_obs": 1' + "0" * 5000, 1),
+        "2^63": text.replace(n, f'"n_obs": {2**63}', 1), "3.0": text.replace(n, '"n_obs": 3.0', 1),
+        "3.5": text.replace(n, '"n_obs": 3.5', 1), "extra field": text[:-1] + ', "zz": 1}',
+        "duplicate key": text[:-1] + ', "robot_id": "zz"}', "trailing": text + " x",
+        "a list": "[1, 2]", "deep": '{"a":' * 100_000 + "1" + "}" * 100_000,
+    }
+
+
+@pytest.mark.parametrize("model", [ObjectMap, Submap])
+def test_both_parsers_accept_the_same_and_answer_alike(model, underwater_scenario) -> None:
+    original = underwater_scenario.map if model is ObjectMap else underwater_scenario.submap
+    text = original.model_dump_json()
+    accepted = 0
+    for name, variant in _variants(text, json.loads(text)).items():
+        try:
+            want = _by_the_json_module(model, variant)
+        except (ValidationError, ValueError, RecursionError):
+            with pytest.raises((SchemaError, DecodeError, RecursionError)):
+                parse_model(model, variant)
+            continue
+        got = parse_model(model, variant)
+        assert got.model_dump() == want.model_dump(), name
+        accepted += 1
+    assert accepted >= 8  # the file, utf-16, -0, long float, NUL, 2^63, 3.0, duplicate key
+
+
+def test_a_refusal_names_the_fault_in_the_json_modules_words(underwater_scenario) -> None:
+    text = underwater_scenario.submap.model_dump_json()
+    with pytest.raises(DecodeError, match=r"^f is not valid JSON: Extra data"):
+        parse_model(Submap, text + " x", "f")
+    with pytest.raises(SchemaError, match=r"^invalid f: expected a JSON object, got list"):
+        parse_model(Submap, "[1, 2]", "f")
+    e0 = json.dumps(json.loads(text)["objects"][0]["embedding"][0])
+    with pytest.raises(SchemaError, match=r"objects\.0\.embedding\.0: Input should be a finite"):
+        parse_model(Submap, text.replace(e0, "NaN", 1), "f")
+
+
+def test_a_file_read_whole_is_the_same_model_either_way(tmp_path, underwater_scenario) -> None:
+    """`convert`'s reader (`_read_json_model`): a map stays a map, a submap a submap, and
+    what the fast reader refuses is refused in the json module's words."""
+    from mergesvc.wire.files import _read_json_model
+
+    for original in (underwater_scenario.map, underwater_scenario.submap):
+        text = original.model_dump_json()
+        for name, variant in _variants(text, json.loads(text)).items():
+            path = tmp_path / "f.json"
+            data = variant.encode() if isinstance(variant, str) else variant
+            path.write_bytes(data)
+            try:
+                raw = json.loads(data)  # bytes: a UTF-8 BOM is read, as the reader reads it
+            except (ValueError, RecursionError):
+                with pytest.raises(DecodeError, match=r"is not (valid|usable) JSON"):
+                    _read_json_model(path)
+                continue
+            try:
+                want = type(original).model_validate(raw)
+            except (ValidationError, ValueError, TypeError):
+                with pytest.raises(SchemaError):
+                    _read_json_model(path)
+                continue
+            got = _read_json_model(path)
+            assert type(got) is type(original), name
+            assert got.model_dump() == want.model_dump(), name
