@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mergesvc.bench.fresh import run_cli_match, run_fresh
+from mergesvc.bench.fresh import child_env, run_cli_match, run_fresh
 from mergesvc.core.config import match_config
 from mergesvc.core.pipeline import match
 from mergesvc.errors import MergeError
@@ -31,3 +31,12 @@ def test_settings_other_than_the_defaults_reach_the_process(underwater_scenario)
 def test_a_failed_command_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(MergeError, match=r"`mergesvc match` failed on .*: error: cannot read"):
         run_cli_match(tmp_path, ["--affinity", "ucos"], one_thread=True)
+
+
+def test_the_default_threads_are_the_librarys(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "1")
+    monkeypatch.setenv("MERGESVC_MATCH__SEED", "3")
+    default, one = child_env(False), child_env(True)
+    assert "OPENBLAS_NUM_THREADS" not in default and "MERGESVC_MATCH__SEED" not in default
+    assert one["OPENBLAS_NUM_THREADS"] == one["OMP_NUM_THREADS"] == "1"
+    assert "MERGESVC_MATCH__SEED" not in one and default["PATH"] == one["PATH"]

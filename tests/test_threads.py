@@ -44,6 +44,23 @@ def test_the_narrow_listing_finds_every_blas_threadpoolctl_finds() -> None:
     assert len(full) >= 2 and narrow == full
 
 
+def test_a_narrow_listing_that_finds_no_blas_gives_way_to_the_full_one(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import mergesvc.core.threads as threads
+
+    monkeypatch.setattr(threads, "_BLAS_NAMES", ("no such library",))
+    assert not threads._BlasController().lib_controllers
+    assert any(lib.user_api == "blas" for lib in threads._listing().lib_controllers)
+
+    class Broken(threads._BlasController):  # a threadpoolctl whose hook the override breaks
+        def _make_controller_from_path(self, *args, **kwargs) -> None:
+            raise TypeError("unexpected")
+
+    monkeypatch.setattr(threads, "_BLAS_NAMES", ("blas",))
+    monkeypatch.setattr(threads, "_BlasController", Broken)
+    assert any(lib.user_api == "blas" for lib in threads._listing().lib_controllers)
+
+
 def test_match_runs_on_one_thread(monkeypatch: pytest.MonkeyPatch, small_kitti_scenario) -> None:
     seen: list[list[int]] = []
     inner = pipeline._match_verified

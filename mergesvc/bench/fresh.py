@@ -1,11 +1,12 @@
 """The first match in a fresh process, as a user of `mergesvc match --json` gets it.
 
 Each scenario's map and submap are written as JSON files, and `python -m mergesvc.cli match
---json` runs on them in a new process, with the BLAS's default threads and again with
-OPENBLAS_NUM_THREADS (and OMP_, MKL_) set to 1. Measured: the match's own total from the JSON's
-`timings_ms` (what follows the files' loading) and the process's wall time (start-up, imports
-and loading included). Every answer is checked against the in-process one: the same
-acceptance and the same pairs, or the row says how many differ.
+--json` runs on them in a new process, with the BLAS's default threads (those variables
+removed) and again with OPENBLAS_NUM_THREADS (and OMP_, MKL_) set to 1. Measured: the
+match's own total from the JSON's `timings_ms` (what follows the files' loading) and the
+process's wall time (start-up, imports and loading included). Every answer is checked
+against the in-process one: the same acceptance and the same pairs, or the row says how many
+differ.
 """
 
 from __future__ import annotations
@@ -40,18 +41,38 @@ def run_cli_match(folder: Path, options: Sequence[str], one_thread: bool
     """One `mergesvc match --json` process (with `options`) on folder/map.json and
     folder/submap.json: (its JSON, wall ms). MergeError with the command's own error line
     when it fails."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MERGESVC_")}
-    if one_thread:
-        env.update(_ONE_THREAD)
     command = [sys.executable, "-m", "mergesvc.cli", "match", "--map", str(folder / "map.json"),
                "--submap", str(folder / "submap.json"), *options, "--json"]
     start = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=_TIMEOUT_S)
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, env=child_env(one_thread),
+                              timeout=_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise MergeError(f"`mergesvc match` on {folder} took over {_TIMEOUT_S:.0f} s") from None
+    except OSError as exc:
+        raise MergeError(f"cannot start `mergesvc match`: {exc}") from exc
     wall = (time.perf_counter() - start) * 1e3
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
         raise MergeError(f"`mergesvc match` failed on {folder}: {last}")
-    return json.loads(done.stdout), wall
+    try:
+        answer = json.loads(done.stdout)
+        float(answer["timings_ms"]["total"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise MergeError(f"`mergesvc match` on {folder} printed no answer: "
+                         f"{done.stdout.strip()[:200]!r}") from exc
+    return answer, wall
+
+
+def child_env(one_thread: bool) -> dict[str, str]:
+    """The environment of a fresh process: this one's without MERGESVC_* (the settings go as
+    flags or a file) and without the BLAS's thread variables (the library's own default), or
+    with them at 1 (`one_thread`)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("MERGESVC_") and k not in _ONE_THREAD}
+    if one_thread:
+        env.update(_ONE_THREAD)
+    return env
 
 
 def run_fresh(
@@ -104,4 +125,4 @@ def markdown_fresh(fresh: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["markdown_fresh", "run_cli_match", "run_fresh"]
+__all__ = ["child_env", "markdown_fresh", "run_cli_match", "run_fresh"]

@@ -357,17 +357,40 @@ def _format_validation_error(exc: ValidationError, what: str) -> str:
     return f"invalid {what}: {loc + ': ' if loc else ''}{msg}{more}"
 
 
+# pydantic's JSON parser turns an integer literal of 2^128 or more into a float that may be a
+# unit in the last place off Python's (correctly rounded) reading of it
+_EXACT_BELOW = 2.0**128
+
+
+def read_exactly(m: ObjectMap) -> bool:
+    """Whether every float of `m` that a file may give as an integer literal is below 2^128 in
+    magnitude (positions and embeddings are bounded below it): then pydantic's JSON parser
+    read the same numbers as the json module."""
+    if float(np.abs(m.arrays().variance_column).max(initial=0.0)) >= _EXACT_BELOW:
+        return False
+    if isinstance(m, Submap):
+        small = [m.stamp or 0.0]
+        if m.odometry is not None:
+            small += [*m.odometry.T_from_to.translation, *np.ravel(m.odometry.covariance)]
+        return bool(np.all(np.abs(small) < _EXACT_BELOW))
+    return True
+
+
 def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -> ObjectMap:
     """Validate JSON text into `model`; raise DecodeError / SchemaError with one clear line.
 
     pydantic's own JSON parser reads a valid file (3-4x faster than the json module and
     validation of its objects on a large map: docs/benchmarks/scale.md); whatever it
-    refuses is read again by the json module and validated, whose errors say what is wrong
-    in the words every reader of these files gets (and which also reads UTF-16 and -32)."""
+    refuses, or holds a number it may have read less exactly (`read_exactly`), is read again
+    by the json module and validated, whose errors say what is wrong in the words every
+    reader of these files gets (and which also reads UTF-16 and -32)."""
     try:
-        return model.model_validate_json(data)
+        fast = model.model_validate_json(data)
     except ValueError:  # pydantic's ValidationError among them
         pass
+    else:
+        if read_exactly(fast):
+            return fast
     try:
         raw = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -481,6 +504,7 @@ __all__ = [
     "arrays_to_nodes",
     "json_schemas",
     "parse_model",
+    "read_exactly",
 ]
 
 

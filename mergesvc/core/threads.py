@@ -25,22 +25,34 @@ _controller: Any = None
 _modules_seen = -1
 
 # what a BLAS library's file name holds (threadpoolctl's prefixes: libopenblas,
-# libscipy_openblas, libblas, libblis, libmkl_rt, mkl_rt, libflexiblas)
-_BLAS_NAMES = ("blas", "blis", "mkl")
+# libscipy_openblas, libblas, libblis, libmkl_rt, mkl_rt, libflexiblas; and a LAPACK name,
+# which a distribution may link to its BLAS: conda's liblapack.so.3 -> libopenblas)
+_BLAS_NAMES = ("blas", "blis", "mkl", "lapack")
 
 
 class _BlasController(ThreadpoolController):
     """threadpoolctl's controller over the BLAS libraries only. The library resolves the path
     of every loaded shared object before it reads its name (a hundred and more here: numpy,
     scipy, gtsam, zenoh, each extension module), 5-20 ms, the whole of a small match in a
-    fresh process; this one passes on the files whose name names a BLAS and leaves the rest
-    of the work (symbols, controllers) to threadpoolctl. Should the hook's name change, the
-    override is not called and the full listing runs: slower, as right."""
+    fresh process; this one passes on the files whose name names a BLAS or LAPACK and leaves
+    the rest of the work (the real name, symbols, controllers) to threadpoolctl."""
 
-    def _make_controller_from_path(self, filepath: str) -> None:
-        name = os.path.basename(filepath).lower()
+    def _make_controller_from_path(self, filepath: str, *args: Any, **kwargs: Any) -> None:
+        name = os.path.basename(str(filepath)).lower()
         if any(k in name for k in _BLAS_NAMES):
-            super()._make_controller_from_path(filepath)
+            super()._make_controller_from_path(filepath, *args, **kwargs)
+
+
+def _listing() -> Any:
+    """The narrow listing; threadpoolctl's full one when it finds no BLAS or fails (a
+    threadpoolctl whose hook changed): slower, as right."""
+    try:
+        narrow = _BlasController()
+    except Exception:  # any failure of the override: the library's own listing
+        return ThreadpoolController()
+    if any(lib.user_api == "blas" for lib in narrow.lib_controllers):
+        return narrow
+    return ThreadpoolController()
 
 
 def _threadpools() -> Any:
@@ -49,7 +61,7 @@ def _threadpools() -> Any:
     when modules were imported since (one may have brought its own BLAS, as faiss does)."""
     global _controller, _modules_seen
     if _controller is None or len(sys.modules) != _modules_seen:
-        _controller = _BlasController()
+        _controller = _listing()
         _modules_seen = len(sys.modules)
     return _controller
 

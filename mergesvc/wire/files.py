@@ -21,6 +21,7 @@ from mergesvc.core.model import (
     ObjectMap,
     Submap,
     parse_model,
+    read_exactly,
 )
 from mergesvc.errors import DecodeError, InputError, SchemaError, one_line
 from mergesvc.wire.envelope import (
@@ -114,12 +115,20 @@ def _valid_objects(data: bytes) -> ObjectMap | None:
     """A valid map or submap file read by pydantic's JSON parser, as `parse_model` reads one
     (a map when it validates as one: a submap's own keys are extra fields to a map); None
     for anything else, which the json module then reads and says what is wrong with."""
-    if b'"objects"' in data:
-        for model in (ObjectMap, Submap):
-            try:
-                return model.model_validate_json(data)
-            except ValueError:  # pydantic's ValidationError among them
-                continue
+    if b'"objects"' not in data:
+        return None
+    # a submap's keys anywhere (perhaps in a label): a submap first, a map if it has none
+    keys = (b'"seq"', b'"stamp"', b'"keyframe"', b'"odometry"')
+    order = (Submap, ObjectMap) if any(k in data for k in keys) else (ObjectMap,)
+    for model in order:
+        try:
+            got = model.model_validate_json(data)
+        except ValueError:  # pydantic's ValidationError among them
+            continue
+        if model is Submap and not got.model_fields_set & {"seq", "stamp", "keyframe",
+                                                           "odometry"}:
+            continue  # a map with such words in a string: validated again as a map
+        return got if read_exactly(got) else None
     return None
 
 
