@@ -25,7 +25,7 @@ from pydantic import (
 )
 
 from mergesvc.core.arrays import MAX_COORDINATE_M, ObjectArrays
-from mergesvc.errors import DecodeError, SchemaError
+from mergesvc.errors import DecodeError, MergeError, SchemaError
 
 if TYPE_CHECKING:
     from typing_extensions import Self
@@ -366,7 +366,11 @@ def read_exactly(m: ObjectMap) -> bool:
     """Whether every float of `m` that a file may give as an integer literal is below 2^128 in
     magnitude (positions and embeddings are bounded below it): then pydantic's JSON parser
     read the same numbers as the json module."""
-    if float(np.abs(m.arrays().variance_column).max(initial=0.0)) >= _EXACT_BELOW:
+    try:
+        variance = m.arrays().variance_column
+    except (OverflowError, ValueError, MergeError):  # the json module's path then says why
+        return False
+    if float(np.abs(variance).max(initial=0.0)) >= _EXACT_BELOW:
         return False
     if isinstance(m, Submap):
         small = [m.stamp or 0.0]
