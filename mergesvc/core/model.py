@@ -238,6 +238,10 @@ class Odometry(BaseModel):
     )
 
 
+# what a submap has and a map does not: a file with any of these keys is a submap
+SUBMAP_FIELDS = ("seq", "stamp", "keyframe", "odometry")
+
+
 class Submap(ObjectMap):
     """A window of a robot's recent objects, matched against a map.
 
@@ -380,21 +384,26 @@ def read_exactly(m: ObjectMap) -> bool:
     return True
 
 
+def read_valid_json(model: type[ObjectMap], data: str | bytes) -> ObjectMap | None:
+    """A valid file read by pydantic's own JSON parser (faster than the json module and
+    validation: docs/benchmarks/scale.md); None when it refuses the file or holds a number it
+    may have read less exactly (`read_exactly`): the json module's reading then decides."""
+    try:
+        got = model.model_validate_json(data)
+    except ValueError:  # pydantic's ValidationError among them
+        return None
+    return got if read_exactly(got) else None
+
+
 def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -> ObjectMap:
     """Validate JSON text into `model`; raise DecodeError / SchemaError with one clear line.
 
-    pydantic's own JSON parser reads a valid file (3-4x faster than the json module and
-    validation of its objects on a large map: docs/benchmarks/scale.md); whatever it
-    refuses, or holds a number it may have read less exactly (`read_exactly`), is read again
-    by the json module and validated, whose errors say what is wrong in the words every
-    reader of these files gets (and which also reads UTF-16 and -32)."""
-    try:
-        fast = model.model_validate_json(data)
-    except ValueError:  # pydantic's ValidationError among them
-        pass
-    else:
-        if read_exactly(fast):
-            return fast
+    `read_valid_json` first; what it does not read is read again by the json module and
+    validated, whose errors say what is wrong in the words every reader of these files gets
+    (and which also reads UTF-16 and -32)."""
+    fast = read_valid_json(model, data)
+    if fast is not None:
+        return fast
     try:
         raw = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -490,6 +499,7 @@ def _truth_schema() -> dict[str, Any]:
 
 __all__ = [
     "SCHEMA_VERSION",
+    "SUBMAP_FIELDS",
     "Correspondence",
     "Covariance6",
     "ErrorMessage",
@@ -509,6 +519,7 @@ __all__ = [
     "json_schemas",
     "parse_model",
     "read_exactly",
+    "read_valid_json",
 ]
 
 

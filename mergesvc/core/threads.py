@@ -32,10 +32,10 @@ _BLAS_NAMES = ("blas", "blis", "mkl", "lapack")
 
 class _BlasController(ThreadpoolController):
     """threadpoolctl's controller over the BLAS libraries only. The library resolves the path
-    of every loaded shared object before it reads its name (a hundred and more here: numpy,
-    scipy, gtsam, zenoh, each extension module), 5-20 ms, the whole of a small match in a
-    fresh process; this one passes on the files whose name names a BLAS or LAPACK and leaves
-    the rest of the work (the real name, symbols, controllers) to threadpoolctl."""
+    of every loaded shared object before it reads its name (each extension module: more than a
+    small match costs, in a fresh process; docs/benchmarks/scale.md); this one passes on the
+    files whose name names a BLAS or LAPACK and leaves the rest of the work (the real name,
+    symbols, controllers) to threadpoolctl."""
 
     def _make_controller_from_path(self, filepath: str, *args: Any, **kwargs: Any) -> None:
         name = os.path.basename(str(filepath)).lower()

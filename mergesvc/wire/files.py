@@ -16,12 +16,13 @@ from pydantic import BaseModel
 
 from mergesvc.core.model import (
     MAX_FILE_BYTES,
+    SUBMAP_FIELDS,
     ErrorMessage,
     Factor,
     ObjectMap,
     Submap,
     parse_model,
-    read_exactly,
+    read_valid_json,
 )
 from mergesvc.errors import DecodeError, InputError, SchemaError, one_line
 from mergesvc.wire.envelope import (
@@ -112,23 +113,17 @@ def _json_limit(exc: ValueError) -> str:
 
 
 def _valid_objects(data: bytes) -> ObjectMap | None:
-    """A valid map or submap file read by pydantic's JSON parser, as `parse_model` reads one
-    (a map when it validates as one: a submap's own keys are extra fields to a map); None
-    for anything else, which the json module then reads and says what is wrong with."""
+    """A valid map or submap file as `read_valid_json` reads it (a map when it validates as
+    one: a submap's own keys are extra fields to a map); None for anything else, which the
+    json module then reads and says what is wrong with."""
     if b'"objects"' not in data:
         return None
     # a submap's keys anywhere (perhaps in a label): a submap first, a map if it has none
-    keys = (b'"seq"', b'"stamp"', b'"keyframe"', b'"odometry"')
-    order = (Submap, ObjectMap) if any(k in data for k in keys) else (ObjectMap,)
-    for model in order:
-        try:
-            got = model.model_validate_json(data)
-        except ValueError:  # pydantic's ValidationError among them
-            continue
-        if model is Submap and not got.model_fields_set & {"seq", "stamp", "keyframe",
-                                                           "odometry"}:
-            continue  # a map with such words in a string: validated again as a map
-        return got if read_exactly(got) else None
+    is_sub = any(f'"{k}"'.encode() in data for k in SUBMAP_FIELDS)
+    for model in (Submap, ObjectMap) if is_sub else (ObjectMap,):
+        got = read_valid_json(model, data)
+        if got is not None and (model is ObjectMap or got.model_fields_set & set(SUBMAP_FIELDS)):
+            return got
     return None
 
 
@@ -153,8 +148,7 @@ def _read_json_model(path: Path) -> AnyMessage:
     if not isinstance(raw, dict):
         raise SchemaError(f"invalid {path}: expected a JSON object")
     if "objects" in raw:
-        submap_keys = ("seq", "stamp", "keyframe", "odometry")
-        model: type[BaseModel] = Submap if any(k in raw for k in submap_keys) else ObjectMap
+        model: type[BaseModel] = Submap if any(k in raw for k in SUBMAP_FIELDS) else ObjectMap
     elif "factor_id" in raw:
         model = Factor
     elif "code" in raw:
