@@ -83,6 +83,33 @@ def test_near_optimal_best_and_margins_match_brute_force() -> None:
     assert checked > 80 and settled > 10
 
 
+def test_a_set_extended_to_new_candidates_is_the_search_over_all_of_them() -> None:
+    """`extend`: when it keeps the set, the optimum and every assignment within the margin of
+    it are those of all the candidates (brute force); it keeps the set often."""
+    rng = np.random.default_rng(14)
+    margin, kept, searched = 0.5, 0, 0
+    for problem in mixed_problems(13, 300, n_max=5):
+        if problem.m < 2:
+            continue
+        first = problem.subset(np.arange(problem.m) < int(rng.integers(1, problem.m)))
+        _, scores0 = every_assignment(first)
+        near, _ = near_optimal(first, max(scores0.max(), 0.0) - margin, max_states=10**6)
+        extended = near.extend(problem, margin)
+        if extended is None:
+            searched += 1
+            continue
+        kept += 1
+        every, scores = every_assignment(problem)
+        best = extended.best()
+        assert best.score == pytest.approx(scores.max(), abs=1e-9)
+        close = scores > scores.max() - margin + 1e-9
+        got = np.full(extended.chosen.shape, UNMATCHED)
+        got[extended.chosen >= 0] = problem.cols[extended.chosen[extended.chosen >= 0]]
+        got = got[extended.score > scores.max() - margin + 1e-9]
+        assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, every[close].tolist()))
+    assert kept > 30 and searched > 30
+
+
 def test_near_optimal_gives_up_beyond_its_state_budget() -> None:
     # 6 rows x 6 cols, every pair a candidate, K = 0: every partial assignment ties
     problem = AssignmentProblem.dense(np.zeros((36, 36)), 6, 6)

@@ -61,6 +61,36 @@ def test_a_narrow_listing_that_finds_no_blas_gives_way_to_the_full_one(
     assert any(lib.user_api == "blas" for lib in threads._listing().lib_controllers)
 
 
+def test_the_match_command_lists_the_blas_before_it_times_the_match(
+        monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    """`mergesvc match` lists the BLAS with its set-up: the match it times only switches it."""
+    from helpers import run_cli
+
+    import mergesvc.core.threads as threads
+
+    listed: list[str] = []
+    inner_listing, inner_match = threads._listing, pipeline.match
+
+    def listing():
+        listed.append("list")
+        return inner_listing()
+
+    def match(*args, **kwargs):
+        listed.append("match")
+        return inner_match(*args, **kwargs)
+
+    monkeypatch.setattr(threads, "_controller", None)
+    monkeypatch.setattr(threads, "_listing", listing)
+    monkeypatch.setattr(pipeline, "match", match)
+    assert run_cli("example", str(tmp_path), "--family", "underwater").returncode == 0
+    r = run_cli("match", "--map", str(tmp_path / "map.json"), "--submap",
+                str(tmp_path / "submap.json"), "--json")
+    assert r.returncode == 0, r.stderr
+    assert listed == ["list", "match"]
+    threads.list_blas()  # nothing imported since: the list stands
+    assert listed == ["list", "match"]
+
+
 def test_match_runs_on_one_thread(monkeypatch: pytest.MonkeyPatch, small_kitti_scenario) -> None:
     seen: list[list[int]] = []
     inner = pipeline._match_verified

@@ -235,6 +235,14 @@ def _propose(
             config.verify.conflict_sigmas,
         )
     timer.lap("affinity")
+    if prev is not None and prev.exact is not None and prev.exact[1] is not None:
+        # the exact search over prev's candidates stands when no assignment holding a new one
+        # comes within the margin of its optimum
+        near = prev.exact[1].extend(signed, _margin(config))
+        best = None if near is None else near.best(prev.exact[0].nodes_expanded)
+        if best is not None:
+            timer.lap("exact")
+            return _Proposal(cands, signed, positive, local, best.assignment, (best, near))
     seed = None
     if start is not None:
         at = np.searchsorted(local, start)
@@ -450,6 +458,11 @@ def _unmatch_gains(problem: AssignmentProblem, assignment: np.ndarray) -> np.nda
     return out
 
 
+def _margin(config: MatchConfig) -> float:
+    """How far below the optimum the exact search keeps assignments: the margin test's."""
+    return config.verify.margin if config.verify.margin_max_matches > 0 else 0.0
+
+
 def _exact(
     signed: AssignmentProblem, incumbent: np.ndarray, config: MatchConfig
 ) -> tuple[ExactResult, NearOptimal | None]:
@@ -458,9 +471,8 @@ def _exact(
     same set), else, or when that set grows too large, the branch and bound."""
     v = config.verify
     if signed.n1 <= _NEAR_MAX_ROWS and signed.m <= _NEAR_MAX_CANDIDATES:
-        margin = v.margin if v.margin_max_matches > 0 else 0.0
         floor = max(signed.score(incumbent), 0.0)  # leaving every row unmatched scores 0
-        found = near_optimal(signed, floor - max(margin, 1e-9))
+        found = near_optimal(signed, floor - max(_margin(config), 1e-9))
         if found is not None:
             near, states = found
             best = near.best(states)

@@ -66,6 +66,13 @@ def _threadpools() -> Any:
     return _controller
 
 
+def list_blas() -> None:
+    """List the loaded BLAS libraries now, once the modules a run needs are imported: a
+    process's first `blas_threads` then only switches them (a command that runs one match
+    lists them with its set-up, as it imports its modules, not inside the match it times)."""
+    _threadpools()
+
+
 @contextlib.contextmanager
 def blas_threads(n_pairs: int) -> Iterator[None]:
     """One BLAS thread inside the block when n_pairs (submap x map objects) is below
@@ -96,4 +103,4 @@ def blas_thread_counts() -> list[int]:
     return [int(lib["num_threads"]) for lib in threadpool_info() if lib["user_api"] == "blas"]
 
 
-__all__ = ["PIN_BELOW_PAIRS", "blas_thread_counts", "blas_threads"]
+__all__ = ["PIN_BELOW_PAIRS", "blas_thread_counts", "blas_threads", "list_blas"]

@@ -72,6 +72,59 @@ class NearOptimal:
             out[i] = best - float(self.score[alt].max()) if alt.any() else margin_needed
         return out
 
+    def extend(self, problem: AssignmentProblem, margin: float) -> NearOptimal | None:
+        """This set as the set over `problem`, whose first self.problem.m candidates are this
+        problem's (the same K and conflicts among them) and the rest new, when an upper bound
+        proves that no feasible assignment holding a new candidate scores within `margin` of
+        the optimum: then the optimum and every margin test read the same from either set.
+        None when the bound does not prove it (search `problem` again)."""
+        m0, m = self.problem.m, problem.m
+        if len(self.score) == 0:
+            return None
+        K = problem.K if problem.invalid_zero else 0.5 * (problem.K + problem.K.T)
+        rows, cols = problem.rows, problem.cols
+        compat = rows[:, None] != rows[None, :]
+        compat &= cols[:, None] != cols[None, :]
+        if problem.conflict is not None:
+            compat &= ~problem.conflict
+        # best_in[d, l]: d's best compatible partner in row l (>= 0: l may stay unmatched)
+        o = np.argsort(rows, kind="stable")
+        present, starts = np.unique(rows[o], return_index=True)
+        best_in = np.zeros((m, problem.n1))
+        best_in[:, present] = _best_per_row(K, compat, o, starts)
+        # an assignment holding new candidate c scores at most K_cc plus, for each other row,
+        # its best compatible e's K_ee + 2 K_ce + e's best partners in the rows but c's; when
+        # that does not prove it, the same with one more row decided (each of its candidates
+        # compatible with c, or none): the row that bound credits most
+        best = float(self.score.max())
+        floor = best - max(margin, 1e-9) - (ABS_TOL + REL_TOL * abs(best))
+        diag, total = K.diagonal(), best_in.sum(axis=1)
+        for c in range(m0, m):
+            gain = diag + 2.0 * K[c] + total - best_in[:, rows[c]]
+            per_row = _best_per_row(gain[None, :], compat[c][None, :], o, starts)[0]
+            if diag[c] + per_row.sum() < floor:
+                continue
+            j = int(present[np.argmax(per_row)])
+            in_j = rows == j
+            options = np.flatnonzero(in_j & compat[c])
+            gain -= best_in[:, j]  # row j is decided now
+            ok = compat[c] & ~in_j
+            ok = np.vstack([ok, compat[options] & ok])  # none, then each option
+            V = gain[None, :] + np.vstack([np.zeros(m), 2.0 * K[options]])
+            bound = _best_per_row(V, ok, o, starts).sum(axis=1) + diag[c]
+            bound[1:] += diag[options] + 2.0 * K[c, options]
+            if bound.max() >= floor:
+                return None
+        return NearOptimal(problem, self.threshold, self.score, self.chosen)
+
+
+def _best_per_row(V: np.ndarray, ok: np.ndarray, order: np.ndarray, starts: np.ndarray
+                  ) -> np.ndarray:
+    """(k, rows): per row of the candidates (order groups them, starts its rows' first
+    positions) the largest V where ok, at least 0 (a row may stay unmatched). V, ok: (k, m)."""
+    best = np.maximum.reduceat(np.where(ok, V, -np.inf)[:, order], starts, axis=1)
+    return np.maximum(best, 0.0)
+
 
 def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int = 2048
                  ) -> tuple[NearOptimal, int] | None:
