@@ -235,13 +235,15 @@ def _propose(
             config.verify.conflict_sigmas,
         )
     timer.lap("affinity")
-    if prev is not None and prev.exact is not None and prev.exact[1] is not None:
+    if prev is not None and prev.exact is not None and prev.exact[1] is not None and \
+            signed.n1 <= _NEAR_MAX_ROWS and signed.m <= _NEAR_MAX_CANDIDATES:
         # the exact search over prev's candidates stands when no assignment holding a new one
-        # comes within the margin of its optimum
+        # comes within the margin of its optimum (as the search over all of them would find,
+        # or better: that one may run out of states and fall back to the branch and bound)
         near = prev.exact[1].extend(signed, _margin(config))
         best = None if near is None else near.best(prev.exact[0].nodes_expanded)
+        timer.lap("exact")
         if best is not None:
-            timer.lap("exact")
             return _Proposal(cands, signed, positive, local, best.assignment, (best, near))
     seed = None
     if start is not None:

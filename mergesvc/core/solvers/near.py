@@ -76,8 +76,9 @@ class NearOptimal:
         """This set as the set over `problem`, whose first self.problem.m candidates are this
         problem's (the same K and conflicts among them) and the rest new, when an upper bound
         proves that no feasible assignment holding a new candidate scores within `margin` of
-        the optimum: then the optimum and every margin test read the same from either set.
-        None when the bound does not prove it (search `problem` again)."""
+        the optimum: then the optimum's score and every margin test (up to `margin`) read the
+        same from either set; the set's threshold rises to that floor if it was below. None
+        when the bound does not prove it (search `problem` again)."""
         m0, m = self.problem.m, problem.m
         if len(self.score) == 0:
             return None
@@ -104,7 +105,10 @@ class NearOptimal:
             per_row = _best_per_row(gain[None, :], compat[c][None, :], o, starts)[0]
             if diag[c] + per_row.sum() < floor:
                 continue
-            j = int(present[np.argmax(per_row)])
+            others = present != rows[c]
+            if not others.any():  # c's row is the only one: K_cc alone reached the floor
+                return None
+            j = int(present[others][np.argmax(per_row[others])])
             in_j = rows == j
             options = np.flatnonzero(in_j & compat[c])
             gain -= best_in[:, j]  # row j is decided now
@@ -115,7 +119,10 @@ class NearOptimal:
             bound[1:] += diag[options] + 2.0 * K[c, options]
             if bound.max() >= floor:
                 return None
-        return NearOptimal(problem, self.threshold, self.score, self.chosen)
+        # every assignment above the floor is in the set, and only those: its threshold
+        keep = self.score > floor
+        return NearOptimal(problem, max(self.threshold, floor), self.score[keep],
+                           self.chosen[keep])
 
 
 def _best_per_row(V: np.ndarray, ok: np.ndarray, order: np.ndarray, starts: np.ndarray
