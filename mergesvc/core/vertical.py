@@ -132,9 +132,26 @@ def relate(
     return VerticalRelation(up_map, up_sub, signed=True, declared=False)
 
 
+_ROTATIONS: dict[bytes, np.ndarray] = {}  # rotation_between's answers (a few verticals)
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(3, 3) smallest rotation taking the direction of a to that of b (Rodrigues); a, b (3,)
-    non-zero, normalised here."""
+    non-zero, normalised here. Read-only: the answer for the same a and b is kept (a fleet
+    has a few verticals, and every 4-DoF fit asks again)."""
+    a = np.asarray(a, dtype=np.float64).reshape(3)
+    b = np.asarray(b, dtype=np.float64).reshape(3)
+    key = a.tobytes() + b.tobytes()
+    out = _ROTATIONS.get(key)
+    if out is None:
+        if len(_ROTATIONS) >= 1024:
+            _ROTATIONS.clear()
+        out = _ROTATIONS[key] = _rotation_between(a, b)
+        out.flags.writeable = False
+    return out
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
     b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
     c = float(np.dot(a, b))
@@ -144,7 +161,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         perp = cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
         perp /= np.linalg.norm(perp)
         half = 2.0 * np.outer(perp, perp) - np.eye(3)
-        return rotation_between(half @ a, b) @ half
+        return _rotation_between(half @ a, b) @ half
     v = cross(a, b)
     s = float(np.linalg.norm(v))
     if s < 1e-15:

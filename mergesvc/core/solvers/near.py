@@ -37,7 +37,7 @@ class NearOptimal:
         """The optimum as an ExactResult (None when nothing scored above the threshold)."""
         if len(self.score) == 0:
             return None
-        k = int(np.argmax(self.score))
+        k = int(self.score.argmax())
         pick = self.chosen[k]
         assignment = np.full(self.problem.n1, UNMATCHED, dtype=np.int64)
         assignment[pick >= 0] = self.problem.cols[pick[pick >= 0]]
@@ -146,7 +146,7 @@ def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int =
     rank = np.empty(n1, dtype=np.int64)
     rank[order] = np.arange(len(order))
     o = np.argsort(rank[rows], kind="stable")
-    same_order = bool(np.all(o[1:] > o[:-1]))
+    same_order = bool((o[1:] > o[:-1]).all())
     K = problem.K if same_order else block(problem.K, o)
     if not problem.invalid_zero:
         K = 0.5 * (K + K.T)
