@@ -90,6 +90,16 @@ def test_rotation_between_takes_a_to_b() -> None:
             assert np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
 
 
+def test_rotation_between_keeps_its_answers_read_only() -> None:
+    a, b = np.array([0.0, 0.0, 1.0]), np.array([0.0, -1.0, 0.0])
+    R = rotation_between(a, b)
+    assert rotation_between(a.copy(), b.copy()) is R  # kept: the same array again
+    assert np.array_equal(R, rotation_between(a + 0.0, [0.0, -1.0, 0.0]))
+    with pytest.raises(ValueError):
+        R[0, 0] = 2.0  # no caller can change what the next one reads
+    assert np.allclose(R @ a, b, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------- 4-DoF fit
 
 
