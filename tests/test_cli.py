@@ -158,7 +158,14 @@ def test_an_output_folder_that_cannot_be_made_is_one_line_exit_2(tmp_path: Path,
     taken.write_text("")
     r = run(*args[:2 if args[0] == "scenario" else 1], str(taken), *args[2:])
     assert r.returncode == 2
-    assert r.stderr.strip().splitlines() == [f"error: cannot use {taken}: File exists"]
+    assert r.stderr.strip().splitlines() == [
+        f"error: cannot use {taken}: File exists (a file, where a folder is wanted: give a "
+        "folder's path)"]
+
+
+def test_a_negative_example_seed_names_the_option(tmp_path: Path) -> None:
+    r = run("example", str(tmp_path / "ex"), "--seed", "-1")
+    assert r.returncode == 2 and "--seed" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_paper_mode_exact_on_a_large_problem_says_what_to_do(tmp_path: Path) -> None:

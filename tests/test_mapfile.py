@@ -116,6 +116,8 @@ def _members(**change: np.ndarray) -> dict[str, np.ndarray]:
     (_members(position_xyz_m=np.array([[0.0, np.nan, 0], [0, 0, 0]])), False, SchemaError,
      r"object 0 \(id 'a'\): its position has NaN or inf"),
     (_members(variances=np.zeros(2)), False, SchemaError, "positive"),
+    (_members(variances=np.array([1.0, -1.0])), False, SchemaError,
+     r"object 1 \(id 'b'\): its variance must be positive, not -1$"),
     (_members(n_obs=np.zeros(2, np.int64)), False, SchemaError, "n_obs"),
     (_members(id_ends=np.array([1, 5])), False, SchemaError, "ids"),
     ({k: v for k, v in _members().items() if k != "n_obs"}, False, DecodeError, "missing"),

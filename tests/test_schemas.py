@@ -209,6 +209,24 @@ def test_the_models_refuse_numbers_as_text_as_the_schema_does(
     assert errors("submap.schema.json", doc)
 
 
+@pytest.mark.parametrize(("edit", "line"), [
+    # a union (one number or a list) refusing a value: the field's path, counted once
+    (lambda d: d["objects"][0].update(variance=0.0),
+     r"objects\.0\.variance: Input should be greater than 0$"),
+    (lambda d: d["objects"][0].update(embedding=d["objects"][0]["embedding"][:7]),
+     r"embeddings differ in length: objects\.0 \(\S+\) has 7 values, objects\.1 \(\S+\) has "),
+    (lambda d: d["objects"][1].update(n_obs=2**64),
+     r"objects\.1\.n_obs: a number too large"),
+])
+def test_a_refused_file_names_the_field_a_user_wrote(
+    example: dict[str, Any], tmp_path: Path, edit: Callable[[dict], None], line: str
+) -> None:
+    doc = copy.deepcopy(example["map"])
+    edit(doc)
+    with pytest.raises(SchemaError, match=line):
+        load_model(ObjectMap, _write(tmp_path, doc))
+
+
 def test_a_map_of_schema_version_2_is_refused_by_the_cli_and_the_schema(
     example: dict[str, Any], tmp_path: Path
 ) -> None:

@@ -55,6 +55,8 @@ def message(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
         two = f" -> {exc.filename2}" if exc.filename2 is not None else ""
         msg = f"cannot use {exc.filename}{two}: {exc.strerror}"
+        if isinstance(exc, FileExistsError):
+            msg += " (a file, where a folder is wanted: give a folder's path)"
     if isinstance(exc, TransportError):
         msg = f"{msg}: {TRANSPORT_ADVICE[exc.fault]}"
     return msg

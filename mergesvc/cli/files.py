@@ -175,7 +175,7 @@ def match_json(result: MatchResult) -> dict[str, Any]:
 def example(
     out_dir: Annotated[Path, typer.Argument(help="folder for map.json, submap.json, truth.json")],
     family: Annotated[str, typer.Option(help="underwater or kitti")] = "kitti",
-    seed: Annotated[int, typer.Option(help="scenario seed")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="scenario seed")] = 0,
 ) -> None:
     """Write a seeded example map, submap and their ground truth."""
     from mergesvc.sim import Family, make_scenario

@@ -162,21 +162,22 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
-class _NonFiniteRowError(SchemaError):
-    """A NaN or inf in one object's `what` (its row); ObjectArrays names the object."""
+class _BadRowError(SchemaError):
+    """One object's `what` (its row) refused (`problem`: it has NaN or inf, ...);
+    ObjectArrays names the object."""
 
-    def __init__(self, what: str, row: int) -> None:
-        super().__init__(f"object {row}: its {what} has NaN or inf")
-        self.what, self.row = what, row
+    def __init__(self, what: str, row: int, problem: str = "has NaN or inf") -> None:
+        super().__init__(f"object {row}: its {what} {problem}")
+        self.what, self.row, self.problem = what, row, problem
 
 
 def _check_finite(a: np.ndarray, what: str) -> None:
-    """_NonFiniteRowError for the first row of `a` holding a NaN or inf."""
+    """_BadRowError for the first row of `a` holding a NaN or inf."""
     for lo in chunks(len(a)):
         block = np.isfinite(a[lo:lo + _CHUNK_ROWS])
         if not block.all():
             bad = block.reshape(len(block), -1).all(axis=1)
-            raise _NonFiniteRowError(what, lo + int(np.argmin(bad)))
+            raise _BadRowError(what, lo + int(np.argmin(bad)))
         release_rows(a, lo, lo + _CHUNK_ROWS)
 
 
@@ -211,7 +212,8 @@ def _compact_variances(v: Any, n: int, d: int) -> np.ndarray:
             a = np.ascontiguousarray(a[:, :1])
     _check_finite(a, "variance")
     if n and not float(a.min()) > 0:
-        raise SchemaError("variances_nd must be positive")
+        k = int(np.flatnonzero(~(a.min(axis=1) > 0))[0])
+        raise _BadRowError("variance", k, f"must be positive, not {float(a[k].min()):g}")
     return np.broadcast_to(a, (n, d)) if a.shape[1] == 1 else a
 
 
@@ -249,9 +251,9 @@ class ObjectArrays:
             emb = _as_float32(emb)
             var = _compact_variances(self.variances_nd, n, emb.shape[1])
             _check_finite(pos, "position")
-        except _NonFiniteRowError as exc:
+        except _BadRowError as exc:
             raise SchemaError(f"object {exc.row} (id {self.ids[exc.row]!r}): its {exc.what} "
-                              "has NaN or inf") from exc
+                              f"{exc.problem}") from exc
         if np.any(np.abs(pos) > MAX_COORDINATE_M):
             raise SchemaError(f"position_xyz_m beyond +-{MAX_COORDINATE_M:g} m")
         for name, value in (("position_xyz_m", pos), ("embeddings_nd", emb),

@@ -157,8 +157,8 @@ class ObjectMap(BaseModel):
         for k, obj in enumerate(self.objects):
             if len(obj.embedding) != d:
                 raise ValueError(
-                    f"objects.{k} ({obj.id}): embedding has {len(obj.embedding)} values, "
-                    f"objects.0 has {d}"
+                    f"embeddings differ in length: objects.0 ({self.objects[0].id}) has {d} "
+                    f"values, objects.{k} ({obj.id}) has {len(obj.embedding)}"
                 )
             if obj.id in seen:
                 raise ValueError(f"objects.{k}: duplicate id {obj.id!r}")
@@ -351,13 +351,20 @@ def arrays_to_nodes(arr: ObjectArrays, isotropic_tol: float = 0.0) -> list[Objec
     return nodes
 
 
+def _field_path(loc: tuple[Any, ...]) -> str:
+    """pydantic's error location as the file's field path: the member tags a union adds
+    (`constrained-float`, `list[...]`) left out."""
+    return ".".join(str(x) for x in loc if isinstance(x, int) or x.isidentifier())
+
+
 def _format_validation_error(exc: ValidationError, what: str) -> str:
-    """One line naming the first offending field, e.g. `objects.3.variance.7: ...`."""
+    """One line naming the first offending field, e.g. `objects.3.variance.7: ...`; the other
+    fields at fault counted (a union's members refusing one value count once)."""
     errors = exc.errors()
-    first = errors[0]
-    loc = ".".join(str(x) for x in first["loc"])
-    msg = first["msg"].removeprefix("Value error, ")
-    more = f" (and {len(errors) - 1} more errors)" if len(errors) > 1 else ""
+    loc = _field_path(errors[0]["loc"])
+    msg = errors[0]["msg"].removeprefix("Value error, ")
+    others = len({_field_path(e["loc"]) for e in errors} - {loc})
+    more = f" (and {others} more field{'s' if others > 1 else ''})" if others else ""
     return f"invalid {what}: {loc + ': ' if loc else ''}{msg}{more}"
 
 

@@ -100,7 +100,10 @@ def _check_arrays(loaded: ObjectMap, what: str) -> ObjectMap:
     try:
         loaded.arrays()
     except (OverflowError, ValueError) as exc:
-        raise SchemaError(f"invalid {what}: a number too large ({one_line(exc)})") from exc
+        big = next((k for k, o in enumerate(loaded.objects) if o.n_obs >= 2**63), None)
+        where = f"objects.{big}.n_obs: " if big is not None else ""
+        raise SchemaError(f"invalid {what}: {where}a number too large "
+                          f"({one_line(exc)})") from exc
     return loaded
 
 
