@@ -217,6 +217,8 @@ def test_the_models_refuse_numbers_as_text_as_the_schema_does(
      r"embeddings differ in length: objects\.0 \(\S+\) has 7 values, objects\.1 \(\S+\) has "),
     (lambda d: d["objects"][1].update(n_obs=2**64),
      r"objects\.1\.n_obs: a number too large"),
+    (lambda d: d["objects"][0].update({"size-m": 1.0}),  # a field of the user's own naming
+     r"objects\.0\.size-m: Extra inputs are not permitted$"),
 ])
 def test_a_refused_file_names_the_field_a_user_wrote(
     example: dict[str, Any], tmp_path: Path, edit: Callable[[dict], None], line: str

@@ -7,6 +7,7 @@ embedding dimension per map, unique ids, bounded sizes. The core works on `Objec
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping
 from enum import Enum
 from typing import TYPE_CHECKING, Annotated, Any
@@ -351,19 +352,27 @@ def arrays_to_nodes(arr: ObjectArrays, isotropic_tol: float = 0.0) -> list[Objec
     return nodes
 
 
-def _field_path(loc: tuple[Any, ...]) -> str:
-    """pydantic's error location as the file's field path: the member tags a union adds
-    (`constrained-float`, `list[...]`) left out."""
-    return ".".join(str(x) for x in loc if isinstance(x, int) or x.isidentifier())
+# the member tags pydantic adds to a location inside a union (`constrained-float`,
+# `list[constrained-float]`, `function-after[...]`), not fields of a file
+_UNION_TAG = re.compile(r"[a-z]+(-[a-z]+)+(\[.*\])?|[a-z]+\[.*\]")
+
+
+def _field_path(error: dict[str, Any]) -> str:
+    """pydantic's error location as the file's field path: a union's member tags left out
+    (a field a file should not have is named as written, whatever its characters)."""
+    loc = error["loc"]
+    if error["type"] != "extra_forbidden":
+        loc = [x for x in loc if not (isinstance(x, str) and _UNION_TAG.fullmatch(x))]
+    return ".".join(str(x) for x in loc)
 
 
 def _format_validation_error(exc: ValidationError, what: str) -> str:
     """One line naming the first offending field, e.g. `objects.3.variance.7: ...`; the other
     fields at fault counted (a union's members refusing one value count once)."""
     errors = exc.errors()
-    loc = _field_path(errors[0]["loc"])
+    loc = _field_path(errors[0])
     msg = errors[0]["msg"].removeprefix("Value error, ")
-    others = len({_field_path(e["loc"]) for e in errors} - {loc})
+    others = len({_field_path(e) for e in errors} - {loc})
     more = f" (and {others} more field{'s' if others > 1 else ''})" if others else ""
     return f"invalid {what}: {loc + ': ' if loc else ''}{msg}{more}"
 
