@@ -560,6 +560,15 @@ def test_a_rejected_match_prints_no_transform(tmp_path: Path) -> None:
     text = run("match", "--map", str(m), "--submap", str(s))
     assert text.returncode == 0 and "rejected (tilted)" in text.stdout
     assert "T_map_submap" not in text.stdout
+    assert "declare `up` in both files" in text.stdout.splitlines()[1]  # what to do about it
+
+
+def test_every_rejection_reason_has_a_hint() -> None:
+    from mergesvc.cli.files import _REJECTION_HINTS
+    from mergesvc.core.model import RejectReason
+
+    answers = {RejectReason.VERIFIED, RejectReason.NOT_VERIFIED}
+    assert set(_REJECTION_HINTS) == {r.value for r in RejectReason} - {r.value for r in answers}
 
 
 def test_factors_are_coded_full_or_compact_only() -> None:

@@ -60,6 +60,24 @@ def _warn_zero_embeddings(path: Path, objs: Any) -> None:
                    f"{'it' if n == 1 else 'them'} by appearance", err=True)
 
 
+# what a rejection's reason asks of the user (text output; the JSON carries the reason)
+_REJECTION_HINTS = {
+    "tilted": "the fit would turn the vertical over: declare `up` in both files (README: Which "
+              "way is up)",
+    "ambiguous": "look-alikes: another choice explains the submap almost as well; a larger "
+                 "submap, or `up` declared in both files, tells them apart",
+    "degenerate_geometry": "the matched objects lie on a line or one above another: objects "
+                           "off that line are needed",
+    "too_few_matches": "a fit needs 3 matches (2 with `up` declared in both files)",
+    "residual_too_large": "the matches fit no rigid transform within the gate "
+                          "(`verify.inlier_sigmas`)",
+    "search_incomplete": "the exact search ran out of budget (`verify.max_nodes`, "
+                         "`verify.time_limit_s`)",
+    "no_candidates": "no map object looks like the submap's: are both files from the same "
+                     "embedding model?",
+}
+
+
 def match(
     ctx: typer.Context,
     map_path: Annotated[Path, typer.Option(
@@ -125,6 +143,8 @@ def match(
     state = "accepted" if result.accepted else "rejected"
     n = len(result.matches)
     typer.echo(f"{state} ({result.reason.value}): {n} match{'' if n == 1 else 'es'}")
+    if result.reason.value in _REJECTION_HINTS:
+        typer.echo(f"  hint: {_REJECTION_HINTS[result.reason.value]}")
     for m in result.matches:
         typer.echo(f"  {m.submap_object:>12} -> {m.map_object:<12} score {m.score:.3f}")
     if result.accepted and result.transform is not None:
