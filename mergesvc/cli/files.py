@@ -60,6 +60,10 @@ def _warn_zero_embeddings(path: Path, objs: Any) -> None:
                    f"{'it' if n == 1 else 'them'} by appearance", err=True)
 
 
+# a world family by name (sim.Family), its choices shown as the enums' options show theirs
+FamilyName = Annotated[str, typer.Option(metavar="<underwater|kitti>", help="underwater or kitti")]
+
+
 # what a rejection's reason asks of the user (text output; the JSON carries the reason)
 _REJECTION_HINTS = {
     "tilted": "the fit would turn the vertical over: declare `up` in both files (README: Which "
@@ -194,7 +198,7 @@ def match_json(result: MatchResult) -> dict[str, Any]:
 
 def example(
     out_dir: Annotated[Path, typer.Argument(help="folder for map.json, submap.json, truth.json")],
-    family: Annotated[str, typer.Option(help="underwater or kitti")] = "kitti",
+    family: FamilyName = "kitti",
     seed: Annotated[int, typer.Option(min=0, help="scenario seed")] = 0,
 ) -> None:
     """Write a seeded example map, submap and their ground truth."""
@@ -417,7 +421,7 @@ def uncertainty_train(
     out: Annotated[Path, typer.Argument(help="weights file to write (.npz)")],
     samples: Annotated[int, typer.Option(help="training observations")] = 20_000,
     seed: Annotated[int, typer.Option(help="world and optimiser seed")] = 0,
-    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+    family: FamilyName = "underwater",
     settings: UncertaintySettings = None,
     config: DeprecatedConfig = None,
 ) -> None:
@@ -454,7 +458,7 @@ def uncertainty_eval(
     weights: Annotated[Path, typer.Argument(help="weights file (.npz)")],
     samples: Annotated[int, typer.Option(help="test observations")] = 5000,
     seed: Annotated[int, typer.Option(help="world seed the head was trained for")] = 0,
-    family: Annotated[str, typer.Option(help="underwater or kitti")] = "underwater",
+    family: FamilyName = "underwater",
 ) -> None:
     """Spearman / Kendall / pairwise accuracy of a trained head on fresh observations."""
     from mergesvc.sim import Family, image_s_dataset
