@@ -9,6 +9,8 @@ rows and half its best partner in each other open row, each at least 0). The bou
 for any sign of K, so what survives the last row is exactly the set of feasible assignments
 scoring above the threshold. The search gives up (None) once more than `max_states` partial
 assignments survive a row: then the branch and bound (exact.py) is the tool.
+`NearOptimal.extend` carries a set over to added candidates when a bound proves that none of
+them comes within the margin of the optimum.
 """
 
 from __future__ import annotations
@@ -83,16 +85,13 @@ class NearOptimal:
         if len(self.score) == 0:
             return None
         K = problem.K if problem.invalid_zero else 0.5 * (problem.K + problem.K.T)
-        rows, cols = problem.rows, problem.cols
-        compat = rows[:, None] != rows[None, :]
-        compat &= cols[:, None] != cols[None, :]
-        if problem.conflict is not None:
-            compat &= ~problem.conflict
+        rows = problem.rows
+        compat = _compatible(rows, problem.cols, problem.conflict)
         # best_in[d, l]: d's best compatible partner in row l (>= 0: l may stay unmatched)
         o = np.argsort(rows, kind="stable")
         present, starts = np.unique(rows[o], return_index=True)
         best_in = np.zeros((m, problem.n1))
-        best_in[:, present] = _best_per_row(K, compat, o, starts)
+        best_in[:, present] = _best_per_row(K, compat, starts, o)
         # an assignment holding new candidate c scores at most K_cc plus, for each other row,
         # its best compatible e's K_ee + 2 K_ce + e's best partners in the rows but c's; when
         # that does not prove it, the same with one more row decided (each of its candidates
@@ -102,7 +101,7 @@ class NearOptimal:
         diag, total = K.diagonal(), best_in.sum(axis=1)
         for c in range(m0, m):
             gain = diag + 2.0 * K[c] + total - best_in[:, rows[c]]
-            per_row = _best_per_row(gain[None, :], compat[c][None, :], o, starts)[0]
+            per_row = _best_per_row(gain[None, :], compat[c][None, :], starts, o)[0]
             if diag[c] + per_row.sum() < floor:
                 continue
             others = present != rows[c]
@@ -115,7 +114,7 @@ class NearOptimal:
             ok = compat[c] & ~in_j
             ok = np.vstack([ok, compat[options] & ok])  # none, then each option
             V = gain[None, :] + np.vstack([np.zeros(m), 2.0 * K[options]])
-            bound = _best_per_row(V, ok, o, starts).sum(axis=1) + diag[c]
+            bound = _best_per_row(V, ok, starts, o).sum(axis=1) + diag[c]
             bound[1:] += diag[options] + 2.0 * K[c, options]
             if bound.max() >= floor:
                 return None
@@ -125,12 +124,23 @@ class NearOptimal:
                            self.chosen[keep])
 
 
-def _best_per_row(V: np.ndarray, ok: np.ndarray, order: np.ndarray, starts: np.ndarray
-                  ) -> np.ndarray:
-    """(k, rows): per row of the candidates (order groups them, starts its rows' first
-    positions) the largest V where ok, at least 0 (a row may stay unmatched). V, ok: (k, m)."""
-    best = np.maximum.reduceat(np.where(ok, V, -np.inf)[:, order], starts, axis=1)
-    return np.maximum(best, 0.0)
+def _compatible(rows: np.ndarray, cols: np.ndarray, conflict: np.ndarray | None) -> np.ndarray:
+    """(m, m) bool: which two candidates one feasible assignment can hold together."""
+    compat = rows[:, None] != rows[None, :]
+    compat &= cols[:, None] != cols[None, :]
+    if conflict is not None:
+        compat &= ~conflict
+    return compat
+
+
+def _best_per_row(V: np.ndarray, ok: np.ndarray, starts: np.ndarray,
+                  order: np.ndarray | None = None) -> np.ndarray:
+    """(k, rows): per row of the candidates (grouped by row, or by `order`; starts: each row's
+    first position) the largest V where ok, at least 0 (a row may stay unmatched). V, ok:
+    (k, m)."""
+    picked = np.where(ok, V, -np.inf)
+    best = np.maximum.reduceat(picked if order is None else picked[:, order], starts, axis=1)
+    return np.maximum(best, 0.0, out=best)
 
 
 def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int = 2048
@@ -151,17 +161,14 @@ def near_optimal(problem: AssignmentProblem, threshold: float, max_states: int =
     if not problem.invalid_zero:
         K = 0.5 * (K + K.T)
     r, c = (rows, cols) if same_order else (rows[o], cols[o])
-    compat = r[:, None] != r[None, :]
-    compat &= c[:, None] != c[None, :]
-    if problem.conflict is not None:
-        compat &= ~(problem.conflict if same_order else block(problem.conflict, o))
+    conflict = problem.conflict
+    compat = _compatible(r, c, conflict if same_order or conflict is None else block(conflict, o))
     starts = np.searchsorted(rank[r], np.arange(len(order)))
     # best partner of each candidate in each row (>= 0: the row may stay unmatched), and its
     # suffix sums in the decision order: half_from[:, k] = sum over rows k.. of that
     half_from = np.zeros((m, len(order) + 1))
     if m:
-        best_in = np.maximum.reduceat(np.where(compat, K, -np.inf), starts, axis=1)
-        np.maximum(best_in, 0.0, out=best_in)
+        best_in = _best_per_row(K, compat, starts)
         half_from[:, :-1] = np.cumsum(best_in[:, ::-1], axis=1)[:, ::-1]
     two_K = 2.0 * K
     tol = ABS_TOL + REL_TOL * abs(threshold)
