@@ -15,12 +15,16 @@ import pytest
 from mergesvc.bench.generalize import (
     METHODS,
     NGM_METHODS,
+    UNRELATED_CASES,
+    UNRELATED_SEED,
     Cell,
     GeneralizePlan,
+    cell_scenarios,
     cosine_hungarian,
     cosine_hungarian_outcome,
     quick_plan,
     run_generalize,
+    unrelated_pairs,
 )
 from mergesvc.core.model import ObjectArrays
 from mergesvc.sim import Family, Scenario, make_scenario
@@ -292,9 +296,17 @@ def _check_metrics(report: dict) -> None:
             assert o["latency_p50_ms"]["median"] > 0
             assert o["latency_p99_ms"]["median"] >= o["latency_p50_ms"]["median"]
             assert sum(o["reasons"].values()) == o["cases"]
-        # the baseline matches every submap object and never verifies
+            u = o.get("unrelated")
+            if m.startswith("paper"):
+                assert u is None  # paper mode accepts nothing: not asked
+            else:
+                assert u["cases"] == min(UNRELATED_CASES, e["cell"]["n_cases"]) * o["seeds"]
+                assert 0 <= u["accepted"] <= u["cases"] and u["matches"] >= u["accepted"]
+        # the baseline matches every submap object and never verifies, on a place the map
+        # lacks too
         cos = e["methods"]["cos-hungarian"]["over_seeds"]
         assert cos["accepted"] == cos["cases"]
+        assert cos["unrelated"]["accepted"] == cos["unrelated"]["cases"]
 
 
 def test_quick_matrix_returns_every_cell_with_sane_metrics() -> None:
@@ -320,6 +332,35 @@ def test_quick_matrix_returns_every_cell_with_sane_metrics() -> None:
         assert cos["node_accuracy"]["median"] > 0.5
     json.dumps(report, default=float)  # JSON-ready
     assert "| cell |" in report["markdown"]
+
+
+def test_submaps_of_another_world_are_counted_as_the_matcher_answers_them() -> None:
+    """The unrelated probe: each of this seed's maps against a submap of the same cell's world
+    for another seed (no object in common), counted per method as `match` answers them."""
+    from mergesvc.bench.generalize import _Data
+    from mergesvc.core.config import match_config
+    from mergesvc.core.pipeline import match
+
+    cell = Cell("gen-pool/camera", "gen-pool", frame="camera", n_map=0, n_cases=5, sub_size=0,
+                paper_cases=0)
+    seed = 3
+    here, there = cell_scenarios(cell, seed), cell_scenarios(cell, seed + UNRELATED_SEED)
+    pairs = unrelated_pairs(cell, seed, _Data(SHARED_DATA), here)
+    assert len(pairs) == UNRELATED_CASES
+    for j, (mp, sub) in enumerate(pairs):
+        assert mp is here[j].map
+        assert sub.model_dump_json() == there[j].submap.model_dump_json()
+        # none of the submap's objects is in the map: the map objects the other world's truth
+        # names are none of this map's
+        theirs = there[j].map.arrays()
+        truth = [theirs.ids.index(m) for m in there[j].truth.values() if m is not None]
+        ours = {row.tobytes() for row in mp.arrays().embeddings_nd}
+        assert truth and not ours & {theirs.embeddings_nd[k].tobytes() for k in truth}
+    accepted = sum(match(mp, sub, match_config()).result.accepted for mp, sub in pairs)
+    report = run_generalize(GeneralizePlan([cell], seed=seed, methods=("verified",)))
+    u = report["cells"][cell.name]["methods"]["verified"]["over_seeds"]["unrelated"]
+    assert u["cases"] == UNRELATED_CASES and u["accepted"] == accepted
+    assert "| unrelated accepted |" in report["markdown"]
 
 
 def test_ngm_is_compared_with_the_default_solver_cell_by_cell() -> None:

@@ -1,7 +1,8 @@
 """Generalization benchmark: a matrix of worlds that do not share the generator's
 assumptions (axis conventions, embedding dimension, map size, look-alikes, duplicates, range
 noise, declared vertical), with verified mode, paper mode and cosine + Hungarian side by side,
-and the neural solver (NGM) in both modes beside the default solver (RRWM).
+and the neural solver (NGM) in both modes beside the default solver (RRWM); per cell, how
+often each method accepts a submap of a place the map lacks (another world of the cell's kind).
 
 The worlds are simulation (mergesvc.sim: worlds.py builds them gravity-aligned from real data
 in `../shared/data` where it exists and from the project's own generators, conventions.py
@@ -25,7 +26,14 @@ from scipy.optimize import linear_sum_assignment
 
 from mergesvc.bench.scoring import check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
-from mergesvc.core.model import Match, MatchResult, ObjectArrays, ObjectMap, RejectReason
+from mergesvc.core.model import (
+    Match,
+    MatchResult,
+    ObjectArrays,
+    ObjectMap,
+    RejectReason,
+    Submap,
+)
 from mergesvc.core.pipeline import MatchOutcome, match
 from mergesvc.errors import InputError
 from mergesvc.sim import (
@@ -257,14 +265,32 @@ def build_world(cell: Cell, seed: int, data: _Data) -> World:
     return generator_world(spec, seed)
 
 
-def cell_scenarios(cell: Cell, seed: int, data_dir: Path | None = None) -> list[Scenario]:
-    """The cell's cases as parsed `match` files in its conventions, with their truth."""
-    world = build_world(cell, seed, _Data(Path(data_dir or DEFAULT_DATA_DIR)))
+def _expressed(cell: Cell, seed: int, data: _Data) -> list[Scenario]:
+    world = build_world(cell, seed, data)
     rng = np.random.default_rng([seed, 9, 3])
     a, b = cell.conventions()
     C_map = convention_rotation(a, rng)
     C_sub = C_map if b == a else convention_rotation(b, rng)
     return express(world, C_map, C_sub, cell.vertical)
+
+
+def cell_scenarios(cell: Cell, seed: int, data_dir: Path | None = None) -> list[Scenario]:
+    """The cell's cases as parsed `match` files in its conventions, with their truth."""
+    return _expressed(cell, seed, _Data(Path(data_dir or DEFAULT_DATA_DIR)))
+
+
+UNRELATED_CASES = 4  # per cell and seed
+UNRELATED_SEED = 100_000  # the other world's seed: this seed plus this
+
+
+def unrelated_pairs(cell: Cell, seed: int, data: _Data, scenarios: Sequence[Scenario]
+                    ) -> list[tuple[ObjectMap, Submap]]:
+    """(map, submap) pairs whose submap is of a place the map does not hold: the same cell's
+    world for another seed (other objects of the same kinds, another layout) against this
+    seed's maps. Every match an answer returns on them is wrong."""
+    others = _expressed(cell, seed + UNRELATED_SEED, data)
+    n = min(UNRELATED_CASES, len(scenarios), len(others))
+    return [(scenarios[j].map, others[j].submap) for j in range(n)]
 
 
 # ------------------------------------------------------------------ scoring
@@ -307,10 +333,11 @@ def score(sc: Scenario, outcome: MatchOutcome) -> dict[str, Any]:
     }
 
 
-def _run_method(method: str, sc: Scenario, configs: dict[str, MatchConfig]) -> MatchOutcome:
+def _run_method(method: str, map_: ObjectMap, sub: Submap, configs: dict[str, MatchConfig]
+                ) -> MatchOutcome:
     if method == "cos-hungarian":
-        return cosine_hungarian_outcome(sc.map, sc.submap)
-    return match(sc.map, sc.submap, configs[method])
+        return cosine_hungarian_outcome(map_, sub)
+    return match(map_, sub, configs[method])
 
 
 def _percentile(values: list[float], q: float) -> float:
@@ -374,6 +401,9 @@ def over_seeds(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
         for k, v in p["reasons"].items():
             reasons[k] = reasons.get(k, 0) + v
     out: dict[str, Any] = {k: _spread([p[k] for p in per_seed]) for k in SPREAD_KEYS}
+    if all("unrelated" in p for p in per_seed):
+        out["unrelated"] = {k: sum(p["unrelated"][k] for p in per_seed)
+                            for k in ("cases", "accepted", "matches")}
     out.update(cases=sum(p["cases"] for p in per_seed),
                accepted=sum(p["accepted"] for p in per_seed),
                wrong_accepted=sum(p["wrong_accepted"] for p in per_seed),
@@ -460,12 +490,7 @@ def run_generalize(
         n_map = 0
         for s in range(plan.seeds):
             seed = plan.seed + s
-            world = build_world(cell, seed, data)
-            rng = np.random.default_rng([seed, 9, 3])
-            a, b = cell.conventions()
-            C_map = convention_rotation(a, rng)
-            C_sub = C_map if b == a else convention_rotation(b, rng)
-            scenarios = express(world, C_map, C_sub, cell.vertical)
+            scenarios = _expressed(cell, seed, data)
             rows: dict[str, list[dict[str, Any]]] = {m: [] for m in plan.methods}
             for k, sc in enumerate(scenarios):
                 n_map = len(sc.map.objects)
@@ -474,7 +499,7 @@ def run_generalize(
                     if method.startswith("paper") and (k >= cell.paper_cases
                                               or n_map > plan.paper_max_map):
                         continue
-                    outcome = _run_method(method, sc, configs)
+                    outcome = _run_method(method, sc.map, sc.submap, configs)
                     rec = score(sc, outcome)
                     rec.update(cell=cell.name, seed=seed, case=k, method=method,
                                n_sub=len(sc.submap.objects), n_map=n_map)
@@ -483,8 +508,21 @@ def run_generalize(
                 done += 1
                 if progress:
                     progress(f"{cell.name} seed {seed} case {k}", done)
+            # submaps of another world: how often each method accepts a place the map lacks
+            unrelated = {m: {"cases": 0, "accepted": 0, "matches": 0}
+                         for m in plan.methods if not m.startswith("paper")}
+            for mp, sub in unrelated_pairs(cell, seed, data, scenarios):
+                for m, u in unrelated.items():
+                    res = _run_method(m, mp, sub, configs).result
+                    u["cases"] += 1
+                    u["accepted"] += int(res.accepted)
+                    u["matches"] += len(res.matches) if res.accepted else 0
+            if progress:
+                progress(f"{cell.name} seed {seed}: submaps of another world", done)
             for m in plan.methods:
                 per_seed[m].append(summarize(rows[m]))
+                if m in unrelated and per_seed[m][-1].get("cases"):
+                    per_seed[m][-1]["unrelated"] = unrelated[m]
         if any(m.startswith("paper") for m in plan.methods) and (
                 cell.paper_cases == 0 or n_map > plan.paper_max_map):
             notes.append(f"paper skipped (map {n_map} objects > {plan.paper_max_map} or capped)")
@@ -569,13 +607,19 @@ def _fmt(s: dict[str, float] | None, digits: int = 2, seeds: int = 1) -> str:
     return med
 
 
+def _unrelated(o: dict[str, Any]) -> str:
+    u = o.get("unrelated")
+    return f"{u['accepted']}/{u['cases']} ({u['matches']})" if u and u["cases"] else "-"
+
+
 def markdown(report: dict[str, Any]) -> str:
     """The report as a markdown table: one row per cell and method."""
     seeds = int(report.get("seeds", 1))
     lines = [
         "| cell | varies | map | method | node acc | precision | recall | accepted "
-        "| p50 ms | p99 ms | exact p50/p99 ms | budget hits | look-alikes | reasons |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| unrelated accepted | p50 ms | p99 ms | exact p50/p99 ms | budget hits | look-alikes "
+        "| reasons |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     skipped = []
     for name, e in report["cells"].items():
@@ -595,7 +639,8 @@ def markdown(report: dict[str, Any]) -> str:
                 f"| {name} | {e['cell']['varies']} | {e['n_map']} | {m} "
                 f"| {_fmt(o['node_accuracy'], 2, seeds)} | {_fmt(o['precision'], 2, seeds)} "
                 f"| {_fmt(o['recall'], 2, seeds)} | {o['accepted']}/{o['cases']} "
-                f"| {_fmt(o['latency_p50_ms'], 1, seeds)} | {_fmt(o['latency_p99_ms'], 1, seeds)} "
+                f"| {_unrelated(o)} | {_fmt(o['latency_p50_ms'], 1, seeds)} "
+                f"| {_fmt(o['latency_p99_ms'], 1, seeds)} "
                 f"| {exact} | {hits} | {e['confusers_mean']:.1f} | {reasons} |"
             )
         for note in e.get("notes", []):
@@ -608,7 +653,9 @@ def markdown(report: dict[str, Any]) -> str:
         "object not in the map is right when left unmatched), on every returned answer; "
         "precision / recall: matches of accepted answers only; budget hits: cases whose exact "
         "stage stopped at its budget unproven (search_incomplete among the reasons when that "
-        "rejected an answer); look-alikes: mean map "
+        "rejected an answer); unrelated accepted: submaps of another world of the same "
+        "kind (other objects, another layout) accepted against this one's maps, and the "
+        "matches they returned (all wrong); look-alikes: mean map "
         "objects closer by cosine than the true match, per matchable submap object."
     )
     if report.get("ngm_vs_default"):
@@ -637,4 +684,5 @@ __all__ = [
     "run_generalize",
     "score",
     "summarize",
+    "unrelated_pairs",
 ]

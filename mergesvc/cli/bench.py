@@ -185,7 +185,8 @@ def bench_generalize(
     """Generalization matrix: real KITTI-00 / DINO-based worlds and the project's generators
     in camera / ENU / NED / random / mixed frames, embedding dims, map sizes, look-alikes,
     duplicates, range noise, with and without a declared vertical; verified, paper and
-    cosine + Hungarian side by side."""
+    cosine + Hungarian side by side; and how often each accepts a submap of a place the map
+    lacks (another world's)."""
     from rich.progress import Progress
 
     from mergesvc.bench import GeneralizePlan, run_generalize
