@@ -286,8 +286,9 @@ UNRELATED_SEED = 100_000  # the other world's seed: this seed plus this
 def unrelated_pairs(cell: Cell, seed: int, data: _Data, scenarios: Sequence[Scenario]
                     ) -> list[tuple[ObjectMap, Submap]]:
     """(map, submap) pairs whose submap is of a place the map does not hold: the same cell's
-    world for another seed (other objects of the same kinds, another layout) against this
-    seed's maps. Every match an answer returns on them is wrong."""
+    world for another seed (its own objects and layout; their embeddings as unlike this map's
+    as two unrelated objects') against this seed's maps. Every match an answer returns on them
+    is wrong."""
     others = _expressed(cell, seed + UNRELATED_SEED, data)
     n = min(UNRELATED_CASES, len(scenarios), len(others))
     return [(scenarios[j].map, others[j].submap) for j in range(n)]
@@ -653,8 +654,8 @@ def markdown(report: dict[str, Any]) -> str:
         "object not in the map is right when left unmatched), on every returned answer; "
         "precision / recall: matches of accepted answers only; budget hits: cases whose exact "
         "stage stopped at its budget unproven (search_incomplete among the reasons when that "
-        "rejected an answer); unrelated accepted: submaps of another world of the same "
-        "kind (other objects, another layout) accepted against this one's maps, and the "
+        "rejected an answer); unrelated accepted: submaps of the cell's world for another "
+        "seed (other objects, another layout) accepted against this one's maps, and the "
         "matches they returned (all wrong); look-alikes: mean map "
         "objects closer by cosine than the true match, per matchable submap object."
     )
