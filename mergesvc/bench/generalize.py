@@ -266,6 +266,7 @@ def build_world(cell: Cell, seed: int, data: _Data) -> World:
 
 
 def _expressed(cell: Cell, seed: int, data: _Data) -> list[Scenario]:
+    """`cell_scenarios` with the data already loaded (shared across the cells)."""
     world = build_world(cell, seed, data)
     rng = np.random.default_rng([seed, 9, 3])
     a, b = cell.conventions()

@@ -43,6 +43,7 @@ MAX_BINARY_OBJECTS = 5_000_000
 # members of at least this size are memory-mapped (about 20,000 objects of 384 float32)
 MAP_FROM_BYTES = 32 << 20
 
+
 def is_binary_map(path: Path | str) -> bool:
     """Whether `path` names a binary map file (by its .npz suffix)."""
     return Path(path).suffix.lower() == ".npz"
