@@ -22,6 +22,7 @@ from mergesvc.bench.generalize import (
     cell_scenarios,
     cosine_hungarian,
     cosine_hungarian_outcome,
+    lacking_pairs,
     quick_plan,
     run_generalize,
     unrelated_pairs,
@@ -296,17 +297,19 @@ def _check_metrics(report: dict) -> None:
             assert o["latency_p50_ms"]["median"] > 0
             assert o["latency_p99_ms"]["median"] >= o["latency_p50_ms"]["median"]
             assert sum(o["reasons"].values()) == o["cases"]
-            u = o.get("unrelated")
-            if m.startswith("paper"):
-                assert u is None  # paper mode accepts nothing: not asked
-            else:
-                assert u["cases"] == min(UNRELATED_CASES, e["cell"]["n_cases"]) * o["seeds"]
-                assert 0 <= u["accepted"] <= u["cases"] and u["matches"] >= u["accepted"]
+            for probe in ("unrelated", "lacking"):
+                u = o.get(probe)
+                if m.startswith("paper"):
+                    assert u is None  # paper mode accepts nothing: not asked
+                else:
+                    assert u["cases"] == min(UNRELATED_CASES, e["cell"]["n_cases"]) * o["seeds"]
+                    assert 0 <= u["accepted"] <= u["cases"] and u["matches"] >= u["accepted"]
         # the baseline matches every submap object and never verifies, on a place the map
         # lacks too
         cos = e["methods"]["cos-hungarian"]["over_seeds"]
         assert cos["accepted"] == cos["cases"]
         assert cos["unrelated"]["accepted"] == cos["unrelated"]["cases"]
+        assert cos["lacking"]["accepted"] == cos["lacking"]["cases"]
 
 
 def test_quick_matrix_returns_every_cell_with_sane_metrics() -> None:
@@ -357,10 +360,23 @@ def test_submaps_of_another_world_are_counted_as_the_matcher_answers_them() -> N
         ours = {row.tobytes() for row in mp.arrays().embeddings_nd}
         assert truth and not ours & {theirs.embeddings_nd[k].tobytes() for k in truth}
     accepted = sum(match(mp, sub, match_config()).result.accepted for mp, sub in pairs)
+    # the harder probe: each map without the submap's own objects (duplicates too), the rest
+    # as it was
+    lacking = lacking_pairs(here)
+    assert len(lacking) == UNRELATED_CASES
+    for sc, (mp, sub) in zip(here, lacking, strict=False):
+        assert sub is sc.submap
+        ids = {o.id for o in mp.objects}
+        theirs = {t for t in sc.truth.values() if t} | {
+            x for v in sc.equivalent.values() for x in v}
+        assert theirs and not ids & theirs
+        assert ids | theirs == {o.id for o in sc.map.objects}
+    lacked = sum(match(mp, sub, match_config()).result.accepted for mp, sub in lacking)
     report = run_generalize(GeneralizePlan([cell], seed=seed, methods=("verified",)))
-    u = report["cells"][cell.name]["methods"]["verified"]["over_seeds"]["unrelated"]
-    assert u["cases"] == UNRELATED_CASES and u["accepted"] == accepted
-    assert "| unrelated accepted |" in report["markdown"]
+    o = report["cells"][cell.name]["methods"]["verified"]["over_seeds"]
+    assert o["unrelated"]["cases"] == UNRELATED_CASES and o["unrelated"]["accepted"] == accepted
+    assert o["lacking"]["cases"] == UNRELATED_CASES and o["lacking"]["accepted"] == lacked
+    assert "| unrelated accepted | lacking accepted |" in report["markdown"]
 
 
 def test_ngm_is_compared_with_the_default_solver_cell_by_cell() -> None:

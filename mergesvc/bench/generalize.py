@@ -295,6 +295,19 @@ def unrelated_pairs(cell: Cell, seed: int, data: _Data, scenarios: Sequence[Scen
     return [(scenarios[j].map, others[j].submap) for j in range(n)]
 
 
+def lacking_pairs(scenarios: Sequence[Scenario]) -> list[tuple[ObjectMap, Submap]]:
+    """(map, submap) pairs whose map lacks the submap's place, the harder probe: each of the
+    first scenarios' maps without the submap's own objects (and their duplicates). The same
+    kinds of objects in the same layout remain, as at an unmapped corner of a mapped site."""
+    out = []
+    for sc in scenarios[:UNRELATED_CASES]:
+        gone = {t for t in sc.truth.values() if t}
+        gone.update(x for v in sc.equivalent.values() for x in v)
+        kept = [o for o in sc.map.objects if o.id not in gone]
+        out.append((sc.map.model_copy(update={"objects": kept}), sc.submap))
+    return out
+
+
 # ------------------------------------------------------------------ scoring
 
 
@@ -340,6 +353,21 @@ def _run_method(method: str, map_: ObjectMap, sub: Submap, configs: dict[str, Ma
     if method == "cos-hungarian":
         return cosine_hungarian_outcome(map_, sub)
     return match(map_, sub, configs[method])
+
+
+def _probe(pairs: Sequence[tuple[ObjectMap, Submap]], methods: Sequence[str],
+           configs: dict[str, MatchConfig]) -> dict[str, dict[str, int]]:
+    """Per method (paper mode excluded: it accepts nothing): the pairs, the answers accepted
+    and the matches they return (every one wrong: the map lacks the submap's place)."""
+    out = {m: {"cases": 0, "accepted": 0, "matches": 0}
+           for m in methods if not m.startswith("paper")}
+    for mp, sub in pairs:
+        for m, u in out.items():
+            res = _run_method(m, mp, sub, configs).result
+            u["cases"] += 1
+            u["accepted"] += int(res.accepted)
+            u["matches"] += len(res.matches) if res.accepted else 0
+    return out
 
 
 def _percentile(values: list[float], q: float) -> float:
@@ -403,9 +431,10 @@ def over_seeds(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
         for k, v in p["reasons"].items():
             reasons[k] = reasons.get(k, 0) + v
     out: dict[str, Any] = {k: _spread([p[k] for p in per_seed]) for k in SPREAD_KEYS}
-    if all("unrelated" in p for p in per_seed):
-        out["unrelated"] = {k: sum(p["unrelated"][k] for p in per_seed)
-                            for k in ("cases", "accepted", "matches")}
+    for probe in ("unrelated", "lacking"):
+        if all(probe in p for p in per_seed):
+            out[probe] = {k: sum(p[probe][k] for p in per_seed)
+                          for k in ("cases", "accepted", "matches")}
     out.update(cases=sum(p["cases"] for p in per_seed),
                accepted=sum(p["accepted"] for p in per_seed),
                wrong_accepted=sum(p["wrong_accepted"] for p in per_seed),
@@ -510,21 +539,18 @@ def run_generalize(
                 done += 1
                 if progress:
                     progress(f"{cell.name} seed {seed} case {k}", done)
-            # submaps of another world: how often each method accepts a place the map lacks
-            unrelated = {m: {"cases": 0, "accepted": 0, "matches": 0}
-                         for m in plan.methods if not m.startswith("paper")}
-            for mp, sub in unrelated_pairs(cell, seed, data, scenarios):
-                for m, u in unrelated.items():
-                    res = _run_method(m, mp, sub, configs).result
-                    u["cases"] += 1
-                    u["accepted"] += int(res.accepted)
-                    u["matches"] += len(res.matches) if res.accepted else 0
+            # how often each method accepts a place the map lacks: a submap of another world,
+            # and the map without the submap's own objects
+            probes = {"unrelated": unrelated_pairs(cell, seed, data, scenarios),
+                      "lacking": lacking_pairs(scenarios)}
+            counts = {p: _probe(pairs, plan.methods, configs) for p, pairs in probes.items()}
             if progress:
-                progress(f"{cell.name} seed {seed}: submaps of another world", done)
+                progress(f"{cell.name} seed {seed}: places the map lacks", done)
             for m in plan.methods:
                 per_seed[m].append(summarize(rows[m]))
-                if m in unrelated and per_seed[m][-1].get("cases"):
-                    per_seed[m][-1]["unrelated"] = unrelated[m]
+                for p, c in counts.items():
+                    if m in c and per_seed[m][-1].get("cases"):
+                        per_seed[m][-1][p] = c[m]
         if any(m.startswith("paper") for m in plan.methods) and (
                 cell.paper_cases == 0 or n_map > plan.paper_max_map):
             notes.append(f"paper skipped (map {n_map} objects > {plan.paper_max_map} or capped)")
@@ -609,8 +635,8 @@ def _fmt(s: dict[str, float] | None, digits: int = 2, seeds: int = 1) -> str:
     return med
 
 
-def _unrelated(o: dict[str, Any]) -> str:
-    u = o.get("unrelated")
+def _probed(o: dict[str, Any], probe: str) -> str:
+    u = o.get(probe)
     return f"{u['accepted']}/{u['cases']} ({u['matches']})" if u and u["cases"] else "-"
 
 
@@ -619,9 +645,9 @@ def markdown(report: dict[str, Any]) -> str:
     seeds = int(report.get("seeds", 1))
     lines = [
         "| cell | varies | map | method | node acc | precision | recall | accepted "
-        "| unrelated accepted | p50 ms | p99 ms | exact p50/p99 ms | budget hits | look-alikes "
-        "| reasons |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| unrelated accepted | lacking accepted | p50 ms | p99 ms | exact p50/p99 ms "
+        "| budget hits | look-alikes | reasons |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     skipped = []
     for name, e in report["cells"].items():
@@ -641,7 +667,8 @@ def markdown(report: dict[str, Any]) -> str:
                 f"| {name} | {e['cell']['varies']} | {e['n_map']} | {m} "
                 f"| {_fmt(o['node_accuracy'], 2, seeds)} | {_fmt(o['precision'], 2, seeds)} "
                 f"| {_fmt(o['recall'], 2, seeds)} | {o['accepted']}/{o['cases']} "
-                f"| {_unrelated(o)} | {_fmt(o['latency_p50_ms'], 1, seeds)} "
+                f"| {_probed(o, 'unrelated')} | {_probed(o, 'lacking')} "
+                f"| {_fmt(o['latency_p50_ms'], 1, seeds)} "
                 f"| {_fmt(o['latency_p99_ms'], 1, seeds)} "
                 f"| {exact} | {hits} | {e['confusers_mean']:.1f} | {reasons} |"
             )
@@ -657,7 +684,8 @@ def markdown(report: dict[str, Any]) -> str:
         "stage stopped at its budget unproven (search_incomplete among the reasons when that "
         "rejected an answer); unrelated accepted: submaps of the cell's world for another "
         "seed (other objects, another layout) accepted against this one's maps, and the "
-        "matches they returned (all wrong); look-alikes: mean map "
+        "matches they returned (all wrong); lacking accepted: the same for each of those maps "
+        "without the submap's own objects (the same kinds, the same layout); look-alikes: mean map "
         "objects closer by cosine than the true match, per matchable submap object."
     )
     if report.get("ngm_vs_default"):
@@ -677,6 +705,7 @@ __all__ = [
     "cosine_hungarian",
     "cosine_hungarian_outcome",
     "full_plan",
+    "lacking_pairs",
     "markdown",
     "method_config",
     "ngm_comparison",

@@ -109,6 +109,18 @@ class VerifyConfig(_Section):
         "rigid fit keeps both); the consistency graph prunes the search. None: off"
     )
     min_matches: int = Field(3, ge=3, description="matches needed for a 6-DoF transform")
+    max_chance_log10: float | None = Field(
+        2.0, description="refuse an answer (too_few_matches) when a submap of a place the "
+        "map does not hold would give one as good more often than 10^this (log10 of the "
+        "a-contrario count of core/chance.py: the matched objects' appearance ranks and how "
+        "many map objects lie as close to where the transform puts them). None: off"
+    )
+    max_chance_log10_large: float = Field(
+        0.0, description="the same for a submap of at least chance_large_objects objects, "
+        "whose right answers are far beyond chance (0: expected less than once); off with "
+        "max_chance_log10"
+    )
+    chance_large_objects: int = Field(8, ge=2, description="see max_chance_log10_large")
     min_matches_vertical: int = Field(
         2, ge=2, description="matches needed for the gravity-aligned 4-DoF transform (yaw + "
         "translation) when both frames' verticals are known (declared `up`, or inferred)"

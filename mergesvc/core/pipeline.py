@@ -1,8 +1,9 @@
 """The matching pipeline: the only place the stages are chained.
 
 verified: candidates -> affinity K over candidate pairs -> solver -> hard assignment with
-          no-match -> exact search on the candidate set -> rigid fit -> accept / reject
-          (a problem small enough for the exact search to answer outright skips the solver)
+          no-match -> exact search on the candidate set -> rigid fit -> could chance explain
+          it (chance.py) -> accept / reject (a problem small enough for the exact search to
+          answer outright skips the solver)
 paper:    node affinity (all pairs) -> dense K (pygmtools) -> solver -> Hungarian, every node
           matched (Singh & Leonard's pipeline, the baseline)
 
@@ -13,6 +14,7 @@ paper_node_affinity + paper_K), the candidates in candidates.py, the rigid fit i
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -36,6 +38,7 @@ from mergesvc.core.candidates import (
     pair_scores,
     retrieve,
 )
+from mergesvc.core.chance import candidate_ranks, chance_log10
 from mergesvc.core.config import MatchConfig, MatchMode, SolverName, match_config
 from mergesvc.core.model import (
     Match,
@@ -200,6 +203,7 @@ class _Pass:
     fit: RigidFit
     exact: ExactResult | None
     scores: dict[int, float]
+    chance: float = math.nan  # core/chance.py's log10 count of an accepted fit (else nan)
 
 
 def _inlier_gate(sub_xyz: np.ndarray, sigma_m: float, config: MatchConfig) -> np.ndarray:
@@ -543,13 +547,30 @@ def _verify(
     if reason is RejectReason.TOO_FEW_MATCHES and n_proposed >= needed:
         reason = RejectReason.AMBIGUOUS
     final = proposed.copy()
+    chance = math.nan
     if fit.accepted:
         rows = np.flatnonzero(proposed != UNMATCHED)
         final[rows[~fit.inliers]] = UNMATCHED
+        chance = _chance(sub, map_, prop.cands, final, fit)
+        v = config.verify
+        limit = v.max_chance_log10
+        if limit is not None and sub.n >= v.chance_large_objects:
+            limit = min(limit, v.max_chance_log10_large)
+        if limit is not None and chance > limit:
+            reason = RejectReason.TOO_FEW_MATCHES
     if exact is not None and not exact.optimal and reason is RejectReason.VERIFIED:
         reason = RejectReason.SEARCH_INCOMPLETE
     timer.lap("verify")
-    return _Pass(prop.cands, proposed, final, reason, fit, exact, scores)
+    return _Pass(prop.cands, proposed, final, reason, fit, exact, scores, chance)
+
+
+def _chance(sub: ObjectArrays, map_: ObjectArrays, cands: Candidates, final: np.ndarray,
+            fit: RigidFit) -> float:
+    """core/chance.py's count for the fit's inliers (final: their map indices)."""
+    rows = np.flatnonzero(final != UNMATCHED)
+    ranks = candidate_ranks(cands, rows, final[rows], sub.n)
+    predicted = transform_points(fit.T_map_submap, sub.position_xyz_m[rows])
+    return chance_log10(map_, sub.n, ranks, predicted, fit.residual_m[fit.inliers])
 
 
 def _match_verified(
@@ -575,6 +596,7 @@ def _match_verified(
     )
     outcome.exact = result.exact
     outcome.n_candidates = result.cands.m
+    outcome.extra["chance_log10"] = result.chance
     return outcome
 
 

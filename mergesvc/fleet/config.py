@@ -183,11 +183,14 @@ class ServiceConfig(BaseModel):
         "assumes, when two or three matches leave no residual to estimate it")
     match: MatchConfig = Field(
         default_factory=lambda: MatchConfig.model_validate(
-            {"verify": {"min_matches": 4, "min_matches_vertical": 4, "gravity_aligned": True}}
+            {"verify": {"min_matches": 4, "min_matches_vertical": 4, "gravity_aligned": True,
+                        "max_chance_log10": None}}
         ),
         description="verified matching; an inter-robot factor needs 4 matched objects by "
         "default, with or without a known vertical (3 points admit coincidental fits in a "
-        "small pool, and a wrong factor costs more than a late one)",
+        "small pool, and a wrong factor costs more than a late one); chance's count "
+        "(core/chance.py) off: the graph's consistency tests judge factors, and the count "
+        "refused right ones of partly overlapping pool submaps",
     )
     graph: GraphConfig = Field(
         GraphConfig(max_live_nodes=LIVE_KEYFRAMES, calibration=CalibrationConfig(),
