@@ -15,7 +15,7 @@ from mergesvc.core.chance import candidate_ranks, chance_log10, log10_comb
 from mergesvc.core.config import match_config
 from mergesvc.core.model import RejectReason
 from mergesvc.core.pipeline import match
-from mergesvc.sim import Family, make_scenario
+from mergesvc.sim import Family, Scenario, make_scenario
 
 
 def test_log10_comb_is_the_binomial_coefficient() -> None:
@@ -41,6 +41,19 @@ def test_candidate_ranks_against_a_loop() -> None:
             mine = aff[(rows == i) & (nodes == a)][0]
             assert got[j] == 1 + sum(1 for r, x in zip(rows, aff, strict=True)
                                      if r == i and x > mine)
+
+
+def test_a_pair_that_is_not_a_candidate_ranks_after_its_rows_candidates() -> None:
+    # the windowed path's objects placed by the common transform: found by position
+    cands = Candidates(np.array([0, 0, 0, 1]), np.array([4, 7, 9, 2]),
+                       np.array([0.9, 0.5, 0.7, 0.3]), np.ones(4))
+    got = candidate_ranks(cands, np.array([0, 1]), np.array([5, 2]), 2)
+    assert got.tolist() == [4, 1]
+    got = candidate_ranks(cands, np.array([0, 1]), np.array([100, 8]), 3)
+    assert got.tolist() == [4, 2]
+    empty = Candidates(np.array([], dtype=np.int64), np.array([], dtype=np.int64),
+                       np.array([]), np.array([]))
+    assert candidate_ranks(empty, np.array([0]), np.array([3]), 1).tolist() == [1]
 
 
 def test_chance_log10_against_its_formula() -> None:
@@ -84,15 +97,47 @@ def test_a_submap_of_a_place_the_map_lacks_is_refused_and_right_answers_stay() -
     assert refused >= 2  # 3 of these 12 without the check
 
 
-def test_small_submaps_are_judged_by_the_looser_limit() -> None:
-    # 2-6 objects against 20-40: right answers' counts lie between -4 and 2; none is refused
+def test_a_large_submap_in_windows_is_judged_on_its_common_transform() -> None:
+    # 60 objects + 3 false: matched in windows; against the map without them, chance's fits
+    # (up to 14 wrong matches) are refused, the right answers stand far beyond chance
     on, off = match_config(), match_config(verify={"max_chance_log10": None})
-    kept = 0
+    assert on.windows.above_objects < 63
+    refused = 0
+    for seed in (0, 1, 3):
+        sc = make_scenario(Family.KITTI, seed, n_sub=60)
+        right = match(sc.map, sc.submap, on)
+        assert right.result.accepted and len(right.result.matches) == 60
+        assert right.extra["chance_log10"] < -100
+        (lacking, sub), = lacking_pairs([sc])
+        before, after = match(lacking, sub, off), match(lacking, sub, on)
+        refused += before.result.accepted
+        assert after.result.reason is not RejectReason.VERIFIED and not after.result.matches
+    assert refused == 3
+
+
+def _verdict(sc: Scenario, count: float, small: float, large: float, size: int) -> bool:
+    cfg = match_config(verify={"max_chance_log10": small, "max_chance_log10_large": large,
+                               "chance_large_objects": size})
+    out = match(sc.map, sc.submap, cfg)
+    assert out.extra["chance_log10"] == pytest.approx(count)  # computed whatever the limit
+    return out.result.accepted
+
+
+def test_the_limit_follows_the_submaps_size() -> None:
+    # underwater: 2-6 objects against 20-40, counts of -4 to -0.5: each answer is refused just
+    # under its own count and accepted just over it, by the limit for its size only
+    checked = 0
     for seed in range(12):
         sc = make_scenario(Family.UNDERWATER, seed)
-        a, b = match(sc.map, sc.submap, on), match(sc.map, sc.submap, off)
-        assert a.result.matches == b.result.matches
-        kept += a.result.accepted
-        if b.result.accepted and len(sc.submap.objects) < on.verify.chance_large_objects:
-            assert b.extra["chance_log10"] <= on.verify.max_chance_log10
-    assert kept >= 8
+        n = len(sc.submap.objects)
+        free = match(sc.map, sc.submap, match_config(verify={"max_chance_log10": None}))
+        if not free.result.accepted:
+            continue
+        c = free.extra["chance_log10"]
+        assert np.isfinite(c)
+        assert _verdict(sc, c, c + 0.01, -50.0, n + 1)  # small: the large limit does not apply
+        assert not _verdict(sc, c, c - 0.01, 50.0, n + 1)
+        assert not _verdict(sc, c, c + 0.01, c - 0.01, n)  # large from n objects: the stricter
+        assert _verdict(sc, c, c + 0.01, c + 0.01, n)
+        checked += 1
+    assert checked >= 8

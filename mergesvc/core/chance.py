@@ -10,7 +10,9 @@ false alarms of a-contrario testing), as log10:
 
 n submap objects, k of them matched, N map objects; r_i the rank of the chosen map object
 among submap object i's candidates by appearance (a map object unrelated to it ranks that high
-with probability r_i / N); c_i the map objects within pair i's residual (at least the answer's
+among all N with probability r_i / N; a pair found by position, not among the top candidates,
+ranks after them: a lower bound of its rank among all N, so the count errs towards accepting);
+c_i the map objects within pair i's residual (at least the answer's
 RMS) of where the transform puts submap object i (an unrelated one lies that close with
 probability c_i / N); s = 2 pairs fix the transform and are no evidence of it. C(n, k) counts
 the subsets of the submap an answer could have chosen.
@@ -42,14 +44,18 @@ def log10_comb(n: int, k: int) -> float:
 
 def candidate_ranks(cands: Candidates, rows: np.ndarray, nodes: np.ndarray, n_sub: int
                     ) -> np.ndarray:
-    """(k,) rank (1 = best) of each chosen pair (rows[j], nodes[j]) among its row's candidates by
-    raw affinity; every pair must be a candidate."""
-    n_map = int(max(cands.map_nodes.max(initial=0), nodes.max(initial=0))) + 1
+    """(k,) rank (1 = best) of each chosen pair (rows[j], nodes[j]), one per row, among its
+    row's candidates by raw affinity (ties share the better rank); a pair that is not a
+    candidate ranks after all of its row's. Candidates hold each pair once."""
+    rows = np.asarray(rows, dtype=np.int64)
+    n_map = int(max(cands.map_nodes.max(initial=0), np.max(nodes, initial=0))) + 1
     keys = cands.rows.astype(np.int64) * n_map + cands.map_nodes
     order = np.argsort(keys)
-    at = order[np.searchsorted(keys[order], rows.astype(np.int64) * n_map + nodes)]
-    chosen = np.full(n_sub, np.inf)
-    chosen[rows] = cands.affinity[at]
+    want = rows * n_map + np.asarray(nodes, dtype=np.int64)
+    pos = np.minimum(np.searchsorted(keys[order], want), max(len(keys) - 1, 0))
+    found = keys[order][pos] == want if len(keys) else np.zeros(len(rows), dtype=bool)
+    chosen = np.full(n_sub, np.inf)  # rows not asked about: no candidate is higher
+    chosen[rows] = np.where(found, cands.affinity[order[pos]] if len(keys) else 0.0, -np.inf)
     higher = cands.affinity > chosen[cands.rows]
     return 1 + np.bincount(cands.rows[higher], minlength=n_sub)[rows]
 

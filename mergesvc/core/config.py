@@ -116,9 +116,9 @@ class VerifyConfig(_Section):
         "many map objects lie as close to where the transform puts them). None: off"
     )
     max_chance_log10_large: float = Field(
-        0.0, description="the same for a submap of at least chance_large_objects objects, "
-        "whose right answers are far beyond chance (0: expected less than once); off with "
-        "max_chance_log10"
+        0.0, description="the limit for a submap of at least chance_large_objects objects, "
+        "whose right answers are far beyond chance (0: expected less than once), where it is "
+        "stricter than max_chance_log10; off with it"
     )
     chance_large_objects: int = Field(8, ge=2, description="see max_chance_log10_large")
     min_matches_vertical: int = Field(

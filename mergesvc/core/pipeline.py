@@ -551,13 +551,7 @@ def _verify(
     if fit.accepted:
         rows = np.flatnonzero(proposed != UNMATCHED)
         final[rows[~fit.inliers]] = UNMATCHED
-        chance = _chance(sub, map_, prop.cands, final, fit)
-        v = config.verify
-        limit = v.max_chance_log10
-        if limit is not None and sub.n >= v.chance_large_objects:
-            limit = min(limit, v.max_chance_log10_large)
-        if limit is not None and chance > limit:
-            reason = RejectReason.TOO_FEW_MATCHES
+        chance, reason = _chance(sub, map_, prop.cands, final, fit, reason, config)
     if exact is not None and not exact.optimal and reason is RejectReason.VERIFIED:
         reason = RejectReason.SEARCH_INCOMPLETE
     timer.lap("verify")
@@ -565,12 +559,21 @@ def _verify(
 
 
 def _chance(sub: ObjectArrays, map_: ObjectArrays, cands: Candidates, final: np.ndarray,
-            fit: RigidFit) -> float:
-    """core/chance.py's count for the fit's inliers (final: their map indices)."""
+            fit: RigidFit, reason: RejectReason, config: MatchConfig
+            ) -> tuple[float, RejectReason]:
+    """core/chance.py's count for an accepted fit's inliers (final: their map indices), and
+    the reason: too_few_matches when the count is over the limit for this submap's size."""
     rows = np.flatnonzero(final != UNMATCHED)
     ranks = candidate_ranks(cands, rows, final[rows], sub.n)
     predicted = transform_points(fit.T_map_submap, sub.position_xyz_m[rows])
-    return chance_log10(map_, sub.n, ranks, predicted, fit.residual_m[fit.inliers])
+    chance = chance_log10(map_, sub.n, ranks, predicted, fit.residual_m[fit.inliers])
+    v = config.verify
+    limit = v.max_chance_log10
+    if limit is not None and sub.n >= v.chance_large_objects:
+        limit = min(limit, v.max_chance_log10_large)
+    if limit is not None and chance > limit:
+        reason = RejectReason.TOO_FEW_MATCHES
+    return chance, reason
 
 
 def _match_verified(
@@ -704,14 +707,18 @@ def _match_windowed(
     timer.lap("windows")
     fit = _fit_large(sub, map_, final, sigma_m, config, rel)
     reason = fit.reason if T is not None else RejectReason.AMBIGUOUS
+    chance = math.nan
     if fit.accepted:
         kept = np.flatnonzero(final != UNMATCHED)
         final[kept[~fit.inliers]] = UNMATCHED
-    else:
+        # objects placed by the common transform are not candidates: they rank after them
+        chance, reason = _chance(sub, map_, cands, final, fit, reason, config)
+    if reason is not RejectReason.VERIFIED:
         final[:] = UNMATCHED
     timer.lap("verify")
     outcome = _finish(reason, sub, map_, final, proposed, scores, timer, fit)
     outcome.n_candidates = n_cands
+    outcome.extra["chance_log10"] = chance
     return outcome
 
 
