@@ -22,7 +22,9 @@ import pytest
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap
+from mergesvc.core.pipeline import match
 from mergesvc.core.poses import pose3_from_model, transform_from_pose3
+from mergesvc.fleet.agent import AgentConfig, build_submaps
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.service import MergeService
 from mergesvc.fleet.sessions import SessionState
@@ -341,6 +343,23 @@ def test_relocalization_answers_with_the_keyframe_pose(served) -> None:
     T_true = gtsam.Pose3(np.linalg.inv(robots["auv1"].T_true[0]) @ frames[k].T_true)
     rot_deg, trans_m = pose_error(pose3_from_model(reply.T_anchor_session), T_true)
     assert rot_deg < 5.0 and trans_m < 1.0
+
+
+def test_a_session_in_another_pool_is_not_localized_by_chance(served) -> None:
+    # another pool's vehicle asks where it is: 3 of its 32 first submaps (8 objects, 4 matched
+    # against the 22-object global map) fit by chance; the count refuses one of them, and
+    # refuses only (every answer given would be given without it)
+    _, svc = served
+    gmap, _ = svc.global_map(384)
+    off = svc.config.match
+    assert off.verify.max_chance_log10 is None  # the service's own matching: no count
+    elsewhere = fleet_world(100_001, ROBOTS, laps=1)
+    _, subs = build_submaps(AgentConfig(robot="auv3", session="s1"),
+                            list(elsewhere.frames("auv3", session=1)))
+    verdicts = [(svc.relocalize(sub), match(gmap, sub, off).result) for sub in subs]
+    assert all(r.accepted for v, r in verdicts if v.localized)
+    refused = [v for v, r in verdicts if r.accepted and not v.localized]
+    assert refused and all(v.reason == "too_few_matches" for v in refused)
 
 
 # --------------------------------------------------------------------------------------------

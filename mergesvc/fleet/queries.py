@@ -20,6 +20,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mergesvc.core.config import match_config
 from mergesvc.core.frames import FrameId
 from mergesvc.core.fusion import fuse_objects
 from mergesvc.core.model import ObjectMap, ObjectNode, Submap
@@ -271,7 +272,9 @@ class Queries:
         gmap, anchor = self.global_map(sub.dim)
         if gmap is None or len(gmap.objects) < self.config.min_map_objects:
             return RelocalizeReply(localized=False, reason="no_map", anchor=anchor)
-        res = match(gmap, sub, self.config.match).result
+        cfg = match_config(self.config.match, verify={
+            "max_chance_log10": self.config.relocalize_max_chance_log10})
+        res = match(gmap, sub, cfg).result
         if not res.accepted:
             return RelocalizeReply(localized=False, reason=res.reason.value, anchor=anchor,
                                    matches=len(res.matches), keyframe=sub.keyframe)
