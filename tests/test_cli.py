@@ -563,6 +563,24 @@ def test_a_rejected_match_prints_no_transform(tmp_path: Path) -> None:
     assert "declare `up` in both files" in text.stdout.splitlines()[1]  # what to do about it
 
 
+def test_a_fit_chance_explains_is_refused_with_its_count(tmp_path: Path) -> None:
+    # a KITTI-like submap against the map without its own objects: chance fits 3 objects
+    from mergesvc.bench.generalize import lacking_pairs
+    from mergesvc.sim import Family, make_scenario
+
+    (mp, sub), = lacking_pairs([make_scenario(Family.KITTI, 6)])
+    m, s = tmp_path / "map.json", tmp_path / "submap.json"
+    m.write_text(mp.model_dump_json())
+    s.write_text(sub.model_dump_json())
+    r = run("match", "--map", str(m), "--submap", str(s))
+    assert r.returncode == 0 and "rejected (too_few_matches)" in r.stdout, r.stdout
+    assert "is the vehicle on this map?" in r.stdout.splitlines()[1]
+    free = tmp_path / "free.json"
+    free.write_text(json.dumps({"match": {"verify": {"max_chance_log10": None}}}))
+    r = run("match", "--map", str(m), "--submap", str(s), "--settings", str(free), "--json")
+    assert json.loads(r.stdout)["accepted"]  # what the count refused
+
+
 def test_every_rejection_reason_has_a_hint() -> None:
     from mergesvc.cli.files import _REJECTION_HINTS
     from mergesvc.core.model import RejectReason

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -80,6 +81,10 @@ _REJECTION_HINTS = {
     "no_candidates": "no map object looks like the submap's: are both files from the same "
                      "embedding model?",
 }
+# a fit that was found, refused by chance's count (core/chance.py)
+_CHANCE_HINT = ("a submap of a place the map does not hold would give an answer this good "
+                "{} times: is the vehicle on this map? (`verify.max_chance_log10`, "
+                "`max_chance_log10_large`)")
 
 
 def match(
@@ -147,7 +152,12 @@ def match(
     state = "accepted" if result.accepted else "rejected"
     n = len(result.matches)
     typer.echo(f"{state} ({result.reason.value}): {n} match{'' if n == 1 else 'es'}")
-    if result.reason.value in _REJECTION_HINTS:
+    chance = outcome.extra.get("chance_log10", math.nan)
+    if result.reason.value == "too_few_matches" and math.isfinite(chance):
+        digits = int(chance < 1)
+        times = f"10^{chance:.0f}" if chance >= 6 else f"about {10.0 ** chance:,.{digits}f}"
+        typer.echo(f"  hint: {_CHANCE_HINT.format(times)}")
+    elif result.reason.value in _REJECTION_HINTS:
         typer.echo(f"  hint: {_REJECTION_HINTS[result.reason.value]}")
     for m in result.matches:
         typer.echo(f"  {m.submap_object:>12} -> {m.map_object:<12} score {m.score:.3f}")
