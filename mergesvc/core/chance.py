@@ -8,14 +8,14 @@ false alarms of a-contrario testing), as log10:
 
     log10 NFA = log10 C(n, k) + sum_i log10 r_i + s log10 N + sum_i log10(c_i / N)
 
-n submap objects, k of them matched, N map objects; r_i the rank of the chosen map object
-among submap object i's candidates by appearance (a map object unrelated to it ranks that high
-among all N with probability r_i / N; a pair found by position, not among the top candidates,
-ranks after them: a lower bound of its rank among all N, so the count errs towards accepting);
-c_i the map objects within pair i's residual (at least the answer's
-RMS) of where the transform puts submap object i (an unrelated one lies that close with
-probability c_i / N); s = 2 pairs fix the transform and are no evidence of it. C(n, k) counts
-the subsets of the submap an answer could have chosen.
+n submap objects, k of them matched, N map objects; r_i the rank of the chosen map object among
+submap object i's candidates by appearance (a map object unrelated to it ranks that high among
+all N with probability r_i / N; a pair found by position, not among the top candidates, ranks
+after them: a lower bound of its rank among all N, so the count errs towards accepting); c_i the
+map objects within pair i's residual (at least the answer's RMS) of where the transform puts
+submap object i (an unrelated one lies that close with probability c_i / N); s = 2 pairs fix the
+transform and are no evidence of it. C(n, k) counts the subsets of the submap an answer could
+have chosen.
 
 It reads ranks and counts only: no axis convention, embedding size, unit or noise level enters.
 `match` refuses an answer above verify.max_chance_log10_large (0: chance would give one less

@@ -193,9 +193,9 @@ class ServiceConfig(BaseModel):
         "refused right ones of partly overlapping pool submaps",
     )
     relocalize_max_chance_log10: float | None = Field(
-        2.0, description="a relocalization (a new session's submap against the global map) "
-        "is `match`.verify.max_chance_log10 this (the rest of `match`): its answer reaches "
-        "the vehicle with no graph to check it, so one chance explains is refused. None: off"
+        2.0, description="verify.max_chance_log10 of a relocalization (a new session's "
+        "submap against the global map; the rest as `match`): its answer reaches the vehicle "
+        "with no graph to check it, so one that chance explains is refused. None: off"
     )
     graph: GraphConfig = Field(
         GraphConfig(max_live_nodes=LIVE_KEYFRAMES, calibration=CalibrationConfig(),
