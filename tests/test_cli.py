@@ -374,6 +374,14 @@ def test_demo_quick_runs_to_completion(quick_demo: dict) -> None:
     assert set(traj) == {"auv1", "auv2", "auv3"}
     assert math.isfinite(summary["trajectory"]["fleet_ate_merged_m"])
     assert sum(line.strip().startswith("fleet ATE") for line in r.stdout.splitlines()) == 1
+    # each robot's odometry noise as the service calibrated it (its status), one line each
+    noise = summary["odometry_noise"]
+    assert set(noise) == {"auv1", "auv2", "auv3"}
+    for robot, n in noise.items():
+        assert len(n["sigma_scale"]) == 6 and all(0.05 <= x <= 20 for x in n["sigma_scale"])
+        line = next(x for x in r.stdout.splitlines()
+                    if x.strip().startswith(f"{robot}:") and "|" in x)
+        assert f"{n['sigma_scale'][0]:.2f}" in line and "+-" in line, line
     anchor_robot = summary["anchor"].split("/")[0]
     aligned = {rb for rb, a in summary["alignment"].items() if a["after_m"] is not None}
     for robot, t in traj.items():

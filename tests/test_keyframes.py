@@ -19,13 +19,14 @@ import gtsam
 import numpy as np
 import pytest
 
+from mergesvc.core.calibration import scale_standard_error
 from mergesvc.core.factors import factor_nodes
 from mergesvc.core.frames import FrameId, KeyframeId
 from mergesvc.core.model import Factor, FactorStatus, ObjectNode, Odometry, Submap
 from mergesvc.core.pipeline import match
 from mergesvc.core.poses import pose3_from_model, transform_from_pose3
 from mergesvc.fleet.agent import AgentConfig, build_submaps
-from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.config import ServiceConfig, odometry_group
 from mergesvc.fleet.service import MergeService
 from mergesvc.fleet.sessions import SessionState
 from mergesvc.sim import fleet_world
@@ -219,6 +220,16 @@ def test_trajectories_and_status_in_the_anchor_frame(served) -> None:
     np.testing.assert_allclose(st["frame_poses"]["auv1/s0"], np.eye(4), atol=1e-6)
     errors = trajectory_errors(svc, robots)
     assert max(errors.values()) < 2.0, errors
+    # each robot's odometry noise as calibrated, with the precision its residuals give
+    assert set(st["noise"]) == {odometry_group(r) for r in ROBOTS}
+    for g, (scale, comp) in svc.graph.calibrated().items():
+        row = st["noise"][g]
+        assert row["sigma_scale"] == scale.tolist() and comp is not None
+        assert row["redundancy"] == np.maximum(comp.redundancy, 0).tolist()
+        se = scale_standard_error(comp)
+        assert [x if x is None else round(x, 12) for x in row["relative_se"]] == [
+            None if not np.isfinite(x) else round(float(x), 12) for x in se]
+        assert all(x is None or 0 < x < 1 for x in row["relative_se"])
 
 
 def test_global_map_objects_sit_where_the_true_objects_are(served) -> None:

@@ -402,10 +402,17 @@ def targets(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         if "calibration_true_scale" in rs[0]:
             truth = np.asarray(rs[0]["calibration_true_scale"])
             err = np.asarray([np.asarray(v["odometry_scale"]) / truth - 1.0 for v in rows])
+            # each scale's standard error from its own residuals (None: nothing checked it)
+            se = np.asarray([[np.inf if x is None else x for x in
+                              (v.get("odometry_scale_relative_se") or [None] * 6)]
+                             for v in rows], dtype=np.float64)
             t["calibration_recovered"] = {"met": bool(np.all(np.abs(err) <= CALIB_TOLERANCE)),
                                           "worst_relative_error": float(np.abs(err).max()),
                                           "median_relative_error": float(
-                                              np.median(np.abs(err)))}
+                                              np.median(np.abs(err))),
+                                          "median_relative_se": float(np.median(se)),
+                                          "within_two_se": float(np.mean(
+                                              np.abs(err) <= 2.0 * se))}
         better = [r["fleet_ate_merged_m"] < r["fleet_ate_align_once_best_m"] for r in rs]
         t["fleet_better_than_align_once"] = {
             "met": all(better),

@@ -69,6 +69,9 @@ class Component:
 
     residual: np.ndarray = field(default_factory=lambda: np.zeros(6))
     redundancy: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    # per axis, the sum of the squared eigenvalues of the residuals' share of the axis (each
+    # in [0, 1], summing to the redundancy): the residual sum's variance is twice this
+    redundancy_sq: np.ndarray = field(default_factory=lambda: np.zeros(6))
     factors: int = 0
     left_out: int = 0
 
@@ -160,6 +163,8 @@ def variance_components(
     res = Z - A_s @ lu.solve(np.asarray(A_s.T @ Z))  # residuals of pure noise: I - A H^-1 A^T
     gross = chi2_quantile(config.gross_quantile, 6)
     out: dict[str, Component] = defaultdict(Component)
+    n = config.samples
+    gram: dict[str, np.ndarray] = defaultdict(lambda: np.zeros((6, n, n)))
     for i, g in enumerate(groups):
         if g is None:
             continue
@@ -182,7 +187,30 @@ def variance_components(
         comp.residual += (L @ e) * (L_invT @ We)
         comp.redundancy += np.diag(L_invT @ WQ @ L.T)
         comp.factors += 1
+        # the same draws, per axis: its share of the residuals' projection is (1/n) U_a V_a^T
+        # over the group's factors; sum_ij U V^T U V^T through the (n, n) Gram V^T U
+        gram[g] += np.einsum("as,at->ast", L @ R_inv @ blk, L_invT @ R.T @ blk)
+    for g, G in gram.items():
+        # trace(M^2) of the estimate less its sampling bias (trace(M)^2 / n of n draws)
+        raw = np.einsum("ast,ats->a", G, G) / n**2
+        r = out[g].redundancy
+        out[g].redundancy_sq = np.maximum((raw - r * r / n) / (1.0 + 1.0 / n), 0.0)
     return dict(out)
+
+
+def scale_standard_error(comp: Component) -> np.ndarray:
+    """Relative standard error (6,) of each axis's sigma scale from one estimate's residuals:
+    the residual sum is a sum of chi-square(1) terms weighted by the eigenvalues l of the
+    axis's share of the residuals (sum l = r, the redundancy), so the variance estimate
+    has a relative variance 2 sum l^2 / r^2 and the sigma half its relative deviation,
+    sqrt(sum l^2 / 2) / r; at most 1 / sqrt(2 r) (every l <= 1). What the residuals alone give
+    (the prior's pull aside, the other groups' covariances taken as right); inf where nothing
+    checks the axis (r <= 0)."""
+    r = np.asarray(comp.redundancy, dtype=np.float64)
+    q = np.minimum(np.asarray(comp.redundancy_sq, dtype=np.float64), np.maximum(r, 0.0))
+    out = np.full(r.shape, np.inf)
+    np.divide(np.sqrt(0.5 * q), r, out=out, where=r > 0)
+    return out
 
 
 def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig) -> np.ndarray:
@@ -198,4 +226,5 @@ def updated_scale(scale: np.ndarray, comp: Component, config: CalibrationConfig)
 
 
 __all__ = ["CalibrationConfig", "Component", "decorrelation", "factor_normal_matrix",
-           "scale_covariance", "scale_covariances", "updated_scale", "variance_components"]
+           "scale_covariance", "scale_covariances", "scale_standard_error", "updated_scale",
+           "variance_components"]

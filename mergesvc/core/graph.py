@@ -12,6 +12,7 @@ changed. Pure: no I/O.
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections import defaultdict
 from collections.abc import Callable, Sequence
@@ -22,6 +23,7 @@ import gtsam
 import numpy as np
 
 from mergesvc.core.calibration import (
+    Component,
     scale_covariance,
     scale_covariances,
     updated_scale,
@@ -449,6 +451,15 @@ class PoseGraph:
         """Each noise group's sigma scale per axis (GTSAM order), as the calibration left it
         (groups it never estimated are absent: scale 1)."""
         return {g: s.copy() for g, s in self._scales.items()}
+
+    def calibrated(self) -> dict[str, tuple[np.ndarray, Component | None]]:
+        """Each group the calibration estimates (`calibration.groups`) that has a scale: its
+        sigma scale per axis and the sums of the last calibration (None when the scale was
+        restored or set, not estimated since): the redundancy its residuals checked each
+        axis with, from which `scale_standard_error` gives the scale's precision."""
+        groups, comps = self.config.calibration.groups, self._components  # one read of each
+        return {g: (s.copy(), copy.deepcopy(comps.get(g)))
+                for g, s in list(self._scales.items()) if g.split(":", 1)[0] in groups}
 
     def scaled_covariance(self, factor_id: str) -> np.ndarray:
         """A solved factor's covariance as the solve uses it (its group's scale applied;

@@ -19,7 +19,7 @@ from mergesvc.core.frames import FrameId
 from mergesvc.core.model import Factor
 from mergesvc.core.tracking import Frame
 from mergesvc.errors import InputError, MergeError
-from mergesvc.fleet.config import ServiceConfig
+from mergesvc.fleet.config import ServiceConfig, odometry_group
 from mergesvc.fleet.local_map import AgentConfig, LocalMap, build_submaps
 from mergesvc.fleet.scoring import fleet_ate
 from mergesvc.sim import fleet_world
@@ -119,6 +119,8 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
         "latency_ms": status["latency_ms"],
     }
     summary["trajectory"] = score_trajectories(world, frames, local, status, anchor, out_dir)
+    noise = status.get("noise", {})
+    summary["odometry_noise"] = {r: noise[g] for r in ROBOTS if (g := odometry_group(r)) in noise}
     summary["figure"] = str(plot_merged(world, local, poses, anchor, active, out_dir /
                                         "merged_map.png"))
     return summary
@@ -204,7 +206,8 @@ WORSE_ABOVE = 1.005
 def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     """The summary's trajectory scores for the demo's output: per robot its keyframe ATE from
     odometry alone and merged (the same keyframes), saying plainly when merging made it worse;
-    then the fleet ATE in the one common frame."""
+    then the fleet ATE in the one common frame, and each robot's odometry noise as the service
+    calibrated it (with each scale's standard error)."""
 
     def num(x: float | None, unit: str, digits: int = 3) -> str:
         return "n/a" if x is None else f"{x:.{digits}f} {unit}"
@@ -225,6 +228,18 @@ def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     if "fleet_ate_merged_m" in traj:
         lines.append(f"  fleet ATE, every robot in the anchor frame under one alignment: "
                      f"{num(traj['fleet_ate_merged_m'], 'm')}")
+    noise = summary.get("odometry_noise") or {}
+    if noise:
+        lines.append("  odometry noise as the service calibrated it, sigma / declared (rotation "
+                     "x y z | translation x y z; +- the standard error its residuals give: "
+                     "where large, the graph barely checks the axis and the declared sigma "
+                     "holds):")
+    for r, n in noise.items():
+        s, se = n["sigma_scale"], n.get("relative_se") or [None] * 6
+        pm = ["?" if e is None else f"{100 * e:.0f}" for e in se]
+        lines.append(f"    {r}: {' '.join(f'{x:.2f}' for x in s[:3])} | "
+                     f"{' '.join(f'{x:.2f}' for x in s[3:])}  (+- {' '.join(pm[:3])} | "
+                     f"{' '.join(pm[3:])} %)")
     return lines
 
 

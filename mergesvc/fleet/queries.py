@@ -20,6 +20,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mergesvc.core.calibration import scale_standard_error
 from mergesvc.core.config import match_config
 from mergesvc.core.frames import FrameId
 from mergesvc.core.fusion import fuse_objects
@@ -324,7 +325,23 @@ class Queries:
             "embedding_dim": self.anchor_dim, "anchor": self.merger.anchor,
             "frame_poses": frame_poses, "keyframe_poses": keyframe_poses,
             "store": {**store_stats, "age_s": age_s}, "store_damage": list(damage),
+            "noise": self.noise(),
         }).model_dump(mode="json")
+
+    def noise(self) -> dict[str, dict[str, Any]]:
+        """Each calibrated noise group: its sigma scale, and from the last calibration its
+        redundancy and the scale's relative standard error per axis (status `noise`)."""
+        with self.lock:
+            groups = self.merger.graph.calibrated()
+        out: dict[str, dict[str, Any]] = {}
+        for g, (scale, comp) in sorted(groups.items()):
+            row: dict[str, Any] = {"sigma_scale": scale.tolist()}
+            if comp is not None:
+                row["redundancy"] = np.maximum(comp.redundancy, 0.0).tolist()
+                row["relative_se"] = [float(x) if np.isfinite(x) else None
+                                      for x in scale_standard_error(comp)]
+            out[g] = row
+        return out
 
     def models(self) -> dict[str, dict[str, int]]:
         """Per embedding model (its dimension): sessions and objects held."""

@@ -277,6 +277,9 @@ def replay_world(
         row["odometry_declared_whitened_rms"] = honesty["declared_whitened_rms"]
         row["odometry_declared_over_99_percent"] = honesty["declared_over_99_percent"]
         row["odometry_scale"] = noise_scales.get(odometry_group(r), [1.0] * 6)
+        noise = status.get("noise", {}).get(odometry_group(r), {})  # the scale's precision
+        row["odometry_redundancy"] = noise.get("redundancy")
+        row["odometry_scale_relative_se"] = noise.get("relative_se")
         if keys_m:
             merged = np.stack([np.asarray(raw[str(k)], dtype=np.float64) for k in keys_m])
             with contextlib.suppress(MergeError):

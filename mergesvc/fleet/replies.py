@@ -215,6 +215,22 @@ class StoreStats(BaseModel):
                          "counts are (the service reads them every status_refresh_s)")
 
 
+class NoiseScale(BaseModel):
+    """One noise group as the calibration left it (GTSAM order: rotation x y z, translation
+    x y z of the group's own frames)."""
+
+    model_config = _REPLY
+
+    sigma_scale: Row6 = Field(description="sigma as calibrated / sigma as declared")
+    redundancy: Row6 | None = Field(
+        None, description="how many observations' worth of residuals checked each axis at "
+        "the last calibration (null: restored, not estimated since)")
+    relative_se: list[float | None] | None = Field(
+        None, min_length=6, max_length=6, description="each scale's relative standard error "
+        "from the residuals alone, at most 1 / sqrt(2 redundancy) (docs/uncertainty.md; null: "
+        "no residual checks the axis)")
+
+
 class StatusReply(BaseModel):
     """Answer of the status queryable (strict JSON: no NaN)."""
 
@@ -249,6 +265,9 @@ class StatusReply(BaseModel):
     store_damage: list[str] = Field(
         default_factory=list, description="answers sent that the store no longer holds, found "
         "at start (a truncated write-ahead log): one line per session")
+    noise: dict[str, NoiseScale] = Field(
+        default_factory=dict, description="each calibrated noise group (odometry:robot) as "
+        "the service's calibration estimated it from the residuals")
 
     @field_validator("schema_version", mode="before")
     @classmethod
@@ -290,6 +309,7 @@ __all__ = [
     "FactorCounts",
     "FrameTried",
     "ModelCounts",
+    "NoiseScale",
     "Outcome",
     "Percentiles",
     "RefusalCode",
