@@ -28,6 +28,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from mergesvc.core.chi2 import chi2_quantile
 from mergesvc.errors import SolverError
 
+# draws the redundancy's square is estimated from (at most): its Gram matrix holds k^2 numbers
+# per group and axis, and each factor adds k^2 products to it
+GRAM_DRAWS = 64
+
 
 class CalibrationConfig(BaseModel):
     """Settings of the noise calibration (variance-component estimation)."""
@@ -163,8 +167,8 @@ def variance_components(
     res = Z - A_s @ lu.solve(np.asarray(A_s.T @ Z))  # residuals of pure noise: I - A H^-1 A^T
     gross = chi2_quantile(config.gross_quantile, 6)
     out: dict[str, Component] = defaultdict(Component)
-    n = config.samples
-    gram: dict[str, np.ndarray] = defaultdict(lambda: np.zeros((6, n, n)))
+    k = min(config.samples, GRAM_DRAWS)
+    gram: dict[str, np.ndarray] = defaultdict(lambda: np.zeros((6, k, k)))
     for i, g in enumerate(groups):
         if g is None:
             continue
@@ -187,14 +191,14 @@ def variance_components(
         comp.residual += (L @ e) * (L_invT @ We)
         comp.redundancy += np.diag(L_invT @ WQ @ L.T)
         comp.factors += 1
-        # the same draws, per axis: its share of the residuals' projection is (1/n) U_a V_a^T
-        # over the group's factors; sum_ij U V^T U V^T through the (n, n) Gram V^T U
-        gram[g] += np.einsum("as,at->ast", L @ R_inv @ blk, L_invT @ R.T @ blk)
+        # the first k draws, per axis: its share of the residuals' projection is (1/k) U_a V_a^T
+        # over the group's factors; sum_ij U V^T U V^T through the (k, k) Gram V^T U
+        gram[g] += np.einsum("as,at->ast", L @ R_inv @ blk[:, :k], L_invT @ R.T @ blk[:, :k])
     for g, G in gram.items():
-        # trace(M^2) of the estimate less its sampling bias (trace(M)^2 / n of n draws)
-        raw = np.einsum("ast,ats->a", G, G) / n**2
-        r = out[g].redundancy
-        out[g].redundancy_sq = np.maximum((raw - r * r / n) / (1.0 + 1.0 / n), 0.0)
+        # trace(M^2) of the estimate less its sampling bias (trace(M)^2 / k of k draws)
+        raw = np.einsum("ast,ats->a", G, G) / k**2
+        r = np.einsum("ass->a", G) / k  # trace(M) from the same draws
+        out[g].redundancy_sq = np.maximum((raw - r * r / k) / (1.0 + 1.0 / k), 0.0)
     return dict(out)
 
 
