@@ -28,6 +28,14 @@ def one_line(exc: BaseException | str) -> str:
     return text.splitlines()[0]
 
 
+def cannot_read(path: object, exc: OSError) -> str:
+    """The line for a map or submap file that cannot be read, saying what to do when it does
+    not exist."""
+    hint = ("; check the path (`mergesvc example DIR` writes a map and a submap to try)"
+            if isinstance(exc, FileNotFoundError) else "")
+    return f"cannot read {path}: {exc.strerror or exc}{hint}"
+
+
 class MergeError(Exception):
     """Root of every error mergesvc raises on purpose."""
 
@@ -96,5 +104,6 @@ __all__ = [
     "StoreError",
     "TransportError",
     "TransportFault",
+    "cannot_read",
     "one_line",
 ]

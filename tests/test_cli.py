@@ -187,7 +187,9 @@ def test_errors_say_what_is_wrong_with_the_file(files: Path, tmp_path: Path) -> 
         ("codec", "encode", str(npz), str(tmp_path / "x.bin")):
             f"is a binary map file and this reads JSON: `mergesvc convert {npz} OUT.json`",
         ("match", "--map", str(tmp_path / "none.npz"), "--submap", str(files / "submap.json")):
-            f"cannot read {tmp_path / 'none.npz'}: No such file or directory",
+            f"cannot read {tmp_path / 'none.npz'}: No such file or directory; check the path",
+        ("match", "--map", str(files / "map.json"), "--submap", str(files / "submap.json"),
+         "--solver", "foo"): "Invalid value for '--solver': 'foo' is not one of 'rrwm'",
         ("example", str(tmp_path / "e"), "--family", "reef"):
             "--family must be one of underwater, kitti, not 'reef'",
     }
@@ -402,6 +404,15 @@ def test_demo_quick_runs_to_completion(quick_demo: dict) -> None:
             line = next(x for x in r.stdout.splitlines() if x.strip().startswith(f"{robot}:"))
             assert ("WORSE than its own odometry" in line) == worse, line
     assert sum("keyframe ATE" in line for line in r.stdout.splitlines()) == len(traj)
+    # which robots merging made worse, in the summary and said in one line; where the files are
+    worse = [rb for rb, t in traj.items() if (t["merged_over_odometry"] or 0.0) > WORSE_ABOVE]
+    assert summary["robots_worse"] == worse
+    verdict = [x.strip() for x in r.stdout.splitlines() if x.strip().startswith("merging made")]
+    assert len(verdict) == 1 and ("no robot" in verdict[0]) == (not worse), verdict
+    assert all(rb in verdict[0] for rb in worse), verdict
+    assert f"summary {tmp_path / 'summary.json'}" in r.stdout
+    for t in traj.values():  # the last keyframe from odometry alone, beside the merged
+        assert 0.0 <= t["final_pos_err_odometry_m"] < 5.0, t
     # the stopped service's store exported (mergesvc export): the g2o graph loads in gtsam with
     # every node the export names, and a merged TUM file for every robot aligned with the anchor
     exports = [Path(p) for p in summary["exports"]]

@@ -88,8 +88,15 @@ def test_the_rounded_off_integer_is_what_the_fast_parser_gets_wrong(underwater_s
 
 def test_a_refusal_names_the_fault_in_the_json_modules_words(underwater_scenario) -> None:
     text = underwater_scenario.submap.model_dump_json()
-    with pytest.raises(DecodeError, match=r"^f is not valid JSON: Extra data"):
+    with pytest.raises(DecodeError, match=r"^f is not valid JSON \(Extra data.*\): give a map"):
         parse_model(Submap, text + " x", "f")
+    # another kind of file: said so, with its fields; too few objects: how many
+    with pytest.raises(SchemaError, match=r"^invalid f: not a submap file \(it has no `objects`; "
+                       r"its fields: truth, seed\)"):
+        parse_model(Submap, '{"truth": {}, "seed": 1}', "f")
+    empty = json.loads(text) | {"objects": []}
+    with pytest.raises(SchemaError, match=r"^invalid f: objects: needs at least 1, has 0$"):
+        parse_model(Submap, json.dumps(empty), "f")
     with pytest.raises(SchemaError, match=r"^invalid f: expected a JSON object, got list"):
         parse_model(Submap, "[1, 2]", "f")
     e0 = json.dumps(json.loads(text)["objects"][0]["embedding"][0])

@@ -60,7 +60,10 @@ def _one_line_errors() -> Iterator[None]:
             typer.echo(exc.ctx.get_help())
             raise typer.Exit(EXIT_BAD_INPUT) from None
         where = exc.ctx.command_path if exc.ctx is not None else "mergesvc"
-        fail(InputError(f"{exc.format_message()} (see {where} --help)"), EXIT_BAD_INPUT)
+        # an option's own check (a pydantic validator behind a choice) speaks without its
+        # library's prefix
+        message = exc.format_message().replace(": Value error, ", ": ")
+        fail(InputError(f"{message} (see {where} --help)"), EXIT_BAD_INPUT)
     except _PATH_ERRORS as exc:
         if exc.filename is None:
             raise

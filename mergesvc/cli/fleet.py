@@ -361,14 +361,17 @@ def demo(
                    f" wrong {s['correspondences_wrong']} (precision "
                    f"{s['precision'] if s['precision'] is None else round(s['precision'], 3)})")
         for r, a in s["alignment"].items():
-            after = ("not aligned" if a["after_m"] is None else
+            after = ("not placed" if a["after_m"] is None else
                      f"{a['after_m']:.2f} m / {a['after_deg']:.1f} deg")
-            typer.echo(f"  {r} start (keyframe 0, no alignment) in {s['anchor']}: before "
-                       f"{a['before_m']:.2f} m / {a['before_deg']:.1f} deg, after {after}")
+            typer.echo(f"  {r}'s start frame placed in {s['anchor']}'s by the merge: {after} "
+                       f"off the truth (the two taken as one frame: {a['before_m']:.2f} m / "
+                       f"{a['before_deg']:.1f} deg off; no alignment, unlike the ATEs)")
         lat = ", ".join(f"{k} {v:.0f}" for k, v in (s["latency_ms"] or {}).items()
                         if isinstance(v, (int, float)))
-        typer.echo(f"service latency per submap (ms): {lat or '-'}; figure {s['figure']}; "
-                   f"demo took {s['elapsed_s']:.0f} s")
+        typer.echo(f"service latency per submap (ms): {lat or '-'}; demo took "
+                   f"{s['elapsed_s']:.0f} s")
+        typer.echo(f"figure {s['figure']}; summary {out / 'summary.json'} (docs/demo.md); "
+                   f"trajectories as TUM files in {out / 'trajectories'}; logs in {out}")
     if s.get("exports"):
         files = [Path(p) for p in s["exports"]]
         top = files[0].parent

@@ -372,6 +372,9 @@ def _format_validation_error(exc: ValidationError, what: str) -> str:
     errors = exc.errors()
     loc = _field_path(errors[0])
     msg = errors[0]["msg"].removeprefix("Value error, ")
+    ctx = errors[0].get("ctx") or {}
+    if errors[0]["type"] == "too_short" and "actual_length" in ctx:
+        msg = f"needs at least {ctx['min_length']}, has {ctx['actual_length']}"
     others = len({_field_path(e) for e in errors} - {loc})
     more = f" (and {others} more field{'s' if others > 1 else ''})" if others else ""
     return f"invalid {what}: {loc + ': ' if loc else ''}{msg}{more}"
@@ -423,9 +426,15 @@ def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -
     try:
         raw = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DecodeError(f"{what} is not valid JSON: {exc}") from exc
+        raise DecodeError(f"{what} is not valid JSON ({exc}): give a map or submap file, "
+                          f"JSON or a binary .npz (`mergesvc convert`)") from exc
     if not isinstance(raw, dict):
         raise SchemaError(f"invalid {what}: expected a JSON object, got {type(raw).__name__}")
+    if "objects" not in raw:  # another kind of file (a truth file, a factor, settings)
+        kind = "submap" if model is Submap else "map"
+        fields = ", ".join(str(k) for k in list(raw)[:5]) or "none"
+        raise SchemaError(f"invalid {what}: not a {kind} file (it has no `objects`; its "
+                          f"fields: {fields}); `mergesvc example DIR` writes one to compare")
     try:
         return model.model_validate(raw)
     except ValidationError as exc:

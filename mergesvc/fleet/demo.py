@@ -196,7 +196,8 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
 
 def view_command(endpoint: str, fleet: str, projection: Path) -> str:
     """The line that attaches a live view to a running demo (docs/view.md)."""
-    return (f"live view: mergesvc view --connect {endpoint} --fleet {fleet} "
+    return (f"live view, from another terminal while the demo runs (`--view` opens one "
+            f"itself): mergesvc view --connect {endpoint} --fleet {fleet} "
             f"--projection {projection}")
 
 

@@ -121,9 +121,27 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
     summary["trajectory"] = score_trajectories(world, frames, local, status, anchor, out_dir)
     noise = status.get("noise", {})
     summary["odometry_noise"] = {r: noise[g] for r in ROBOTS if (g := odometry_group(r)) in noise}
-    summary["figure"] = str(plot_merged(world, local, poses, anchor, active, out_dir /
-                                        "merged_map.png"))
+    summary["robots_worse"] = robots_worse(summary)
+    summary["figure"] = str(plot_merged(
+        world, local, poses, anchor, active, out_dir / "merged_map.png",
+        placed_trajectories(world, frames, status, anchor), summary["trajectory"], frames))
     return summary
+
+
+def placed_trajectories(world: Any, frames: dict[str, list[Frame]], status: dict[str, Any],
+                        anchor: str) -> tuple[dict[str, np.ndarray], dict[str, dict[int, Any]]]:
+    """Per robot, in the anchor's frame: its true poses at every frame ((n, 4, 4), from the
+    anchor session's true start) and its keyframe poses as the service merged them ({frame
+    index: (4, 4)}; empty when the service placed none)."""
+    T_anchor_world = np.linalg.inv(world.session_start(FrameId.parse(anchor).robot))
+    merged_all = status.get("keyframe_poses") or {}
+    truths, merged = {}, {}
+    for r in ROBOTS:
+        truths[r] = np.stack([T_anchor_world @ f.T_true for f in frames[r]])
+        raw = merged_all.get(_frame(r)) or {}
+        merged[r] = {int(k): np.asarray(T, dtype=np.float64) for k, T in raw.items()
+                     if 0 <= int(k) < len(frames[r])}
+    return truths, merged
 
 
 def score_trajectories(world: Any, frames: dict[str, list[Frame]],
@@ -151,28 +169,22 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
     from mergesvc.core.trajectory import ate_rmse, final_pose_error
     from mergesvc.wire.formats import write_tum
 
-    T_anchor_world = np.linalg.inv(world.session_start(FrameId.parse(anchor).robot))
-    merged_all = status.get("keyframe_poses") or {}
-    fleet_poses: dict[str, dict[int, np.ndarray]] = {}
-    truths: dict[str, np.ndarray] = {}
+    truths, fleet_poses = placed_trajectories(world, frames, status, anchor)
     tum_dir = out_dir / "trajectories"
     tum_dir.mkdir(parents=True, exist_ok=True)
     out: dict[str, dict[str, Any]] = {}
     for r in ROBOTS:
-        fr = frames[r]
+        fr, truth = frames[r], truths[r]
         stamps = np.array([f.stamp_s for f in fr])
-        truth = np.stack([T_anchor_world @ f.T_true for f in fr])
         keys_odo = sorted({0, *local[r].keyframes})
         odo = np.stack([fr[k].T_est for k in keys_odo])
-        merged_raw = merged_all.get(_frame(r)) or {}
-        keys_m = sorted(int(k) for k in merged_raw if 0 <= int(k) < len(fr))
-        merged = (np.stack([np.asarray(merged_raw[str(k)], dtype=np.float64) for k in keys_m])
-                  if keys_m else np.zeros((0, 4, 4)))
-        fleet_poses[r] = dict(zip(keys_m, merged, strict=True))
-        truths[r] = truth
+        keys_m = sorted(fleet_poses[r])
+        merged = (np.stack([fleet_poses[r][k] for k in keys_m]) if keys_m
+                  else np.zeros((0, 4, 4)))
         row: dict[str, Any] = {"keyframes": len(keys_odo), "keyframes_merged": len(keys_m),
                                "ate_odometry_m": None, "ate_odometry_all_m": None,
                                "ate_merged_m": None, "merged_over_odometry": None,
+                               "final_pos_err_odometry_m": None,
                                "final_rot_err_odometry_deg": None,
                                "final_pos_err_m": None, "final_rot_err_deg": None}
         same = keys_m or keys_odo  # odometry scored on the keyframes the service placed
@@ -181,7 +193,8 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
             row["ate_odometry_all_m"] = ate_rmse(odo, truth[keys_odo])
         with contextlib.suppress(MergeError):
             row["ate_odometry_m"] = ate_rmse(odo_same, truth[same])
-            row["final_rot_err_odometry_deg"] = final_pose_error(odo_same, truth[same])[1]
+            row["final_pos_err_odometry_m"], row["final_rot_err_odometry_deg"] = (
+                final_pose_error(odo_same, truth[same]))
         with contextlib.suppress(MergeError):
             row["ate_merged_m"] = ate_rmse(merged, truth[keys_m])
             m, deg = final_pose_error(merged, truth[keys_m])
@@ -201,39 +214,67 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
 # robot kept to its odometry's shape differs from it by the solve's tolerance and the compact
 # codec's rounding of its odometry, which can show as 1.01-1.03x and is said)
 WORSE_ABOVE = 1.005
+# the last keyframe's heading error is said to be worse than the odometry's above the larger of
+# HEADING_ALLOWED_DEG and the odometry's own (a degree of heading is within what the factors
+# can tell) by more than HEADING_MARGIN_DEG (a single pose's heading: 0.1 deg is its noise)
+HEADING_ALLOWED_DEG = 1.0
+HEADING_MARGIN_DEG = 0.2
+
+
+def robots_worse(summary: dict[str, Any]) -> list[str]:
+    """The robots whose merged keyframe ATE is above their odometry's (`WORSE_ABOVE`)."""
+    robots = summary.get("trajectory", {}).get("robots", {})
+    return [r for r, t in robots.items()
+            if (t.get("merged_over_odometry") or 0.0) > WORSE_ABOVE]
 
 
 def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     """The summary's trajectory scores for the demo's output: per robot its keyframe ATE from
-    odometry alone and merged (the same keyframes), saying plainly when merging made it worse;
-    then the fleet ATE in the one common frame, and each robot's odometry noise as the service
-    calibrated it (with each scale's standard error)."""
+    odometry alone and merged (the same keyframes), saying plainly when merging made it worse,
+    and its last keyframe's error both ways; the fleet ATE in the one common frame; which
+    robots got worse; each robot's odometry noise as the service calibrated it (with each
+    scale's standard error)."""
 
     def num(x: float | None, unit: str, digits: int = 3) -> str:
         return "n/a" if x is None else f"{x:.{digits}f} {unit}"
 
     traj = summary.get("trajectory", {})
     lines = []
+    if summary.get("anchor"):
+        lines.append(f"  merged map in {summary['anchor']}'s frame (the anchor: the first "
+                     f"session the service heard from); errors against the truth:")
     for r, t in traj.get("robots", {}).items():
         ratio = t.get("merged_over_odometry")
         verdict = ("" if ratio is None else
-                   f" ({ratio:.2f}x: WORSE than its own odometry)" if ratio > WORSE_ABOVE else
-                   f" ({ratio:.2f}x)")
+                   f" ({ratio:.2f}x: WORSE than its own odometry, by {100 * (ratio - 1):.0f} %"
+                   f" or {1e3 * (t['ate_merged_m'] - t['ate_odometry_m']):.0f} mm)"
+                   if ratio > WORSE_ABOVE else f" ({ratio:.2f}x)")
+        odo_deg, deg = t.get("final_rot_err_odometry_deg"), t.get("final_rot_err_deg")
+        heading = ("; its heading WORSE than the odometry's" if odo_deg is not None and
+                   deg is not None and
+                   deg > max(HEADING_ALLOWED_DEG, odo_deg) + HEADING_MARGIN_DEG else "")
         lines.append(
             f"  {r}: keyframe ATE odometry {num(t['ate_odometry_m'], 'm')} -> merged "
             f"{num(t['ate_merged_m'], 'm')}{verdict}, {t['keyframes_merged']} of "
-            f"{t['keyframes']} keyframes; last keyframe merged "
-            f"{num(t['final_pos_err_m'], 'm', 2)} / {num(t['final_rot_err_deg'], 'deg', 1)} "
-            f"(odometry {num(t['final_rot_err_odometry_deg'], 'deg', 1)})")
+            f"{t['keyframes']} keyframes; last keyframe odometry "
+            f"{num(t.get('final_pos_err_odometry_m'), 'm', 2)} / {num(odo_deg, 'deg', 1)} -> "
+            f"merged {num(t['final_pos_err_m'], 'm', 2)} / {num(deg, 'deg', 1)}{heading}")
     if "fleet_ate_merged_m" in traj:
         lines.append(f"  fleet ATE, every robot in the anchor frame under one alignment: "
-                     f"{num(traj['fleet_ate_merged_m'], 'm')}")
+                     f"{num(traj['fleet_ate_merged_m'], 'm')} (odometry alone has no common "
+                     f"frame)")
+    if traj.get("robots"):
+        worse = robots_worse(summary)
+        lines.append("  merging made no robot's trajectory worse than its own odometry" if not
+                     worse else f"  merging made {len(worse)} robot(s) WORSE than their own "
+                     f"odometry: " + ", ".join(
+                         f"{r} ({traj['robots'][r]['merged_over_odometry']:.2f}x)"
+                         for r in worse))
     noise = summary.get("odometry_noise") or {}
     if noise:
-        lines.append("  odometry noise as the service calibrated it, sigma / declared (rotation "
-                     "x y z | translation x y z; +- the standard error its residuals give: "
-                     "where large, the graph barely checks the axis and the declared sigma "
-                     "holds):")
+        lines.append("  odometry noise as the service calibrated it, sigma / declared, "
+                     "rotation x y z | translation x y z (+- its standard error: where large, "
+                     "the declared sigma holds):")
     for r, n in noise.items():
         s, se = n["sigma_scale"], n.get("relative_se") or [None] * 6
         pm = ["?" if e is None else f"{100 * e:.0f}" for e in se]
@@ -262,51 +303,90 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 
 
 def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
-                factors: list[Factor], path: Path) -> Path:
-    """Each robot's trajectory and objects in the anchor frame (as the service aligned them),
-    the factors' correspondences drawn (between robots, and a robot's loops); every kind of
-    mark in the legend."""
+                factors: list[Factor], path: Path,
+                placed: tuple[dict[str, np.ndarray], dict[str, dict[int, Any]]] | None = None,
+                trajectory: dict[str, Any] | None = None,
+                frames: dict[str, list[Frame]] | None = None) -> Path:
+    """Left, the fleet in the anchor's frame: each robot's trajectory as the service merged it
+    (`placed`: truths and merged keyframes, `placed_trajectories`; between keyframes, with
+    `frames`, the odometry from the last one: a jump where the merge corrected it) over its
+    true path (dashed), its objects placed by the merge, the true objects and the factors'
+    correspondences. Right, each robot's keyframe ATE from odometry alone and merged, and the
+    fleet's (`trajectory`: score_trajectories' result). Every kind of mark in a legend that
+    covers no data."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 5.5), dpi=110)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 6.5), dpi=110, layout="constrained",
+                                 gridspec_kw={"width_ratios": [3, 1]})
     colors = {"auv1": "tab:blue", "auv2": "tab:orange", "auv3": "tab:green"}
     a_robot = FrameId.parse(anchor).robot
     T_aw = np.linalg.inv(world.robot(a_robot).T_world_start)
     obj = (world.objects_xyz_m @ T_aw[:3, :3].T + T_aw[:3, 3])[:, :2]
-    ax.scatter(*obj.T, marker="x", c="0.6", s=30, label="true objects (anchor frame)")
-    placed: dict[tuple[str, str], np.ndarray] = {}
+    ax.scatter(*obj.T, marker="x", c="0.5", s=30, label="true objects")
+    truths, merged = placed if placed is not None else ({}, {})
+    spots: dict[tuple[str, str], np.ndarray] = {}
     for r, lm in local.items():
+        c = colors.get(r, "k")
+        if r in truths:
+            ax.plot(*truths[r][:, :2, 3].T, lw=0.8, ls="--", color=c, alpha=0.45,
+                    label=f"{r} true path")
+        keys = sorted(merged.get(r, {}))
+        if keys:  # each frame: its odometry from the last merged keyframe before it
+            est = [f.T_est for f in frames[r]] if frames else None
+            xy = (np.array([merged[r][k][:2, 3] for k in keys]) if est is None else np.array([
+                (merged[r][k] @ np.linalg.solve(est[k], est[j]))[:2, 3]
+                for k, nxt in zip(keys, [*keys[1:], len(est)]) for j in range(k, nxt)]))
+            ax.plot(*xy.T, lw=1.1, color=c, label=f"{r} merged (keyframes + odometry)")
+            kf = np.array([merged[r][k][:2, 3] for k in keys])
+            ax.scatter(*kf.T, s=14, color=c, marker="o", edgecolors="k", linewidths=0.4)
         T = poses.get(_frame(r))
         if T is None:
             continue
-        xy = np.array([T[:3, :3] @ p + T[:3, 3] for p in
-                       (t.position_xyz_m for t in lm.tracker.tracks)])
-        for t, p in zip(lm.tracker.tracks, xy):
-            placed[(r, t.track_id)] = p
-        ax.scatter(*xy[:, :2].T, s=12, color=colors.get(r, "k"), label=f"{r} objects")
-        traj = np.array(lm.path_xyz_m)
-        traj = traj @ T[:3, :3].T + T[:3, 3]
-        ax.plot(*traj[:, :2].T, lw=0.7, color=colors.get(r, "k"), alpha=0.6,
-                label=f"{r} trajectory (its odometry, placed by the merge)")
+        pts = np.array([T[:3, :3] @ t.position_xyz_m + T[:3, 3] for t in lm.tracker.tracks])
+        for t, q in zip(lm.tracker.tracks, pts):
+            spots[(r, t.track_id)] = q
+        ax.scatter(*pts[:, :2].T, s=10, color=c, alpha=0.7, label=f"{r} objects (merged)")
     for f in factors:
-        for c in f.correspondences:
-            a, b = placed.get((f.robot_a, c.object_a)), placed.get((f.robot_b, c.object_b))
+        for corr in f.correspondences:
+            a, b = spots.get((f.robot_a, corr.object_a)), spots.get((f.robot_b, corr.object_b))
             if a is not None and b is not None:
                 ax.plot([a[0], b[0]], [a[1], b[1]], color="k", lw=0.6, alpha=0.5)
-    ax.plot([], [], color="k", lw=0.6, label="correspondences (between robots; loops)")
+    ax.plot([], [], color="k", lw=0.6, label="correspondences of the factors")
     ax.set_aspect("equal")
-    ax.set_title(f"merged map in {anchor}'s frame")
+    ax.set_title(f"The fleet in one frame: {a_robot}'s start (the anchor)")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
+
+    rows = (trajectory or {}).get("robots", {})
+    names = [r for r in rows if rows[r].get("ate_odometry_m") is not None]
+    x = np.arange(len(names))
+    odo = [rows[r]["ate_odometry_m"] for r in names]
+    mrg = [rows[r]["ate_merged_m"] or 0.0 for r in names]
+    bx.bar(x - 0.2, odo, 0.4, color="0.7", label="odometry alone")
+    bx.bar(x + 0.2, mrg, 0.4, color=[colors.get(r, "k") for r in names],
+           label="merged (ratio above)")
+    for i, r in enumerate(names):
+        if (ratio := rows[r].get("merged_over_odometry")) is not None:
+            bx.annotate(f"{ratio:.2f}x", (x[i] + 0.2, mrg[i]), ha="center", va="bottom",
+                        fontsize=8)
+    ticks = list(names)
+    if (fleet := (trajectory or {}).get("fleet_ate_merged_m")) is not None:
+        bx.bar(len(names) + 0.2, fleet, 0.4, color="k", label="fleet, one alignment")
+        ticks.append("fleet")
+    bx.set_xticks(np.arange(len(ticks)), ticks)
+    bx.set_ylabel("keyframe ATE [m]")
+    bx.set_title("Keyframe ATE per robot")
+    handles, labels = ax.get_legend_handles_labels()
+    more = bx.get_legend_handles_labels()
+    fig.legend(handles + more[0], labels + more[1], loc="outside lower center", ncol=5,
+               fontsize=7)
     fig.savefig(path)
     plt.close(fig)
     return path
 
 
-__all__ = ["ROBOTS", "SESSION", "DemoPlan", "plot_merged", "score_demo", "score_trajectories",
-           "trajectory_lines"]
+__all__ = ["ROBOTS", "SESSION", "DemoPlan", "placed_trajectories", "plot_merged", "robots_worse",
+           "score_demo", "score_trajectories", "trajectory_lines"]

@@ -24,7 +24,7 @@ from mergesvc.core.model import (
     parse_model,
     read_valid_json,
 )
-from mergesvc.errors import DecodeError, InputError, SchemaError, one_line
+from mergesvc.errors import DecodeError, InputError, SchemaError, cannot_read, one_line
 from mergesvc.wire.envelope import (
     AnyMessage,
     decode_message,
@@ -66,7 +66,7 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
             raise SchemaError(f"{p}: {size} bytes is larger than the limit {MAX_FILE_BYTES}")
         data = p.read_bytes()
     except OSError as exc:
-        raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
+        raise DecodeError(cannot_read(p, exc)) from exc
     _not_binary(p, data[:2])
     try:
         loaded = parse_model(model, data, what=str(p))
@@ -141,9 +141,10 @@ def _read_json_model(path: Path) -> AnyMessage:
             return _check_arrays(fast, str(path))
         raw = json.loads(data)
     except OSError as exc:
-        raise DecodeError(f"cannot read {path}: {exc.strerror or exc}") from exc
+        raise DecodeError(cannot_read(path, exc)) from exc
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DecodeError(f"{path} is not valid JSON: {one_line(exc)}") from exc
+        raise DecodeError(f"{path} is not valid JSON ({one_line(exc)}): give a map, submap, "
+                          "factor or error message file") from exc
     except RecursionError as exc:
         raise DecodeError(f"{path} is not usable JSON: nested too deeply") from exc
     except ValueError as exc:  # an integer beyond Python's digit limit (4300 digits)

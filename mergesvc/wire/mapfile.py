@@ -33,7 +33,14 @@ from mergesvc.core.model import (
     Submap,
     arrays_to_nodes,
 )
-from mergesvc.errors import DecodeError, InputError, MergeError, SchemaError, one_line
+from mergesvc.errors import (
+    DecodeError,
+    InputError,
+    MergeError,
+    SchemaError,
+    cannot_read,
+    one_line,
+)
 
 FORMAT = "mergesvc-map"
 VERSION = 1
@@ -156,7 +163,7 @@ def load_arrays(path: Path | str, mmap_large: bool = True
     try:
         views = _member_views(p)
     except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        raise DecodeError(f"cannot read {p}: {exc.strerror or exc}") from exc
+        raise DecodeError(cannot_read(p, exc)) from exc
     except (OSError, zipfile.BadZipFile, ValueError, EOFError) as exc:
         raise DecodeError(f"{p} is not a binary map file: {one_line(exc)}") from exc
     need = {"meta", "ids", "id_ends", "position_xyz_m", "embeddings", "variances", "n_obs"}
