@@ -28,12 +28,12 @@ def one_line(exc: BaseException | str) -> str:
     return text.splitlines()[0]
 
 
-def cannot_read(path: object, exc: OSError) -> str:
-    """The line for a map or submap file that cannot be read, saying what to do when it does
-    not exist."""
-    hint = ("; check the path (`mergesvc example DIR` writes a map and a submap to try)"
-            if isinstance(exc, FileNotFoundError) else "")
-    return f"cannot read {path}: {exc.strerror or exc}{hint}"
+def cannot_read(path: object, exc: OSError, hint: str = "") -> str:
+    """The line for a file that cannot be read; when it does not exist, "check the path" and
+    the caller's hint (what writes such a file)."""
+    more = f"; check the path{f' ({hint})' if hint else ''}" if isinstance(
+        exc, FileNotFoundError) else ""
+    return f"cannot read {path}: {exc.strerror or exc}{more}"
 
 
 class MergeError(Exception):

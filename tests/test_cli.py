@@ -413,6 +413,9 @@ def test_demo_quick_runs_to_completion(quick_demo: dict) -> None:
     assert f"summary {tmp_path / 'summary.json'}" in r.stdout
     for t in traj.values():  # the last keyframe from odometry alone, beside the merged
         assert 0.0 <= t["final_pos_err_odometry_m"] < 5.0, t
+        if t["ate_merged_m"] is not None:  # and the odometry as the service received it
+            assert 0.0 < t["ate_odometry_received_m"] < 5.0, t
+            assert t["merged_over_received"] == t["ate_merged_m"] / t["ate_odometry_received_m"]
     # the stopped service's store exported (mergesvc export): the g2o graph loads in gtsam with
     # every node the export names, and a merged TUM file for every robot aligned with the anchor
     exports = [Path(p) for p in summary["exports"]]

@@ -92,7 +92,7 @@ def test_a_refusal_names_the_fault_in_the_json_modules_words(underwater_scenario
         parse_model(Submap, text + " x", "f")
     # another kind of file: said so, with its fields; too few objects: how many
     with pytest.raises(SchemaError, match=r"^invalid f: not a submap file \(it has no `objects`; "
-                       r"its fields: truth, seed\)"):
+                       r"its fields: 'truth', 'seed'\)"):
         parse_model(Submap, '{"truth": {}, "seed": 1}', "f")
     empty = json.loads(text) | {"objects": []}
     with pytest.raises(SchemaError, match=r"^invalid f: objects: needs at least 1, has 0$"):

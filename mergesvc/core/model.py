@@ -432,7 +432,7 @@ def parse_model(model: type[ObjectMap], data: str | bytes, what: str = "file") -
         raise SchemaError(f"invalid {what}: expected a JSON object, got {type(raw).__name__}")
     if "objects" not in raw:  # another kind of file (a truth file, a factor, settings)
         kind = "submap" if model is Submap else "map"
-        fields = ", ".join(str(k) for k in list(raw)[:5]) or "none"
+        fields = ", ".join(repr(k)[:40] for k in list(raw)[:5]) or "none"
         raise SchemaError(f"invalid {what}: not a {kind} file (it has no `objects`; its "
                           f"fields: {fields}); `mergesvc example DIR` writes one to compare")
     try:

@@ -29,6 +29,7 @@ from mergesvc.fleet.demo_score import (
     ROBOTS,
     SESSION,
     DemoPlan,
+    add_received_odometry,
     plot_merged,
     score_demo,
     score_trajectories,
@@ -164,8 +165,6 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
             return result
         result.summary = score_demo(plan, status, factors, logs, out_dir)
         result.summary["elapsed_s"] = round(time.monotonic() - t_start, 1)
-        for line in trajectory_lines(result.summary):
-            echo(line)
         if result.summary["factors_accepted"] == 0:
             result.failures.append("no factor was accepted")
     except subprocess.TimeoutExpired as exc:
@@ -187,6 +186,12 @@ def run_demo(plan: DemoPlan, out_dir: Path, echo: Callable[[str], Any] = print,
                 result.failures.append(f"service exited with {p.returncode} (see {logs[name]})")
     if store.exists():
         _export(store, out_dir / EXPORT_DIR, proj_path, plan.service, result)
+    if result.summary:
+        # the odometry as the service received it (the export's): what the merge started from
+        if result.summary.get("exports"):
+            add_received_odometry(result.summary, out_dir / EXPORT_DIR)
+        for line in trajectory_lines(result.summary):
+            echo(line)
     result.ok = not result.failures
     (out_dir / "summary.json").write_text(json.dumps(
         {"ok": result.ok, "failures": result.failures, **result.summary}, indent=1,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -207,7 +208,8 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
         if row["ate_merged_m"] is not None and row["ate_odometry_m"]:
             row["merged_over_odometry"] = row["ate_merged_m"] / row["ate_odometry_m"]
         out[r] = row
-    return {"robots": out, "fleet_ate_merged_m": fleet_ate(fleet_poses, truths)}
+    fleet = fleet_ate(fleet_poses, truths)
+    return {"robots": out, "fleet_ate_merged_m": fleet if np.isfinite(fleet) else None}
 
 
 # merged / odometry ATE above which the demo says a robot got worse: above 1.00 as printed (a
@@ -228,6 +230,34 @@ def robots_worse(summary: dict[str, Any]) -> list[str]:
             if (t.get("merged_over_odometry") or 0.0) > WORSE_ABOVE]
 
 
+def add_received_odometry(summary: dict[str, Any], export_dir: Path) -> None:
+    """Each robot's odometry as the service received it (the export's
+    {robot}_s0_odometry.tum: the compact codec rounds it), scored as `ate_odometry_m` is (on
+    the merged keyframes, against the truth's TUM file score_trajectories wrote):
+    `ate_odometry_received_m` and `merged_over_received`; left out for a robot whose files are
+    missing or do not fix an alignment."""
+    from mergesvc.core.trajectory import ate_rmse
+    from mergesvc.wire.formats import read_tum
+
+    for r, t in summary.get("trajectory", {}).get("robots", {}).items():
+        tum = t.get("tum") or {}
+        received = export_dir / "trajectories" / f"{_frame(r).replace('/', '_')}_odometry.tum"
+        if "merged" not in tum or not received.is_file():
+            continue
+        with contextlib.suppress(MergeError):  # DecodeError among them
+            stamps_t, truth = read_tum(tum["truth"])
+            stamps_m, _ = read_tum(tum["merged"])
+            stamps_o, odo = read_tum(received)
+            at = {round(float(x), 6): i for i, x in enumerate(stamps_o)}
+            idx = [at.get(round(float(x), 6)) for x in stamps_m]
+            if any(i is None for i in idx):
+                continue
+            ref = truth[np.searchsorted(stamps_t, stamps_m)]
+            t["ate_odometry_received_m"] = ate_rmse(odo[idx], ref)
+            if t.get("ate_merged_m") is not None and t["ate_odometry_received_m"] > 0:
+                t["merged_over_received"] = t["ate_merged_m"] / t["ate_odometry_received_m"]
+
+
 def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     """The summary's trajectory scores for the demo's output: per robot its keyframe ATE from
     odometry alone and merged (the same keyframes), saying plainly when merging made it worse,
@@ -241,14 +271,15 @@ def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     traj = summary.get("trajectory", {})
     lines = []
     if summary.get("anchor"):
-        lines.append(f"  merged map in {summary['anchor']}'s frame (the anchor: the first "
-                     f"session the service heard from); errors against the truth:")
+        lines.append(f"  merged map in {summary['anchor']}'s frame (the anchor: the session "
+                     f"of the first submap the service merged); errors against the truth:")
     for r, t in traj.get("robots", {}).items():
         ratio = t.get("merged_over_odometry")
-        verdict = ("" if ratio is None else
-                   f" ({ratio:.2f}x: WORSE than its own odometry, by {100 * (ratio - 1):.0f} %"
-                   f" or {1e3 * (t['ate_merged_m'] - t['ate_odometry_m']):.0f} mm)"
-                   if ratio > WORSE_ABOVE else f" ({ratio:.2f}x)")
+        verdict = "" if ratio is None else f" ({ratio:.2f}x)"
+        if ratio is not None and ratio > WORSE_ABOVE:
+            mm = 1e3 * (round(t["ate_merged_m"], 3) - round(t["ate_odometry_m"], 3))
+            verdict = (f" ({ratio:.2f}x: WORSE than its own odometry, by "
+                       f"{100 * (ratio - 1):.0f} % or {mm:.0f} mm{_received_note(t)})")
         odo_deg, deg = t.get("final_rot_err_odometry_deg"), t.get("final_rot_err_deg")
         heading = ("; its heading WORSE than the odometry's" if odo_deg is not None and
                    deg is not None and
@@ -266,10 +297,11 @@ def trajectory_lines(summary: dict[str, Any]) -> list[str]:
     if traj.get("robots"):
         worse = robots_worse(summary)
         lines.append("  merging made no robot's trajectory worse than its own odometry" if not
-                     worse else f"  merging made {len(worse)} robot(s) WORSE than their own "
+                     worse else f"  merging made {len(worse)} "
+                     f"{'robot' if len(worse) == 1 else 'robots'} WORSE than its own "
                      f"odometry: " + ", ".join(
-                         f"{r} ({traj['robots'][r]['merged_over_odometry']:.2f}x)"
-                         for r in worse))
+                         f"{r} ({traj['robots'][r]['merged_over_odometry']:.2f}x"
+                         f"{_received_note(traj['robots'][r])})" for r in worse))
     noise = summary.get("odometry_noise") or {}
     if noise:
         lines.append("  odometry noise as the service calibrated it, sigma / declared, "
@@ -282,6 +314,16 @@ def trajectory_lines(summary: dict[str, Any]) -> list[str]:
                      f"{' '.join(f'{x:.2f}' for x in s[3:])}  (+- {' '.join(pm[:3])} | "
                      f"{' '.join(pm[3:])} %)")
     return lines
+
+
+def _received_note(t: dict[str, Any]) -> str:
+    """What a robot's merged trajectory is against its odometry as the service received it,
+    when that explains a loss: the compact codec's rounding, not the merge."""
+    received = t.get("merged_over_received")
+    if received is None or received > WORSE_ABOVE:
+        return ""
+    return (f"; {received:.2f}x the odometry the service received: the compact codec's "
+            f"rounding, not the merge")
 
 
 def _agent_totals(path: Path | None) -> dict[str, int]:
@@ -300,6 +342,16 @@ def _pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     d = np.linalg.inv(T_true) @ T_est
     ang = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(ang)
+
+
+def merged_path(merged: dict[int, np.ndarray], est: Sequence[np.ndarray]) -> np.ndarray:
+    """(n, 3) positions of a robot's merged trajectory at every frame from its first merged
+    keyframe to its last: frame j after keyframe k is merged[k] inv(est[k]) est[j] (its
+    odometry from the last keyframe before it), so frame k itself is merged[k]; frames after
+    the last keyframe were never sent and are left out."""
+    keys = sorted(merged)
+    return np.array([(merged[k] @ np.linalg.solve(est[k], est[j]))[:3, 3]
+                     for k, nxt in zip(keys, [*keys[1:], keys[-1] + 1]) for j in range(k, nxt)])
 
 
 def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
@@ -334,11 +386,10 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
             ax.plot(*truths[r][:, :2, 3].T, lw=0.8, ls="--", color=c, alpha=0.45,
                     label=f"{r} true path")
         keys = sorted(merged.get(r, {}))
-        if keys:  # each frame: its odometry from the last merged keyframe before it
+        if keys:
             est = [f.T_est for f in frames[r]] if frames else None
-            xy = (np.array([merged[r][k][:2, 3] for k in keys]) if est is None else np.array([
-                (merged[r][k] @ np.linalg.solve(est[k], est[j]))[:2, 3]
-                for k, nxt in zip(keys, [*keys[1:], len(est)]) for j in range(k, nxt)]))
+            xy = (np.array([merged[r][k][:2, 3] for k in keys]) if est is None else
+                  merged_path(merged[r], est)[:, :2])
             ax.plot(*xy.T, lw=1.1, color=c, label=f"{r} merged (keyframes + odometry)")
             kf = np.array([merged[r][k][:2, 3] for k in keys])
             ax.scatter(*kf.T, s=14, color=c, marker="o", edgecolors="k", linewidths=0.4)
@@ -348,7 +399,8 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
         pts = np.array([T[:3, :3] @ t.position_xyz_m + T[:3, 3] for t in lm.tracker.tracks])
         for t, q in zip(lm.tracker.tracks, pts):
             spots[(r, t.track_id)] = q
-        ax.scatter(*pts[:, :2].T, s=10, color=c, alpha=0.7, label=f"{r} objects (merged)")
+        ax.scatter(*pts[:, :2].T, s=10, color=c, alpha=0.7,
+                   label=f"{r} objects (its map, placed by the merge)")
     for f in factors:
         for corr in f.correspondences:
             a, b = spots.get((f.robot_a, corr.object_a)), spots.get((f.robot_b, corr.object_b))
@@ -369,24 +421,26 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
     bx.bar(x + 0.2, mrg, 0.4, color=[colors.get(r, "k") for r in names],
            label="merged (ratio above)")
     for i, r in enumerate(names):
-        if (ratio := rows[r].get("merged_over_odometry")) is not None:
-            bx.annotate(f"{ratio:.2f}x", (x[i] + 0.2, mrg[i]), ha="center", va="bottom",
-                        fontsize=8)
+        ratio = rows[r].get("merged_over_odometry")
+        bx.annotate("not placed" if rows[r]["ate_merged_m"] is None else
+                    f"{ratio:.2f}x" if ratio is not None else "", (x[i] + 0.2, mrg[i]),
+                    ha="center", va="bottom", fontsize=8, rotation=90 if ratio is None else 0)
     ticks = list(names)
     if (fleet := (trajectory or {}).get("fleet_ate_merged_m")) is not None:
-        bx.bar(len(names) + 0.2, fleet, 0.4, color="k", label="fleet, one alignment")
+        bx.bar(len(names), fleet, 0.4, color="k", label="fleet, one alignment")
         ticks.append("fleet")
     bx.set_xticks(np.arange(len(ticks)), ticks)
     bx.set_ylabel("keyframe ATE [m]")
     bx.set_title("Keyframe ATE per robot")
     handles, labels = ax.get_legend_handles_labels()
     more = bx.get_legend_handles_labels()
-    fig.legend(handles + more[0], labels + more[1], loc="outside lower center", ncol=5,
+    fig.legend(handles + more[0], labels + more[1], loc="outside lower center", ncol=4,
                fontsize=7)
     fig.savefig(path)
     plt.close(fig)
     return path
 
 
-__all__ = ["ROBOTS", "SESSION", "DemoPlan", "placed_trajectories", "plot_merged", "robots_worse",
-           "score_demo", "score_trajectories", "trajectory_lines"]
+__all__ = ["ROBOTS", "SESSION", "DemoPlan", "add_received_odometry", "merged_path",
+           "placed_trajectories", "plot_merged", "robots_worse", "score_demo",
+           "score_trajectories", "trajectory_lines"]

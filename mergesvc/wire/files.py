@@ -66,7 +66,8 @@ def load_model(model: type[ObjectMap], path: Path | str) -> ObjectMap:
             raise SchemaError(f"{p}: {size} bytes is larger than the limit {MAX_FILE_BYTES}")
         data = p.read_bytes()
     except OSError as exc:
-        raise DecodeError(cannot_read(p, exc)) from exc
+        raise DecodeError(cannot_read(
+            p, exc, "`mergesvc example DIR` writes a map and a submap to try")) from exc
     _not_binary(p, data[:2])
     try:
         loaded = parse_model(model, data, what=str(p))

@@ -163,7 +163,8 @@ def load_arrays(path: Path | str, mmap_large: bool = True
     try:
         views = _member_views(p)
     except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        raise DecodeError(cannot_read(p, exc)) from exc
+        raise DecodeError(cannot_read(
+            p, exc, "`mergesvc convert MAP.json MAP.npz` writes a binary map")) from exc
     except (OSError, zipfile.BadZipFile, ValueError, EOFError) as exc:
         raise DecodeError(f"{p} is not a binary map file: {one_line(exc)}") from exc
     need = {"meta", "ids", "id_ends", "position_xyz_m", "embeddings", "variances", "n_obs"}
