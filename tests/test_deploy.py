@@ -292,14 +292,17 @@ def test_robot_cannot_publish_factors_and_gets_only_its_own(fleet: Fleet) -> Non
         assert _deliver(_session_put(fleet["auv1"]), service_inbox, f"{root}/submap/auv1/s0/2")
         assert _deliver(_session_put(fleet["service"]), auv2_inbox, f"{root}/factor/auv2/f3")
         assert forged not in auv2_inbox.keys
-        # the service's error reports reach the robot they are about, and only it
-        # refused, and declared before the permitted one, like factor/** above
-        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/*", auv1_inbox.handler))
-        subs.append(fleet["auv1"].declare_subscriber(f"{root}/error/auv1", auv1_inbox.handler))
-        errors = (f"{root}/error/auv1", f"{root}/error/auv2")
-        with _publishers(fleet["service"], errors[1], errors[0]) as put:
-            assert _deliver(put, auv1_inbox, errors[0], errors[1])
-            assert _stopped(put, auv1_inbox, errors[1], errors[0], session=fleet["service"])
+        # the service's error reports and submap results reach the robot they are about, and
+        # only it; the wider subscription refused, and declared before the permitted one, like
+        # factor/** above
+        for kind in ("error", "result"):
+            subs.append(fleet["auv1"].declare_subscriber(f"{root}/{kind}/*", auv1_inbox.handler))
+            subs.append(fleet["auv1"].declare_subscriber(f"{root}/{kind}/auv1",
+                                                         auv1_inbox.handler))
+            mine, theirs = f"{root}/{kind}/auv1", f"{root}/{kind}/auv2"
+            with _publishers(fleet["service"], theirs, mine) as put:
+                assert _deliver(put, auv1_inbox, mine, theirs), kind
+                assert _stopped(put, auv1_inbox, theirs, mine, session=fleet["service"]), kind
     finally:
         for sub in subs:
             sub.undeclare()
