@@ -20,6 +20,7 @@ from mergesvc.errors import ConfigError
 from mergesvc.fleet.config import ServiceConfig
 from mergesvc.fleet.replies import RelocalizeReply
 from mergesvc.fleet.service import MergeService
+from mergesvc.fleet.transport import Query
 from mergesvc.ros2 import Ros2Bridge, Ros2Publisher
 from mergesvc.ros2.messages import (
     RosType,
@@ -480,6 +481,13 @@ def test_the_bridge_republishes_service_factors_once_the_map_and_relocalization(
         assert r.header()[2] == "auv1/s0"
         position, _ = r.pose()
         assert np.allclose(position, reply.T_anchor_session.translation)
+        # and one asked over Zenoh (the relocalize queryable's handler) as well
+        before = len(got.on(reloc_key))
+        asked = Query(keys.relocalize_key(root), payload=encode_message(
+            sub_a.model_copy(update={"session_id": "s8"}), Profile.FULL, "auv1", 1))
+        answer = json.loads(service._on_relocalize(asked).payload)
+        assert answer["localized"], answer
+        assert wait_for(lambda: len(got.on(reloc_key)) > before, timeout_s=10.0)
     finally:
         bridge.close()
         sub.undeclare()

@@ -283,9 +283,10 @@ class Queries:
                                T_anchor_session=res.transform, covariance=res.covariance,
                                matches=len(res.matches), keyframe=sub.keyframe)
 
-    def relocalize_payload(self, data: bytes | None,
-                           projections: dict[str, Projection]) -> RelocalizeReply:
-        """`relocalize` of a query's payload (a coded submap); SchemaError if it is none."""
+    def relocalize_submap(self, data: bytes | None,
+                          projections: dict[str, Projection]) -> Submap:
+        """The submap a relocalize query's payload codes; SchemaError if it codes none (the
+        service answers it with its own `relocalize`, which the ROS 2 bridge wraps)."""
         if data is None:
             raise SchemaError("relocalize needs a submap in the query payload")
         if len(data) > self.config.max_payload_bytes:
@@ -293,7 +294,7 @@ class Queries:
         _, sub = decode_message(data, projections)
         if not isinstance(sub, Submap):
             raise SchemaError("relocalize needs a submap")
-        return self.relocalize(sub)
+        return sub
 
     def status(self, stats: ServiceStats, figures: StoreFigures, *, poses: bool,
                alive: list[str], solve: dict[str, Any], frozen: int, damage: list[str],

@@ -485,8 +485,8 @@ class MergeService:
     def _on_relocalize(self, query: Query) -> Reply:
         self.stats.count("relocalize_queries")
         try:
-            return Reply(self.queries.relocalize_payload(query.payload, self.projections)
-                         .model_dump_json().encode(), keys.JSON_ENCODING)
+            return Reply(self.relocalize(self.queries.relocalize_submap(
+                query.payload, self.projections)).model_dump_json().encode(), keys.JSON_ENCODING)
         except MergeError as exc:
             self.stats.error("bad_relocalize")
             log.warning("bad relocalize query: %s", exc)
