@@ -667,6 +667,31 @@ def test_every_submap_gets_one_result_and_status_counts_them() -> None:
         "failed": 0}
 
 
+def test_a_refused_submap_whose_header_reads_is_named_in_its_answer() -> None:
+    """Objects the models refuse (here two with one id) in a submap whose header reads: the
+    result and the error message name its session and seq; bytes that name none (junk) and a
+    header naming another robot than the key's get nulls."""
+    from mergesvc.fleet.replies import SubmapResult
+
+    with Net(ServiceConfig(fleet=FLEET, store=":memory:")) as net:
+        results = Recorder(net.cs, keys.all_results(ROOT))
+        sub = make_submap("w", "s2", 5, n=4)
+        twice = sub.model_copy(update={"objects": [sub.objects[0], *sub.objects]})
+        net.put(twice)
+        net.put(twice, key=keys.submap_key(ROOT, "v", "s2"))  # the key names another robot
+        net.cs.put(keys.submap_key(ROOT, "x", "s0"), b"junk", congestion_control=BLOCK)
+        got = results.wait(3)
+        assert wait_for(lambda: len(errors_of(net.errors)) == 3)
+        errors = errors_of(net.errors)
+        results._sub.undeclare()
+    res = {k.rsplit("/", 1)[-1]: SubmapResult.model_validate_json(data) for k, data, _ in got}
+    assert {r: (x.code.value, x.session, x.seq) for r, x in res.items()} == {
+        "w": ("bad_submap", "s2", 5), "v": ("bad_submap", None, None),
+        "x": ("bad_submap", None, None)}
+    assert "duplicate id" in res["w"].detail
+    assert sorted((r, e.about_seq) for r, e in errors) == [("v", None), ("w", 5), ("x", None)]
+
+
 def test_a_submap_whose_processing_fails_gets_a_failed_result(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

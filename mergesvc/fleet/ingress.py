@@ -30,6 +30,7 @@ from mergesvc.fleet.replies import RefusalCode
 from mergesvc.fleet.transport import Sample
 from mergesvc.store import Store, SubmapConflictError
 from mergesvc.wire import Projection, decode_message, keys
+from mergesvc.wire.envelope import peek_submap_header
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,7 @@ class Ingress:
             self._answer(robot, key, RefusedError(RefusalCode.STORE, str(exc)), sub)
             return None
         except MergeError as exc:
-            self._answer(robot, key, RefusedError(RefusalCode.BAD_SUBMAP, str(exc)), sub)
+            self._answer(robot, key, RefusedError(RefusalCode.BAD_SUBMAP, str(exc)), sub, data)
             return None
         assert sub.seq is not None
         try:
@@ -208,16 +209,30 @@ class Ingress:
         check_odometry(sub)
         return sub
 
-    def _answer(self, robot: str, key: str, exc: RefusedError, sub: Submap | None) -> None:
+    def _answer(self, robot: str, key: str, exc: RefusedError, sub: Submap | None,
+                data: bytes | None = None) -> None:
         """Count, log (one line) and answer a refused submap (`sub`: None when it did not
-        decode)."""
+        decode; then its header, read from `data`, may still name it)."""
         self.stats.count("submaps_rejected")
         log.warning("refused a submap on %s (%s): %s", key, exc.code.value, exc)
         # the session and seq the robot can recognise: only a submap of its own (a robot
         # mismatch names another robot's submap: its seq means nothing to this one)
-        own = sub is not None and sub.robot_id == robot
-        self.refuse(robot, exc.code, str(exc), sub.seq if own and sub else None,
-                    sub.session_id if own and sub else None)
+        if sub is not None:
+            own = sub.robot_id == robot
+            seq, session = (sub.seq, sub.session_id) if own else (None, None)
+        else:  # objects the models refuse (NaN, a negative variance): the header still reads
+            head = None if data is None else peek_submap_header(data)
+            own = head is not None and head[0] == robot and self._keyed(key, robot, head[1])
+            seq, session = (head[2], head[1]) if head is not None and own else (None, None)
+        self.refuse(robot, exc.code, str(exc), seq, session)
+
+    def _keyed(self, key: str, robot: str, session: str | None) -> bool:
+        """Whether `key` is where robot's session `session` publishes (a name no key can hold
+        is not)."""
+        try:
+            return session is not None and keys.submap_key(self.root, robot, session) == key
+        except (MergeError, ValueError):
+            return False
 
     # -- admission ---------------------------------------------------------------------------
 

@@ -22,7 +22,7 @@ import msgpack
 from pydantic import BaseModel
 
 from mergesvc.core.model import SCHEMA_VERSION, ErrorMessage, Factor, ObjectMap, Submap
-from mergesvc.errors import CodecError, DecodeError, SchemaError, one_line
+from mergesvc.errors import CodecError, DecodeError, MergeError, SchemaError, one_line
 from mergesvc.wire.factors import decode_factor_compact, encode_factor_compact
 from mergesvc.wire.fields import check_int, check_list, check_str, validate_model
 from mergesvc.wire.objects import decode_objects, encode_objects
@@ -207,6 +207,27 @@ def peek_compact_code(data: bytes, limits: CodecLimits = DEFAULT_LIMITS) -> Comp
     return CompactCode(pid.hex(), budget, step16)
 
 
+def peek_submap_header(data: bytes, limits: CodecLimits = DEFAULT_LIMITS
+                       ) -> tuple[str, str | None, int | None] | None:
+    """(sender, session, seq) a submap message's header names, read without validating its
+    objects (a refusal's answer names the submap at fault); None when the bytes are not a
+    submap message whose header reads. The seq is the payload's own, else the envelope's."""
+    try:
+        env = _unpack(data, limits)
+        if _CODE_TYPE.get(check_int(env[2], "message type", 0, 255)) is not MessageType.SUBMAP:
+            return None
+        sender = check_str(env[3], "sender", max_len=128)
+        seq: int | None = check_int(env[4], "seq", 0, 2**63 - 1)
+        fields = check_list(env[6], "submap payload")
+        session = check_str(fields[1], "session_id", max_len=128) if len(fields) > 2 else None
+        if len(fields) > 2 and fields[2] is not None:
+            own = check_int(fields[2], "seq", -1, 2**63 - 1)
+            seq = None if own == -1 else own
+    except (MergeError, IndexError, TypeError):
+        return None
+    return sender, session, seq
+
+
 def decode_message(
     data: bytes,
     projections: Projection | Sequence[Projection] | Mapping[str, Projection] | None = None,
@@ -276,4 +297,5 @@ __all__ = [
     "parse_profile",
     "peek_compact_code",
     "peek_projection_id",
+    "peek_submap_header",
 ]
