@@ -13,7 +13,9 @@ status and relocalize (JSON replies). It prints one JSON object:
     python clients/plain_client.py --connect tcp/127.0.0.1:7447 --fleet fleet0 \\
         --robot auv2 --session s0 --seq 0 --submap submap.json
 
-Exit code 0 when the result came (whatever it says), 1 when it did not within --timeout.
+Exit code 0 when the result came (whatever it says), 1 when it did not within --timeout, 2 when
+the session or the file failed (one line on stderr). A factor coded `compact` (the service's
+default) is listed as {"factor_id", "undecoded": why}.
 """
 
 from __future__ import annotations
@@ -243,7 +245,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             item = factors.wait(lambda it, key=key: it if it[0] == key else None, args.timeout)
             if item is None:
                 raise TimeoutError(f"factor {fid} named by the result did not come")
-            out_factors.append(decode_factor(item[1]))
+            try:
+                out_factors.append(decode_factor(item[1]))
+            except ValueError as exc:  # a compact factor (the service's default): said, kept
+                out_factors.append({"factor_id": fid, "undecoded": str(exc)})
             factor_encoding = item[2]
         status, status_encoding = query_json(session, f"{root}/status", None, args.timeout)
         reloc, reloc_encoding = query_json(session, f"{root}/relocalize", message, args.timeout)
@@ -278,6 +283,11 @@ def main(argv: list[str] | None = None) -> int:
     except TimeoutError as exc:
         print(f"plain_client: {exc}", file=sys.stderr)
         return 1
+    except (zenoh.ZError, OSError, ValueError) as exc:  # no router there, a bad file or flag
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0].split("  at ")[0]
+        print(f"plain_client: {first} (check --connect and that the service runs there, and "
+              f"the --submap file)", file=sys.stderr)
+        return 2
     print(json.dumps(out, allow_nan=False))
     return 0
 

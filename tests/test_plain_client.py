@@ -110,6 +110,21 @@ def _status(session: zenoh.Session) -> dict | None:
     return None
 
 
+def test_plain_client_says_in_one_line_when_nothing_answers(tmp_path: Path) -> None:
+    """No router at --connect, or no submap file: exit 2 and one line on stderr, no traceback."""
+    (tmp_path / "b.json").write_text(pair()[1].model_dump_json())
+    dead = f"tcp/127.0.0.1:{free_port()}"
+    for submap in ("b.json", "missing.json"):
+        run = subprocess.run(
+            [sys.executable, str(CLIENT), "--connect", dead, "--no-multicast-scouting",
+             "--fleet", FLEET, "--robot", "b", "--submap", str(tmp_path / submap),
+             "--timeout", "5"], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 2 and run.stdout == "", (submap, run)
+        (line,) = run.stderr.strip().splitlines()
+        assert line.startswith("plain_client: ") and "check --connect" in line, line
+        assert ("Unable to connect" if submap == "b.json" else "No such file") in line, line
+
+
 def test_plain_client_against_a_running_service(tmp_path: Path) -> None:
     sub_a, sub_b = pair()
     (tmp_path / "b.json").write_text(sub_b.model_dump_json())
