@@ -153,3 +153,8 @@ def test_the_defects_the_fuzzer_found_stay_fixed(tmp_path: Path) -> None:
     for name in ("one.npy", "method.npz"):
         with pytest.raises(DecodeError, match="is not a projection file"):
             Projection.load(tmp_path / name)
+    # pickled objects: refused in our words (numpy's would suggest loading them unsafely)
+    np.savez(tmp_path / "pickled.npz", mean=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(DecodeError, match=r"is not a projection file: it holds pickled objects, "
+                       r"which are never loaded \(`mergesvc projection make` writes one\)$"):
+        Projection.load(tmp_path / "pickled.npz")

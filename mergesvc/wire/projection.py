@@ -201,8 +201,12 @@ class Projection:
             raise DecodeError(f"cannot read projection {p}: {exc.strerror or exc}") from exc
         except (ValueError, KeyError, EOFError, zipfile.BadZipFile, NotImplementedError,
                 zlib.error) as exc:  # zipfile: an unsupported zip version or compression
-            # method is NotImplementedError, a corrupt deflate stream zlib.error
-            raise DecodeError(f"{p} is not a projection file: {one_line(exc)}") from exc
+            # method is NotImplementedError, a corrupt deflate stream zlib.error; numpy's own
+            # words for a file of pickled objects would invite loading it unsafely: never
+            why = ("it holds pickled objects, which are never loaded" if "pickle" in str(exc)
+                   else one_line(exc))
+            raise DecodeError(f"{p} is not a projection file: {why} (`mergesvc projection "
+                              f"make` writes one)") from exc
         try:
             fit_variance = None if fv is None else float(fv)
         except (TypeError, ValueError) as exc:
