@@ -187,6 +187,10 @@ def read_settings_file(path: Path | str, *, bare_match: BareMatch = ("match",)) 
     if keys <= set(SECTIONS):
         return data
     if keys <= _BARE["match"]:  # a whole MatchConfig, as --config/--settings always read it
+        try:  # refused as the tree refuses it: the nearest key to a misspelt one, the file
+            Settings.model_validate({"match": data})
+        except ValidationError as exc:
+            raise _config_error(exc, f"settings file {path}") from exc
         whole = match_config(data).model_dump(mode="json")
         out: dict[str, Any] = {}
         for where in _bare_paths(bare_match):

@@ -659,7 +659,11 @@ def test_bare_keys_never_name_a_section() -> None:
         ('{"match": {"candidates": {"topk": 3}}}', "match.candidates.topk: .* (did you mean "
          "top_k"),
         ('{"service": {"zzz": 1}}', "service.zzz: .* (no such setting)"),
-        ('{"candidates": {"top_k": 0}}', "invalid settings: candidates.top_k"),
+        # a bare MatchConfig: refused as the tree would refuse it, where it goes
+        ('{"candidates": {"top_k": 0}}', "invalid settings: match.candidates.top_k: .* "
+         "(set by settings file"),
+        ('{"verify": {"min_matchs": 4}}', "invalid settings: match.verify.min_matchs: .* (did "
+         "you mean min_matches"),
         ('{"match": {"candidates": {"top_k": 0}}}', "invalid settings: match.candidates.top_k"),
         ("[]", "must hold a JSON object"),
         ("{nope", "cannot read settings file"),

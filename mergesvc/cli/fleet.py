@@ -125,7 +125,8 @@ def serve(
     factor_profile: Annotated[
         FactorProfile, typer.Option(help="how factors are coded: compact (a bit stream) or full "
                                          "(a msgpack map, for clients that do not decode "
-                                         "compact) [default: the setting service.factor_profile]")
+                                         "compact) [default: the setting service.factor_profile]",
+                                    show_default=False)
     ] = FactorProfile.COMPACT,
 ) -> None:
     """The merge service: embedded Zenoh router on tcp/127.0.0.1:7447 by default.

@@ -81,7 +81,8 @@ def snapshot_store(store_path: str | Path, copy_path: str | Path) -> Path:
     there. InputError: no such file; StoreError: not an SQLite file, or unreadable."""
     src_path = Path(store_path)
     if not src_path.is_file():
-        raise InputError(f"no store file {src_path}")
+        raise InputError(f"no store file {src_path}: give the file `mergesvc serve --store` "
+                         f"wrote")
     dst_path = Path(copy_path)
     try:
         try:
