@@ -510,7 +510,9 @@ def test_settings_file_env_and_flags_on_match(files: Path, tmp_path: Path) -> No
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"candidates": {"top_k": 0}}))
     r = run(*args, "--settings", str(bad))
-    assert r.returncode == 1 and r.stderr.startswith("error: invalid settings: candidates.top_k")
+    assert r.returncode == 1 and r.stderr.startswith(  # where it goes in the tree, and the file
+        "error: invalid settings: match.candidates.top_k"), r.stderr
+    assert f"(set by settings file {bad})" in r.stderr, r.stderr
 
 
 def test_config_dump_prints_the_resolved_tree(tmp_path: Path) -> None:
