@@ -63,6 +63,10 @@ def test_a_log_round_trips_with_its_gravity(world, tmp_path) -> None:
     ("up_body", [0.0, 1.0], "up_body"),
     ("position_body_m", [1.0, float("inf"), 0.0], "position_body_m"),
     ("pose", "bad", r"not an observation record .*stamp_s, pose \{translation"),
+    # a detection's own values: named as the log names them, not as the code does
+    ("embedding", [float("nan")] * 384, r"detections\[0\]: embedding has "
+     "non-finite values$"),
+    ("uncertainty", -1.0, r"detections\[0\]: uncertainty must be > 0$"),
 ])
 def test_bad_lines_are_refused_with_the_line_named(world, tmp_path, field, value,
                                                    message) -> None:

@@ -90,7 +90,7 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                         raise ValueError("up_body must be 3 finite numbers, not all zero")
                     up = up / np.linalg.norm(up)
                 dets = []
-                for d in rec.get("detections", []):
+                for i, d in enumerate(rec.get("detections", [])):
                     body = np.asarray(d["position_body_m"], dtype=np.float64)
                     if body.shape != (3,) or not np.all(np.isfinite(body)):
                         raise ValueError("position_body_m must be 3 finite numbers")
@@ -99,8 +99,13 @@ def read_observation_log(path: Path | str) -> Iterator[Frame]:
                         raise ValueError("position_sigma_m must be a finite number > 0")
                     p = T[:3, :3] @ body + T[:3, 3]
                     cov = T[:3, :3] @ np.eye(3) * sigma**2 @ T[:3, :3].T
-                    dets.append(Detection(np.asarray(d["embedding"], dtype=np.float64),
-                                          float(d["uncertainty"]), p, cov, stamp))
+                    try:
+                        dets.append(Detection(np.asarray(d["embedding"], dtype=np.float64),
+                                              float(d["uncertainty"]), p, cov, stamp))
+                    except MergeError as exc:  # named as the log names its fields
+                        raise SchemaError(f"detections[{i}]: " + str(exc).replace(
+                            "embedding_d", "embedding").replace("uncertainty_s", "uncertainty")
+                        ) from exc
             except json.JSONDecodeError as exc:
                 raise DecodeError(f"{path}:{k}: not JSON: {exc.msg}") from exc
             except UnicodeDecodeError as exc:
