@@ -248,6 +248,8 @@ def test_view_duration_bounds_it_without_a_service(tmp_path) -> None:
                              capture_output=True, text=True, timeout=90)
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout.strip().splitlines()[-1])["submaps"] == 0
+    assert f"warning: nothing of fleet {FLEET} came" in res.stderr, res.stderr  # said, once
+    assert res.stderr.count("warning: nothing of fleet") == 1
     assert_empty_recording(out)
 
 

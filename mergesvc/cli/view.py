@@ -87,6 +87,9 @@ def view(
                 feed.poll_status()  # the recording ends with the latest merged state
             typer.echo(json.dumps({"fleet": fleet, **vars(feed.stats),
                                    "saved": str(save) if save else None}))
+            if not (feed.stats.statuses or feed.stats.submaps or feed.stats.factors):
+                typer.echo(f"warning: nothing of fleet {fleet} came (no status, submap or "
+                           f"factor): is a service running on that fleet there?", err=True)
 
 
 def _check_writable(path: Path) -> None:
