@@ -753,3 +753,49 @@ def test_a_cache_only_publishers_history_is_recovered_once() -> None:
         finally:
             pub.undeclare()
             svc.close()
+
+
+def test_status_and_relocalize_from_the_command_line(tmp_path: Path) -> None:
+    """`mergesvc status` and `mergesvc relocalize` against a running service: its one status
+    line and whole reply, a new session of a robot placed in the map (exit 0), a place the map
+    lacks (exit 1), and another fleet, where nothing answers (one line, exit 3)."""
+    import subprocess
+    import sys
+
+    def cli(*args: str, timeout: str = "10") -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "mergesvc.cli", *args, "--connect", net.ep,
+                               "--timeout", timeout], capture_output=True, text=True,
+                              timeout=120)
+
+    with Net(ServiceConfig(fleet=FLEET, store=":memory:")) as net:
+        a = make_submap("a", "s0", 0, n=8, seed=1)
+        net.put(a)
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 1)
+        net.put(moved(a, "b"))  # b merged with a by one factor
+        assert wait_for(lambda: net.svc.stats.submaps_processed == 2)
+        line = cli("status", "--fleet", FLEET)
+        assert line.returncode == 0, line.stderr
+        assert line.stdout.startswith(  # the first submap had nothing to match yet
+            f"fleet {FLEET}: submaps 2 received, 1 merged, 1 without a match, 0 refused"), \
+            line.stdout
+        assert "factors 1 in force" in line.stdout, line.stdout
+        whole = cli("status", "--fleet", FLEET, "--json", "--poses")
+        doc = json.loads(whole.stdout)
+        assert doc["anchor"] == "a/s0" and set(doc["frame_poses"]) == {"a/s0", "b/s0"}
+        bare = json.loads(cli("status", "--fleet", FLEET, "--json").stdout)
+        assert bare["frame_poses"] == {} and bare["submaps"] == doc["submaps"]
+        (tmp_path / "again.json").write_text(moved(a, "a").model_copy(
+            update={"session_id": "s1"}).model_dump_json())
+        found = cli("relocalize", "--fleet", FLEET, "--submap", str(tmp_path / "again.json"))
+        assert found.returncode == 0, found.stderr
+        reply = json.loads(found.stdout)
+        assert reply["localized"] and reply["anchor"] == "a/s0" and reply["matches"] == 8
+        (tmp_path / "elsewhere.json").write_text(make_submap(
+            "a", "s2", 0, n=8, seed=7).model_dump_json())
+        lost = cli("relocalize", "--fleet", FLEET, "--submap", str(tmp_path / "elsewhere.json"))
+        assert lost.returncode == 1 and not json.loads(lost.stdout)["localized"], lost
+        nobody = cli("status", "--fleet", "nofleet", timeout="0.5")
+    assert nobody.returncode == 3 and nobody.stdout == "", nobody
+    (err,) = nobody.stderr.strip().splitlines()
+    assert err.startswith("error: no service of fleet nofleet answered within 0.5 s") and \
+        "mergesvc serve --fleet nofleet" in err, err

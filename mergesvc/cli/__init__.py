@@ -112,7 +112,7 @@ def _main(
 
 for _command in (
     files.match, files.convert, files.example, files.schemas, files.config, fleet.serve,
-    fleet.agent, fleet.demo, fleet.export, view.view,
+    fleet.agent, fleet.demo, fleet.export, fleet.status, fleet.relocalize, view.view,
 ):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")
