@@ -21,7 +21,7 @@ from typing import Annotated
 
 import typer
 
-from mergesvc.cli import bench, files, fleet, projection, solver, view
+from mergesvc.cli import ask, bench, files, fleet, projection, solver, view
 from mergesvc.cli.errors import EXIT_BAD_INPUT, fail, show_tracebacks
 from mergesvc.errors import InputError
 
@@ -112,7 +112,7 @@ def _main(
 
 for _command in (
     files.match, files.convert, files.example, files.schemas, files.config, fleet.serve,
-    fleet.agent, fleet.demo, fleet.export, fleet.status, fleet.relocalize, view.view,
+    fleet.agent, fleet.demo, fleet.export, ask.status, ask.relocalize, view.view,
 ):
     app.command()(_command)
 app.add_typer(bench.app, name="bench")
