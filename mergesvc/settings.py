@@ -27,7 +27,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
 
-from mergesvc.core.config import MatchConfig, match_config
+from mergesvc.core.config import MatchConfig
 from mergesvc.errors import ConfigError
 from mergesvc.fleet.agent import AgentConfig
 from mergesvc.fleet.config import ServiceConfig
@@ -187,11 +187,10 @@ def read_settings_file(path: Path | str, *, bare_match: BareMatch = ("match",)) 
     if keys <= set(SECTIONS):
         return data
     if keys <= _BARE["match"]:  # a whole MatchConfig, as --config/--settings always read it
-        try:  # refused as the tree refuses it: the nearest key to a misspelt one, the file
-            Settings.model_validate({"match": data})
+        try:  # validated where it goes in the tree: a refusal names the nearest key, the file
+            whole = Settings.model_validate({"match": data}).match.model_dump(mode="json")
         except ValidationError as exc:
             raise _config_error(exc, f"settings file {path}") from exc
-        whole = match_config(data).model_dump(mode="json")
         out: dict[str, Any] = {}
         for where in _bare_paths(bare_match):
             _merge(out, _nest(where, copy.deepcopy(whole)))

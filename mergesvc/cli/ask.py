@@ -64,7 +64,7 @@ def status(
     --json its whole status reply (docs/wire.md §11.3)."""
     from mergesvc.fleet.replies import status_line
 
-    with exit_on_error():
+    with exit_on_error(ValueError):  # (a reply that is not JSON)
         _, doc = _ask(mode, connect, config, connect_timeout, fleet,
                       f"status?poses={str(poses).lower()}", None, timeout)
     typer.echo(json.dumps(doc) if as_json else f"fleet {fleet}: {status_line(doc)}")

@@ -119,13 +119,14 @@ def score_demo(plan: DemoPlan, status: dict[str, Any], factors: dict[str, Factor
         "anchor": anchor,
         "latency_ms": status["latency_ms"],
     }
-    summary["trajectory"] = score_trajectories(world, frames, local, status, anchor, out_dir)
+    placed = placed_trajectories(world, frames, status, anchor)
+    summary["trajectory"] = score_trajectories(frames, local, placed, out_dir)
     noise = status.get("noise", {})
     summary["odometry_noise"] = {r: noise[g] for r in ROBOTS if (g := odometry_group(r)) in noise}
     summary["robots_worse"] = robots_worse(summary)
     summary["figure"] = str(plot_merged(
         world, local, poses, anchor, active, out_dir / "merged_map.png",
-        placed_trajectories(world, frames, status, anchor), summary["trajectory"], frames))
+        placed, summary["trajectory"], frames))
     return summary
 
 
@@ -145,8 +146,8 @@ def placed_trajectories(world: Any, frames: dict[str, list[Frame]], status: dict
     return truths, merged
 
 
-def score_trajectories(world: Any, frames: dict[str, list[Frame]],
-                       local: dict[str, LocalMap], status: dict[str, Any], anchor: str,
+def score_trajectories(frames: dict[str, list[Frame]], local: dict[str, LocalMap],
+                       placed: tuple[dict[str, np.ndarray], dict[str, dict[int, Any]]],
                        out_dir: Path) -> dict[str, dict[str, Any]]:
     """Per robot: the ATE of its keyframe trajectory from odometry alone and as the service
     merged it (on the same keyframes: those the service placed; `ate_odometry_all_m` on every
@@ -157,7 +158,8 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
     The odometry-only trajectory is T_est at keyframe 0 and at every keyframe the vehicle cut
     a submap at (replayed with the default agent settings, as the rest of the scoring is).
     The merged one is the service's `keyframe_poses` of the robot's session (in the anchor
-    frame; only keyframes in the anchor's component). Both are aligned to the truth by the
+    frame; only keyframes in the anchor's component): `placed`, `placed_trajectories`' truths
+    and merged keyframes. Both are aligned to the truth by the
     SE(3) Umeyama transform of their positions (evo's `--align`): the ATE measures the
     trajectory's shape, not where its frame sits (that is `alignment`). `final_*`: the last
     keyframe's error after that alignment (final_rot_err_odometry_deg: the same for the
@@ -170,7 +172,7 @@ def score_trajectories(world: Any, frames: dict[str, list[Frame]],
     from mergesvc.core.trajectory import ate_rmse, final_pose_error
     from mergesvc.wire.formats import write_tum
 
-    truths, fleet_poses = placed_trajectories(world, frames, status, anchor)
+    truths, fleet_poses = placed
     tum_dir = out_dir / "trajectories"
     tum_dir.mkdir(parents=True, exist_ok=True)
     out: dict[str, dict[str, Any]] = {}
@@ -356,11 +358,10 @@ def merged_path(merged: dict[int, np.ndarray], est: Sequence[np.ndarray]) -> np.
 
 def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray], anchor: str,
                 factors: list[Factor], path: Path,
-                placed: tuple[dict[str, np.ndarray], dict[str, dict[int, Any]]] | None = None,
-                trajectory: dict[str, Any] | None = None,
-                frames: dict[str, list[Frame]] | None = None) -> Path:
+                placed: tuple[dict[str, np.ndarray], dict[str, dict[int, Any]]],
+                trajectory: dict[str, Any], frames: dict[str, list[Frame]]) -> Path:
     """Left, the fleet in the anchor's frame: each robot's trajectory as the service merged it
-    (`placed`: truths and merged keyframes, `placed_trajectories`; between keyframes, with
+    (`placed`: truths and merged keyframes, `placed_trajectories`; between keyframes, from
     `frames`, the odometry from the last one: a jump where the merge corrected it) over its
     true path (dashed), its objects placed by the merge, the true objects and the factors'
     correspondences. Right, each robot's keyframe ATE from odometry alone and merged, and the
@@ -378,18 +379,15 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
     T_aw = np.linalg.inv(world.robot(a_robot).T_world_start)
     obj = (world.objects_xyz_m @ T_aw[:3, :3].T + T_aw[:3, 3])[:, :2]
     ax.scatter(*obj.T, marker="x", c="0.5", s=30, label="true objects")
-    truths, merged = placed if placed is not None else ({}, {})
+    truths, merged = placed
     spots: dict[tuple[str, str], np.ndarray] = {}
     for r, lm in local.items():
         c = colors.get(r, "k")
-        if r in truths:
-            ax.plot(*truths[r][:, :2, 3].T, lw=0.8, ls="--", color=c, alpha=0.45,
-                    label=f"{r} true path")
-        keys = sorted(merged.get(r, {}))
+        ax.plot(*truths[r][:, :2, 3].T, lw=0.8, ls="--", color=c, alpha=0.45,
+                label=f"{r} true path")
+        keys = sorted(merged[r])
         if keys:
-            est = [f.T_est for f in frames[r]] if frames else None
-            xy = (np.array([merged[r][k][:2, 3] for k in keys]) if est is None else
-                  merged_path(merged[r], est)[:, :2])
+            xy = merged_path(merged[r], [f.T_est for f in frames[r]])[:, :2]
             ax.plot(*xy.T, lw=1.1, color=c, label=f"{r} merged (keyframes + odometry)")
             kf = np.array([merged[r][k][:2, 3] for k in keys])
             ax.scatter(*kf.T, s=14, color=c, marker="o", edgecolors="k", linewidths=0.4)
@@ -412,7 +410,7 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
 
-    rows = (trajectory or {}).get("robots", {})
+    rows = trajectory.get("robots", {})
     names = [r for r in rows if rows[r].get("ate_odometry_m") is not None]
     x = np.arange(len(names))
     odo = [rows[r]["ate_odometry_m"] for r in names]
@@ -426,7 +424,7 @@ def plot_merged(world: Any, local: dict[str, Any], poses: dict[str, np.ndarray],
                     f"{ratio:.2f}x" if ratio is not None else "", (x[i] + 0.2, mrg[i]),
                     ha="center", va="bottom", fontsize=8, rotation=90 if ratio is None else 0)
     ticks = list(names)
-    if (fleet := (trajectory or {}).get("fleet_ate_merged_m")) is not None:
+    if (fleet := trajectory.get("fleet_ate_merged_m")) is not None:
         bx.bar(len(names), fleet, 0.4, color="k", label="fleet, one alignment")
         ticks.append("fleet")
     bx.set_xticks(np.arange(len(ticks)), ticks)
