@@ -29,6 +29,7 @@ from mergesvc.bench.scoring import check_count, peak_rss_mb
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
 from mergesvc.core.search import ExactSearch, map_search
+from mergesvc.errors import InputError
 from mergesvc.sim import DEFAULT_DATA_DIR, DINO_CENTROIDS, load_dino_centroids
 from mergesvc.sim.scale import cut_submap, scale_world
 from mergesvc.wire.mapfile import load_arrays, release_pages, save_arrays
@@ -58,8 +59,6 @@ class ScalePlan:
 
     @classmethod
     def quick(cls, **kw: Any) -> ScalePlan:
-        kw.setdefault("cases", 3)
-        kw.setdefault("repeats", 3)
         return cls({900: (3, 20), 5_000: (3, 20, 200)}, **kw)
 
 
@@ -218,6 +217,12 @@ def run_scale(plan: ScalePlan, echo: Callable[[str], Any] = print,
     }
     ctx = multiprocessing.get_context("spawn")
     start = time.perf_counter()
+    if work_dir is not None:
+        try:
+            Path(work_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot make the work folder {work_dir}: "
+                             f"{exc.strerror or exc}") from exc
     with tempfile.TemporaryDirectory(dir=work_dir) as tmp:
         for n_map, subs in plan.cells.items():
             t = time.perf_counter()

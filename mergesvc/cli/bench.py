@@ -220,7 +220,7 @@ def bench_generalize(
 
 @app.command("scale")
 def bench_scale(
-    quick: Annotated[bool, typer.Option(help="900- and 5,000-object maps (a few minutes)")] = (
+    quick: Annotated[bool, typer.Option(help="900- and 5,000-object maps (under a minute)")] = (
         False),
     repeats: Annotated[int, typer.Option(min=1, help="matches per submap and thread mode")] = 5,
     cases: Annotated[int, typer.Option(min=1, help="submaps per size (up to 100 objects)")] = 5,
