@@ -135,3 +135,31 @@ def test_deterministic(kitti_scenario) -> None:
     a = match(kitti_scenario.map, kitti_scenario.submap).result
     b = match(kitti_scenario.map, kitti_scenario.submap).result
     assert a.matches == b.matches and a.transform == b.transform
+
+
+def _rescaled(objs, pos: float, emb: float = 1.0):
+    """The same objects with positions x pos (another unit) and embeddings x emb (another
+    model's scale; variances x emb^2)."""
+    return objs.model_copy(update={"objects": [o.model_copy(update={
+        "position": tuple(pos * np.asarray(o.position)),
+        "embedding": list(emb * np.asarray(o.embedding)),
+        "variance": (emb**2 * o.variance if np.isscalar(o.variance)
+                     else list(emb**2 * np.asarray(o.variance)))}) for o in objs.objects]})
+
+
+@pytest.mark.parametrize(("family", "seed"), [(Family.KITTI, 0), (Family.KITTI, 4),
+                                              (Family.UNDERWATER, 1), (Family.UNDERWATER, 6)])
+def test_no_length_unit_is_assumed(family: Family, seed: int) -> None:
+    """Positions in millimetres or kilometres give the same matches, and the transform's
+    translation in that unit (nothing is tuned to metres). The embeddings' scale is a known
+    limit of ucos (tests/test_known_limits.py)."""
+    sc = bench_scenario(family, seed)
+    base = match(sc.map, sc.submap).result
+    assert base.accepted
+    pairs = sorted((m.submap_object, m.map_object) for m in base.matches)
+    for pos in (1000.0, 0.001):
+        got = match(_rescaled(sc.map, pos), _rescaled(sc.submap, pos)).result
+        assert got.accepted, (pos, got.reason)
+        assert sorted((m.submap_object, m.map_object) for m in got.matches) == pairs
+        np.testing.assert_allclose(np.asarray(got.transform.translation) / pos,
+                                   base.transform.translation, rtol=1e-6, atol=1e-6)
