@@ -1,7 +1,8 @@
 """Generalization benchmark: a matrix of worlds that do not share the generator's
 assumptions (axis conventions, embedding dimension, map size, look-alikes, duplicates, range
 noise, declared vertical), with verified mode, paper mode and cosine + Hungarian side by side,
-and the neural solver (NGM) in both modes beside the default solver (RRWM); per cell, how
+the neural solver (NGM) in both modes beside the default solver (RRWM), and a peer from its own
+code when it is installed (KISS-Matcher, bench/peers.py); per cell, how
 often each method accepts a submap of a place the map lacks (another world of the cell's kind).
 
 The worlds are simulation (mergesvc.sim: worlds.py builds them gravity-aligned from real data
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mergesvc.bench.peers import KISS_METHOD, kiss_outcome, load_kiss
 from mergesvc.bench.scoring import check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.model import (
@@ -352,6 +354,8 @@ def _run_method(method: str, map_: ObjectMap, sub: Submap, configs: dict[str, Ma
                 ) -> MatchOutcome:
     if method == "cos-hungarian":
         return cosine_hungarian_outcome(map_, sub)
+    if method == KISS_METHOD:
+        return kiss_outcome(map_, sub)
     return match(map_, sub, configs[method])
 
 
@@ -485,7 +489,10 @@ def run_generalize(
     plan.seeds below 1."""
     check_count("seeds", plan.seeds)
     t_start = time.perf_counter()
-    configs = {m: method_config(m, base) for m in plan.methods if m != "cos-hungarian"}
+    configs = {m: method_config(m, base) for m in plan.methods
+               if m not in ("cos-hungarian", KISS_METHOD)}
+    if KISS_METHOD in plan.methods:
+        load_kiss()  # InputError, before any world is built, when the peer is not installed
     data = _Data(Path(plan.data_dir))
     has_up = supports_up()
     report: dict[str, Any] = {

@@ -1,6 +1,6 @@
 """Benchmark harness (`mergesvc bench match`): latency (median and spread over repeats) and
-accuracy of `verified` vs `paper` mode, measured side by side in the same run on seeded
-scenarios.
+accuracy of `verified` vs `paper` mode, and (`peer`) KISS-Matcher run from its own package
+(bench/peers.py), measured side by side in the same run on seeded scenarios.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from mergesvc.bench.fresh import markdown_fresh, run_fresh
+from mergesvc.bench.peers import KISS_METHOD, kiss_outcome, load_kiss
 from mergesvc.bench.scoring import _cpu_count, _spread, check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
@@ -23,12 +24,15 @@ from mergesvc.sim import Family, Scenario, make_scenario
 
 def run_case(
     sc: Scenario, config: MatchConfig, repeats: int, one_thread: list[float] | None = None,
-    one_thread_cpu: list[float] | None = None,
+    one_thread_cpu: list[float] | None = None, peer: dict[str, list] | None = None,
 ) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
     """Run one scenario `repeats` (>= 1, else InputError) times; (scores of the first run,
     totals ms, stage ms; stage "cpu": the process CPU time of each match, ms). With
     `one_thread` (a list), each run is followed by one with the BLAS held to one thread, its
-    total appended there (its CPU time to `one_thread_cpu`): both under the same load."""
+    total appended there (its CPU time to `one_thread_cpu`): both under the same load. With
+    `peer` (a dict), each run is also followed by KISS-Matcher's on the same files, one BLAS
+    thread: its totals to peer["totals"], CPU times to peer["cpu"], its first run's scores
+    to peer["scores"]."""
     check_count("repeats", repeats)
     totals: list[float] = []
     stages: dict[str, list[float]] = {}
@@ -49,6 +53,14 @@ def run_case(
                 if one_thread_cpu is not None:
                     one_thread_cpu.append((time.process_time() - c) * 1e3)
             one_thread.append(one.result.timings_ms["total"])
+        if peer is not None:
+            with threadpool_limits(1):
+                c = time.process_time()
+                theirs = kiss_outcome(sc.map, sc.submap)
+                peer.setdefault("cpu", []).append((time.process_time() - c) * 1e3)
+            peer.setdefault("totals", []).append(theirs.result.timings_ms["total"])
+            if run == 0:
+                peer.setdefault("scores", []).append(score_case(sc, theirs))
     return scores, totals, stages
 
 
@@ -84,9 +96,12 @@ def run_match_bench(
     base: MatchConfig | None = None,
     one_thread: bool = True,
     fresh: int = 0,
+    peer: bool = False,
 ) -> dict[str, Any]:
     """Both modes on `seeds` scenarios per family and affinity; verified mode also with the
-    BLAS held to one thread, interleaved with the default runs (`one_thread`), and (`fresh`
+    BLAS held to one thread, interleaved with the default runs (`one_thread`), KISS-Matcher
+    interleaved with them on the same files (`peer`: results "<family>/kiss-matcher", with the
+    first affinity), and (`fresh`
     > 0) that many times per scenario as the first match of a new `mergesvc match` process
     (bench/fresh.py; report["fresh"]). Paper mode runs
     once per scenario (it takes seconds); verified mode `repeats` times. Every configuration is
@@ -95,6 +110,8 @@ def run_match_bench(
     below 1."""
     check_count("repeats", repeats)
     check_count("seeds", seeds)
+    if peer:
+        load_kiss()  # InputError now, not after the first family, when it is not installed
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": f"{platform.machine()} {platform.processor() or ''} "
@@ -112,6 +129,8 @@ def run_match_bench(
                 rows, totals, stages = [], [], {}
                 single: list[float] | None = [] if (one_thread and not once) else None
                 single_cpu: list[float] = []
+                theirs: dict[str, list] | None = (
+                    {} if peer and name == "verified" and affinity == affinities[0] else None)
                 for seed in range(seeds):
                     sc = scenarios[family, seed]
                     run_cfg = cfg
@@ -119,7 +138,7 @@ def run_match_bench(
                         run_cfg = cfg.model_copy(deep=True)
                         run_cfg.affinity.edge_radius_m = sc.paper_radius_m
                     scores, t, st = run_case(sc, run_cfg, 1 if once else repeats, single,
-                                             single_cpu)
+                                             single_cpu, theirs)
                     rows.append(scores)
                     totals += t
                     for k, v in st.items():
@@ -136,6 +155,9 @@ def run_match_bench(
                 if single:  # the same runs, interleaved, with the BLAS on one thread
                     report["results"][f"{family.value}/{name} (1 thread)/{affinity}"] = \
                         _summary(rows, single, {"cpu": single_cpu})
+                if theirs:  # the peer's runs, interleaved with those
+                    report["results"][f"{family.value}/{KISS_METHOD}"] = _summary(
+                        theirs["scores"], theirs["totals"], {"cpu": theirs["cpu"]})
                 if fresh and name == "verified":
                     cases = [(scenarios[family, s], match(scenarios[family, s].map,
                                                           scenarios[family, s].submap, cfg))
@@ -188,6 +210,17 @@ def markdown_table(report: dict[str, Any]) -> str:
             f"{lat['median']:.1f} ({lat['iqr']:.1f}) [{lat['min']:.1f}-{lat['max']:.1f}] | "
             f"{lat.get('p99', float('nan')):.1f} | {cpu_ms} | {r['runs']} |"
         )
+    ratios = []
+    for key, r in report["results"].items():
+        family, _, method = key.partition("/")
+        ours = next((v for k, v in report["results"].items()
+                     if k.startswith(f"{family}/verified/")), None)
+        if method == KISS_METHOD and ours is not None:
+            ratio = ours["latency_ms"]["median"] / r["latency_ms"]["median"]
+            ratios.append(f"{family} {ratio:.1f}x")
+    if ratios:
+        lines.append("\nmergesvc (verified) p50 / KISS-Matcher p50 in this run: "
+                     + ", ".join(ratios))
     return "\n".join(lines)
 
 

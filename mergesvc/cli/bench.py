@@ -57,6 +57,9 @@ def bench_match(
         list[NodeAffinity] | None,
         typer.Option(help="node affinities to measure (repeat the option); default: all"),
     ] = None,
+    peer: Annotated[bool, typer.Option(
+        help="also run KISS-Matcher from its own package on the same files, interleaved (the "
+        "`peers` extra)")] = False,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
     settings: BenchSettings = None,
 ) -> None:
@@ -68,7 +71,7 @@ def bench_match(
         tree = resolve_settings(settings)
         report = run_match_bench(
             repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
-            one_thread=one_thread, fresh=fresh,
+            one_thread=one_thread, fresh=fresh, peer=peer,
             base=tree.match,
         )
     if out is not None:
@@ -180,13 +183,16 @@ def bench_generalize(
         list[str] | None, typer.Option(help="run only cells whose name contains this (repeat)")
     ] = None,
     paper: Annotated[bool, typer.Option(help="also run paper mode (dense K: slow)")] = True,
+    peer: Annotated[bool | None, typer.Option(
+        help="also run KISS-Matcher from its own package (the `peers` extra); default: when "
+        "it is installed")] = None,
     settings: BenchSettings = None,
 ) -> None:
     """Generalization matrix: real KITTI-00 / DINO-based worlds and the project's generators
     in camera / ENU / NED / random / mixed frames, embedding dims, map sizes, look-alikes,
-    duplicates, range noise, with and without a declared vertical; verified, paper and
-    cosine + Hungarian side by side; and how often each accepts a submap of a place the map
-    lacks (another world's)."""
+    duplicates, range noise, with and without a declared vertical; verified, paper,
+    cosine + Hungarian and KISS-Matcher (when installed) side by side; and how often each
+    accepts a submap of a place the map lacks (another world's)."""
     from rich.progress import Progress
 
     from mergesvc.bench import GeneralizePlan, run_generalize
@@ -203,6 +209,10 @@ def bench_generalize(
                 param_hint="--cell")
     if not paper:
         plan.methods = tuple(m for m in plan.methods if not m.startswith("paper"))
+    from mergesvc.bench.peers import KISS_METHOD, kiss_available
+
+    if peer or (peer is None and kiss_available()):
+        plan.methods = (*plan.methods, KISS_METHOD)
     with exit_on_error():
         tree = resolve_settings(settings)
     with Progress(transient=True) as bar:
