@@ -28,7 +28,7 @@ schemas: $(BIN)/.installed
 	$(BIN)/mergesvc schemas schemas
 
 bench: $(BIN)/.installed
-	$(BIN)/mergesvc bench match --out results/bench_match.json
+	$(BIN)/mergesvc bench match --peer --out results/bench_match.json
 	$(BIN)/mergesvc bench paper --out results/paper
 	$(BIN)/mergesvc bench link --out results/bench_link.json
 	$(BIN)/mergesvc bench uncertainty --out results
