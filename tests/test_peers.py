@@ -11,7 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mergesvc.bench.match import run_match_bench
-from mergesvc.bench.peers import KISS_METHOD, KissSettings, kiss_outcome, load_kiss
+from mergesvc.bench.peers import (
+    KISS_METHOD,
+    MIN_MATCHES,
+    KissSettings,
+    kiss_outcome,
+    load_kiss,
+)
 from mergesvc.bench.scoring import score_case
 from mergesvc.errors import InputError
 from mergesvc.sim import Family, make_scenario
@@ -42,6 +48,31 @@ def test_the_peer_places_a_kitti_like_submap(seed: int) -> None:
         (sc.submap.arrays().ids[i], ids[a]) for i, a in enumerate(outcome.assignment) if a >= 0}
 
 
+def test_one_map_object_takes_one_submap_object() -> None:
+    """A submap object cloned 5 cm away has the same best candidate as its original: only one
+    of the two is matched to that map object."""
+    sc = make_scenario(Family.KITTI, 0)
+    first = next(o for o in sc.submap.objects if sc.truth.get(o.id))
+    twin = first.model_copy(update={"id": f"{first.id}-twin", "position": tuple(
+        x + 0.05 for x in first.position)})
+    sub = sc.submap.model_copy(update={"objects": [*sc.submap.objects, twin]})
+    res = kiss_outcome(sc.map, sub).result
+    got = [m.map_object for m in res.matches]
+    assert res.accepted and sc.truth[first.id] in got
+    assert len(got) == len(set(got))
+    assert sum(m.submap_object in (first.id, twin.id) for m in res.matches) == 1
+
+
+def test_fewer_than_three_matches_are_refused() -> None:
+    """Two right matches are returned but not accepted: no evidence of a place."""
+    sc = make_scenario(Family.KITTI, 0)
+    two = [o for o in sc.submap.objects if sc.truth.get(o.id)][:2]
+    res = kiss_outcome(sc.map, sc.submap.model_copy(update={"objects": two})).result
+    assert MIN_MATCHES == 3 and not res.accepted
+    assert len(res.matches) == 2 and all(sc.truth[m.submap_object] == m.map_object
+                                         for m in res.matches)
+
+
 def test_the_gate_bounds_the_matches() -> None:
     """Every match lies within gate_m of where the peer's transform puts its object; a gate of
     zero leaves none (the transform is not exact), so the answer is refused."""
@@ -61,7 +92,9 @@ def test_the_gate_bounds_the_matches() -> None:
 def test_bench_match_runs_the_peer_beside_ours() -> None:
     lines: list[str] = []
     report = run_match_bench(repeats=2, seeds=1, paper=False, echo=lines.append,
-                             families=(Family.KITTI,), one_thread=False, peer=True)
+                             families=(Family.KITTI,), one_thread=False,
+                             peer=KissSettings(gate_m=7.0))
+    assert report["settings"][KISS_METHOD] == {"top_k": 1, "noise_m": 2.0, "gate_m": 7.0}
     peer = report["results"][f"kitti/{KISS_METHOD}"]
     assert peer["runs"] == 2 and peer["scenarios"] == 1 and peer["accepted"] == 1
     assert peer["node_accuracy"] >= 0.9 and peer["cpu_ms"] is not None
@@ -93,3 +126,8 @@ def test_bench_generalize_scores_the_peer_in_a_cell() -> None:
     assert 0.0 < peer["node_accuracy"]["median"] <= 1.0
     assert "unrelated" in peer and "lacking" in peer  # probed with places the map lacks
     assert f"| {KISS_METHOD} |" in report["markdown"]
+
+
+def test_the_peers_settings_need_the_peer() -> None:
+    r = run_cli("bench", "match", "--peer-top-k", "3", "--seeds", "1")
+    assert r.returncode == 2 and "need --peer" in r.stderr

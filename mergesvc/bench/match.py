@@ -5,6 +5,7 @@ accuracy of `verified` vs `paper` mode, and (`peer`) KISS-Matcher run from its o
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import time
 from collections.abc import Callable
@@ -15,7 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from mergesvc.bench.fresh import markdown_fresh, run_fresh
-from mergesvc.bench.peers import KISS_METHOD, kiss_outcome, load_kiss
+from mergesvc.bench.peers import KISS_METHOD, KissSettings, kiss_outcome, load_kiss
 from mergesvc.bench.scoring import _cpu_count, _spread, check_count, score_case
 from mergesvc.core.config import MatchConfig, match_config
 from mergesvc.core.pipeline import match
@@ -25,14 +26,15 @@ from mergesvc.sim import Family, Scenario, make_scenario
 def run_case(
     sc: Scenario, config: MatchConfig, repeats: int, one_thread: list[float] | None = None,
     one_thread_cpu: list[float] | None = None, peer: dict[str, list] | None = None,
+    peer_settings: KissSettings | None = None,
 ) -> tuple[dict[str, float], list[float], dict[str, list[float]]]:
     """Run one scenario `repeats` (>= 1, else InputError) times; (scores of the first run,
     totals ms, stage ms; stage "cpu": the process CPU time of each match, ms). With
     `one_thread` (a list), each run is followed by one with the BLAS held to one thread, its
     total appended there (its CPU time to `one_thread_cpu`): both under the same load. With
-    `peer` (a dict), each run is also followed by KISS-Matcher's on the same files, one BLAS
-    thread: its totals to peer["totals"], CPU times to peer["cpu"], its first run's scores
-    to peer["scores"]."""
+    `peer` (a dict), each run is also followed by KISS-Matcher's on the same files
+    (`peer_settings`, default KissSettings()), one BLAS thread: its totals to peer["totals"],
+    CPU times to peer["cpu"], its first run's scores to peer["scores"]."""
     check_count("repeats", repeats)
     totals: list[float] = []
     stages: dict[str, list[float]] = {}
@@ -56,7 +58,7 @@ def run_case(
         if peer is not None:
             with threadpool_limits(1):
                 c = time.process_time()
-                theirs = kiss_outcome(sc.map, sc.submap)
+                theirs = kiss_outcome(sc.map, sc.submap, peer_settings)
                 peer.setdefault("cpu", []).append((time.process_time() - c) * 1e3)
             peer.setdefault("totals", []).append(theirs.result.timings_ms["total"])
             if run == 0:
@@ -96,12 +98,12 @@ def run_match_bench(
     base: MatchConfig | None = None,
     one_thread: bool = True,
     fresh: int = 0,
-    peer: bool = False,
+    peer: bool | KissSettings = False,
 ) -> dict[str, Any]:
     """Both modes on `seeds` scenarios per family and affinity; verified mode also with the
     BLAS held to one thread, interleaved with the default runs (`one_thread`), KISS-Matcher
-    interleaved with them on the same files (`peer`: results "<family>/kiss-matcher", with the
-    first affinity), and (`fresh`
+    interleaved with them on the same files (`peer`: True or its settings; results
+    "<family>/kiss-matcher", beside the first affinity's), and (`fresh`
     > 0) that many times per scenario as the first match of a new `mergesvc match` process
     (bench/fresh.py; report["fresh"]). Paper mode runs
     once per scenario (it takes seconds); verified mode `repeats` times. Every configuration is
@@ -110,7 +112,8 @@ def run_match_bench(
     below 1."""
     check_count("repeats", repeats)
     check_count("seeds", seeds)
-    if peer:
+    peer_settings = peer if isinstance(peer, KissSettings) else KissSettings() if peer else None
+    if peer_settings is not None:
         load_kiss()  # InputError now, not after the first family, when it is not installed
     report: dict[str, Any] = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -120,6 +123,8 @@ def run_match_bench(
         "results": {},
         "fresh": {},
     }
+    if peer_settings is not None:
+        report["settings"][KISS_METHOD] = dataclasses.asdict(peer_settings)
     start = time.perf_counter()
     scenarios = {(f, s): bench_scenario(f, s) for f in families for s in range(seeds)}
     for family in families:
@@ -130,7 +135,8 @@ def run_match_bench(
                 single: list[float] | None = [] if (one_thread and not once) else None
                 single_cpu: list[float] = []
                 theirs: dict[str, list] | None = (
-                    {} if peer and name == "verified" and affinity == affinities[0] else None)
+                    {} if peer_settings and name == "verified" and affinity == affinities[0]
+                    else None)
                 for seed in range(seeds):
                     sc = scenarios[family, seed]
                     run_cfg = cfg
@@ -138,7 +144,7 @@ def run_match_bench(
                         run_cfg = cfg.model_copy(deep=True)
                         run_cfg.affinity.edge_radius_m = sc.paper_radius_m
                     scores, t, st = run_case(sc, run_cfg, 1 if once else repeats, single,
-                                             single_cpu, theirs)
+                                             single_cpu, theirs, peer_settings)
                     rows.append(scores)
                     totals += t
                     for k, v in st.items():
@@ -211,16 +217,17 @@ def markdown_table(report: dict[str, Any]) -> str:
             f"{lat.get('p99', float('nan')):.1f} | {cpu_ms} | {r['runs']} |"
         )
     ratios = []
-    for key, r in report["results"].items():
+    ours: dict[str, Any] | None = None
+    for key, r in report["results"].items():  # the peer's row follows those it ran beside
         family, _, method = key.partition("/")
-        ours = next((v for k, v in report["results"].items()
-                     if k.startswith(f"{family}/verified/")), None)
-        if method == KISS_METHOD and ours is not None:
+        if method.startswith("verified"):
+            ours = r  # its 1-thread row, when run, comes last: the peer runs on one thread
+        elif method == KISS_METHOD and ours is not None:
             ratio = ours["latency_ms"]["median"] / r["latency_ms"]["median"]
             ratios.append(f"{family} {ratio:.1f}x")
     if ratios:
-        lines.append("\nmergesvc (verified) p50 / KISS-Matcher p50 in this run: "
-                     + ", ".join(ratios))
+        lines.append("\nmergesvc (verified; 1 thread when run, as the peer) p50 / KISS-Matcher "
+                     "p50 in this run: " + ", ".join(ratios))
     return "\n".join(lines)
 
 

@@ -1,12 +1,14 @@
 """KISS-Matcher (MIT-SPARK, run from its own package: the `peers` extra) as a method beside
-mergesvc's in `bench generalize` and `bench peers`.
+mergesvc's in `bench match --peer` and `bench generalize`.
 
 The peer is given what a user of it would give it: each submap object's most cosine-similar
-map objects as candidate pairs. KISS-Matcher prunes them (ROBIN's max core) and solves the
-transform (GNC-TLS); each submap object is then matched to its candidate lying nearest where
-that transform puts it, within a gate, one map object each. Its answer is accepted when its
-solver calls the transform valid. The settings (`KissSettings`) are the best of a sweep on the
-benchmark's scenarios (docs/benchmarks/peers.md), the peer's best case.
+map objects as candidate pairs (the cosines computed as mergesvc computes its own: float32
+products over the map's cached norms). KISS-Matcher prunes them (ROBIN's max core) and solves
+the transform (GNC-TLS); each submap object is then matched to its candidate lying nearest
+where that transform puts it, within a gate, one map object each. Its answer is accepted when
+its solver calls the transform valid and it holds MIN_MATCHES matches (what a 6-DoF transform
+needs; fewer are no evidence of a place). The default settings (`KissSettings`) are the best of
+a sweep (docs/benchmarks/peers.md).
 """
 
 from __future__ import annotations
@@ -33,13 +35,15 @@ from mergesvc.core.solvers.problem import UNMATCHED
 from mergesvc.errors import InputError
 
 KISS_METHOD = "kiss-matcher"
+MIN_MATCHES = 3
 
 
 @dataclass(frozen=True)
 class KissSettings:
     """top_k: candidate pairs per submap object, by cosine; noise_m: KISS-Matcher's voxel
     size, from which it scales its pruning and solver noise bounds (its clamping at 1 m off);
-    gate_m: how far from where the transform puts a submap object its match may lie."""
+    gate_m: how far from where the transform puts a submap object its match may lie. (`bench
+    match --help` states these defaults.)"""
 
     top_k: int = 1
     noise_m: float = 2.0
@@ -77,7 +81,8 @@ def kiss_outcome(
     m = map_ if isinstance(map_, ObjectArrays) else map_.arrays()
     s = sub if isinstance(sub, ObjectArrays) else sub.arrays()
     t0 = clock()
-    S = s.unit_embeddings_nd @ m.unit_embeddings_nd.T
+    norms = np.where(m.norms_n > 0, m.norms_n, 1.0)
+    S = (s.unit_rows().astype(np.float32) @ m.embeddings_nd.T) / norms[None, :]
     k = min(cfg.top_k, m.n)
     top = np.argpartition(-S, k - 1, axis=1)[:, :k]
     rows, cols = np.repeat(np.arange(s.n), k), top.ravel()
@@ -105,7 +110,7 @@ def kiss_outcome(
     hit = np.flatnonzero(assignment != UNMATCHED)
     matches = [Match(submap_object=s.ids[i], map_object=m.ids[int(assignment[i])],
                      score=round(float(S[i, assignment[i]]), 6)) for i in hit.tolist()]
-    accepted = bool(sol.valid) and bool(matches)
+    accepted = bool(sol.valid) and len(matches) >= MIN_MATCHES
     result = MatchResult(
         accepted=accepted,
         reason=RejectReason.VERIFIED if accepted else RejectReason.TOO_FEW_MATCHES,
@@ -114,4 +119,5 @@ def kiss_outcome(
     return MatchOutcome(result=result, assignment=assignment, proposed=assignment.copy())
 
 
-__all__ = ["KISS_METHOD", "KissSettings", "kiss_available", "kiss_outcome", "load_kiss"]
+__all__ = ["KISS_METHOD", "MIN_MATCHES", "KissSettings", "kiss_available", "kiss_outcome",
+           "load_kiss"]

@@ -60,6 +60,15 @@ def bench_match(
     peer: Annotated[bool, typer.Option(
         help="also run KISS-Matcher from its own package on the same files, interleaved (the "
         "`peers` extra)")] = False,
+    peer_top_k: Annotated[int | None, typer.Option(
+        min=1, help="the peer's candidate pairs per submap object, by cosine [default: 1]")
+    ] = None,
+    peer_noise_m: Annotated[float | None, typer.Option(
+        min=1e-3, help="the peer's voxel size, which scales its noise bounds, m [default: 2]")
+    ] = None,
+    peer_gate_m: Annotated[float | None, typer.Option(
+        min=0.0, help="how far from where the peer's transform puts an object its match may "
+        "lie, m [default: 6]")] = None,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON here")] = None,
     settings: BenchSettings = None,
 ) -> None:
@@ -71,7 +80,8 @@ def bench_match(
         tree = resolve_settings(settings)
         report = run_match_bench(
             repeats=repeats, seeds=seeds, paper=paper, echo=typer.echo, affinities=kinds,
-            one_thread=one_thread, fresh=fresh, peer=peer,
+            one_thread=one_thread, fresh=fresh,
+            peer=_peer_settings(peer, peer_top_k, peer_noise_m, peer_gate_m),
             base=tree.match,
         )
     if out is not None:
@@ -79,6 +89,21 @@ def bench_match(
         out.write_text(json.dumps(report, indent=1))
         write_settings_beside(tree, out, folder=False)
         typer.echo(f"wrote {out}")
+
+
+def _peer_settings(peer: bool, top_k: int | None, noise_m: float | None,
+                   gate_m: float | None) -> Any:
+    """KissSettings with the options given (False without --peer; an option without it is an
+    error)."""
+    from mergesvc.bench.peers import KissSettings
+
+    given = {k: v for k, v in (("top_k", top_k), ("noise_m", noise_m), ("gate_m", gate_m))
+             if v is not None}
+    if not peer:
+        if given:
+            raise typer.BadParameter("the peer's settings need --peer", param_hint="--peer")
+        return False
+    return dataclasses.replace(KissSettings(), **given)
 
 
 @app.command("paper")
