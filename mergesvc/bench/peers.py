@@ -32,6 +32,7 @@ from mergesvc.core.model import (
 )
 from mergesvc.core.pipeline import MatchOutcome
 from mergesvc.core.solvers.problem import UNMATCHED
+from mergesvc.core.threads import blas_threads
 from mergesvc.errors import InputError
 
 KISS_METHOD = "kiss-matcher"
@@ -80,6 +81,12 @@ def kiss_outcome(
     cfg = settings or KissSettings()
     m = map_ if isinstance(map_, ObjectArrays) else map_.arrays()
     s = sub if isinstance(sub, ObjectArrays) else sub.arrays()
+    with blas_threads(s.n * m.n):  # the BLAS threads mergesvc's own match would use
+        return _kiss(km, m, s, cfg, clock)
+
+
+def _kiss(km: Any, m: ObjectArrays, s: ObjectArrays, cfg: KissSettings,
+          clock: Callable[[], float]) -> MatchOutcome:
     t0 = clock()
     norms = np.where(m.norms_n > 0, m.norms_n, 1.0)
     S = (s.unit_rows().astype(np.float32) @ m.embeddings_nd.T) / norms[None, :]
